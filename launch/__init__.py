@@ -1,0 +1,1 @@
+"""What a person runs: the `sygrid` command, the demo, and the configuration files of cells and datasets."""

@@ -1,0 +1,55 @@
+"""The ``sygrid`` command. Each subcommand lives in its own module and is imported only when it runs, so
+``sygrid --help`` stays fast and a missing optional dependency only breaks the command that needs it."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from sygrid.errors import SygridError
+
+# name -> (module, one-line help). The module provides add_arguments(parser) and run(args) -> int.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("launch.demo", "run the main job on built-in defaults"),
+    "drop": ("launch.drop", "drop the parts of a scene into its bin and write their poses"),
+    "parts": ("launch.parts", "list the built-in parts, or export one as a mesh"),
+    "bench": ("launch.bench", "run a benchmark and write its JSON and chart"),
+    "sim": ("sim.server", "serve a simulated UR5e cell that ur_rtde clients can drive"),
+}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The full parser; only ``command``'s module is imported, to add its own arguments."""
+    parser = argparse.ArgumentParser(prog="sygrid", description=__doc__.split("\n")[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module_name, help_text) in SUBCOMMANDS.items():
+        sub_parser = sub.add_parser(name, help=help_text, description=help_text)
+        if name == command:
+            module = importlib.import_module(module_name)
+            module.add_arguments(sub_parser)
+            sub_parser.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    command = next((a for a in argv if a in SUBCOMMANDS), None)
+    args = build_parser(command).parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        return int(args._run(args) or 0)
+    except SygridError as exc:
+        print(f"sygrid {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"sygrid {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
