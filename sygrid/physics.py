@@ -1,0 +1,312 @@
+"""The MuJoCo drop: instances spawned without overlap above the bin fall and settle; one ``T_world_obj`` each.
+
+The SyGRID paper drops its parts with pybullet; we use MuJoCo, which the simulated cell uses too, so a pile that the
+generator renders and a pile that the robot picks from are made by the same physics. The scene frame ("world")
+has its origin at the centre of the bin's inner floor, z up.
+
+Contact parameters are chosen for small steel parts: with MuJoCo's default ``solref`` (0.02 s time constant) a
+20 g nut sinks 10-17 mm into the floor on impact and can tunnel through a wall. A time constant of two timesteps,
+critically damped, set on every geom, keeps penetration at rest well under 0.5 mm (platform notes).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sygrid.errors import DropError
+from sygrid.objects.collision import CollisionModel
+from sygrid.objects.model import ObjectModel
+from sygrid.scene import ContainerSpec, PhysicsSpec
+
+log = logging.getLogger(__name__)
+
+# Spawning: each instance gets a bounding sphere; spheres never overlap, so meshes cannot touch at t=0.
+_SPAWN_CANDIDATES = 24
+_SPAWN_FLOOR_GAP_M = 0.005
+_MAX_SPAWN_HEIGHT_M = 3.0
+# Settling: speeds are checked every few steps and must stay below the thresholds for this long.
+_SETTLE_CHECK_EVERY_STEPS = 10
+_SETTLE_HOLD_S = 0.1
+_MIN_SIM_TIME_S = 0.2
+_FLOOR_THICKNESS_M = 0.02
+_INSIDE_TOLERANCE_M = 0.002
+_SLEEP_TOLERANCE = 0.01  # MuJoCo's velocity threshold (scaled by body size) below which an island may sleep
+
+
+@dataclass(frozen=True)
+class Instance:
+    """One part in the pile: which model (index into the drop's model list) and its instance number."""
+
+    model_index: int
+    inst_id: int
+
+
+@dataclass
+class StabilityReport:
+    """What the drop checked about the final pile."""
+
+    settled: bool
+    sim_time_s: float
+    wall_time_s: float
+    max_penetration_m: float
+    escaped: list[int] = field(default_factory=list)
+    non_finite: list[int] = field(default_factory=list)
+    max_linear_speed_m_s: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return not self.escaped and not self.non_finite
+
+    def to_json(self) -> dict:
+        return {
+            "settled": self.settled,
+            "sim_time_s": self.sim_time_s,
+            "wall_time_s": self.wall_time_s,
+            "max_penetration_m": self.max_penetration_m,
+            "escaped": list(self.escaped),
+            "non_finite": list(self.non_finite),
+            "max_linear_speed_m_s": self.max_linear_speed_m_s,
+        }
+
+
+@dataclass
+class DropResult:
+    """Final poses ``T_world_obj`` (n, 4, 4) of every instance, in the scene frame, and the stability report."""
+
+    models: list[ObjectModel]
+    instances: list[Instance]
+    T_world_obj: np.ndarray
+    report: StabilityReport
+
+
+def sample_spawn_poses(
+    radii_m: np.ndarray, container: ContainerSpec, clearance_m: float, rng: np.random.Generator
+) -> np.ndarray:
+    """(n, 4, 4) non-overlapping spawn poses above the bin floor, packed low: each instance takes the lowest of
+    several random footprint positions at which its bounding sphere clears every sphere placed before it."""
+    half_x, half_y = container.inner_size_m[0] / 2, container.inner_size_m[1] / 2
+    centres = np.zeros((len(radii_m), 3))
+    padded = np.asarray(radii_m) + clearance_m
+    for i, r in enumerate(padded):
+        xy = rng.uniform(
+            [-max(half_x - r, 0.0), -max(half_y - r, 0.0)],
+            [max(half_x - r, 0.0), max(half_y - r, 0.0)],
+            size=(_SPAWN_CANDIDATES, 2),
+        )
+        z = np.full(_SPAWN_CANDIDATES, r + _SPAWN_FLOOR_GAP_M)
+        if i:
+            reach = r + padded[:i]  # (i,)
+            d2 = ((xy[:, None, :] - centres[None, :i, :2]) ** 2).sum(-1)  # (candidates, i)
+            lift = np.sqrt(np.clip(reach[None, :] ** 2 - d2, 0.0, None))
+            z = np.maximum(z, np.where(d2 < reach[None, :] ** 2, centres[None, :i, 2] + lift, 0.0).max(1))
+        best = int(np.argmin(z))
+        centres[i] = [*xy[best], z[best] + 1e-6]
+        if centres[i, 2] > _MAX_SPAWN_HEIGHT_M:
+            raise DropError(
+                f"cannot spawn instance {i}: the column of parts above the bin is over {_MAX_SPAWN_HEIGHT_M} m "
+                f"high. Try 1. fewer instances, 2. a larger container.inner_size_m (now "
+                f"{list(container.inner_size_m)}), or 3. smaller parts."
+            )
+    poses = np.tile(np.eye(4), (len(radii_m), 1, 1))
+    poses[:, :3, :3] = Rotation.random(len(radii_m), random_state=rng).as_matrix()
+    poses[:, :3, 3] = centres
+    return poses
+
+
+def build_drop_spec(
+    models: list[ObjectModel],
+    collision: list[CollisionModel],
+    instances: list[Instance],
+    T_world_obj: np.ndarray,
+    container: ContainerSpec,
+    physics: PhysicsSpec,
+) -> mujoco.MjSpec:
+    """An MjSpec with the bin (static boxes) and one free body per instance, its geoms from the collision model
+    and its mass and inertia from the true mesh (a collision hull would fill the holes and overstate both)."""
+    spec = mujoco.MjSpec()
+    spec.option.timestep = physics.timestep_s
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    # Island sleeping: parts at rest stop costing collision and solver time while the rest of the pile settles.
+    spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
+    spec.option.sleep_tolerance = _SLEEP_TOLERANCE
+    solref = [2 * physics.timestep_s, 1.0]
+    friction = [physics.friction, 0.005, 0.0001]
+    _add_container(spec, container, solref, friction)
+
+    geoms_per_model = [c.to_mujoco_geoms() for c in collision]
+    for k, geoms in enumerate(geoms_per_model):
+        for g, geom in enumerate(geoms):
+            if geom["type"] == "mesh":
+                spec.add_mesh(name=f"m{k}_{g}", uservert=geom["vertices"].reshape(-1).tolist())
+
+    for n, inst in enumerate(instances):
+        T = T_world_obj[n]
+        body = spec.worldbody.add_body(name=f"inst{n}", pos=T[:3, 3].tolist(), quat=_quat_wxyz(T[:3, :3]).tolist())
+        body.add_freejoint()
+        body.explicitinertial = True
+        mass, com, inertia = _mass_properties(models[inst.model_index])
+        body.mass, body.ipos, body.fullinertia = mass, com.tolist(), inertia.tolist()
+        for g, geom in enumerate(geoms_per_model[inst.model_index]):
+            is_mesh = geom["type"] == "mesh"
+            body.add_geom(
+                type=_GEOM_TYPES[geom["type"]],
+                meshname=f"m{inst.model_index}_{g}" if is_mesh else "",
+                size=[*geom["size"], 0.0, 0.0, 0.0][:3],
+                pos=geom["pos"].tolist(),
+                quat=geom["quat"].tolist(),
+                solref=solref,
+                friction=friction,
+                mass=0,
+            )
+    return spec
+
+
+def simulate_drop(
+    models: list[ObjectModel],
+    collision: list[CollisionModel],
+    instances: list[Instance],
+    container: ContainerSpec,
+    physics: PhysicsSpec,
+    rng: np.random.Generator,
+) -> DropResult:
+    """Spawns, simulates until settled or ``physics.max_time_s``, and checks the pile."""
+    start = time.perf_counter()
+    radii = np.array([models[i.model_index].diameter_m / 2 for i in instances])
+    T_spawn = sample_spawn_poses(radii, container, physics.spawn_clearance_m, rng)
+    spec = build_drop_spec(models, collision, instances, T_spawn, container, physics)
+    mj_model = spec.compile()
+    data = mujoco.MjData(mj_model)
+    mujoco.mj_forward(mj_model, data)
+    _check_no_initial_contact(mj_model, data)
+
+    settled, hold_steps = False, 0
+    need_hold = max(1, round(_SETTLE_HOLD_S / physics.timestep_s / _SETTLE_CHECK_EVERY_STEPS))
+    max_steps = round(physics.max_time_s / physics.timestep_s)
+    min_steps = round(_MIN_SIM_TIME_S / physics.timestep_s)
+    lin_speed = 0.0
+    for step in range(0, max_steps, _SETTLE_CHECK_EVERY_STEPS):
+        mujoco.mj_step(mj_model, data, nstep=_SETTLE_CHECK_EVERY_STEPS)
+        qvel = data.qvel.reshape(-1, 6)  # free joints only: linear (world) then angular (body) velocity
+        lin_speed = float(np.linalg.norm(qvel[:, :3], axis=1).max(initial=0.0))
+        ang_speed = float(np.linalg.norm(qvel[:, 3:], axis=1).max(initial=0.0))
+        calm = lin_speed < physics.settle_linear_speed_m_s and ang_speed < physics.settle_angular_speed_rad_s
+        hold_steps = hold_steps + 1 if calm else 0
+        if hold_steps >= need_hold and step >= min_steps:
+            settled = True
+            break
+        if not np.all(np.isfinite(data.qpos)):
+            break
+
+    T_world_obj = _body_poses(data, len(instances))
+    # Sleeping bodies skip collision detection: wake everything to measure the penetration of the final pile.
+    mj_model.opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+    mujoco.mj_forward(mj_model, data)
+    report = StabilityReport(
+        settled=settled,
+        sim_time_s=float(data.time),
+        wall_time_s=time.perf_counter() - start,
+        max_penetration_m=_max_penetration(data),
+        escaped=_escaped(T_world_obj, container),
+        non_finite=[n for n in range(len(instances)) if not np.all(np.isfinite(T_world_obj[n]))],
+        max_linear_speed_m_s=lin_speed,
+    )
+    if not settled:
+        log.warning("the pile did not settle within %.2f s of simulated time", physics.max_time_s)
+    if report.escaped:
+        log.warning("instances %s left the bin", report.escaped)
+    if report.max_penetration_m > physics.max_penetration_m:
+        log.warning(
+            "penetration at rest %.2f mm is above the bound %.2f mm",
+            report.max_penetration_m * 1e3, physics.max_penetration_m * 1e3,
+        )  # fmt: skip
+    return DropResult(list(models), list(instances), T_world_obj, report)
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+_GEOM_TYPES = {
+    "box": mujoco.mjtGeom.mjGEOM_BOX,
+    "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
+    "mesh": mujoco.mjtGeom.mjGEOM_MESH,
+}
+
+
+def _add_container(spec: mujoco.MjSpec, c: ContainerSpec, solref: list[float], friction: list[float]) -> None:
+    sx, sy, sz = (s / 2 for s in c.inner_size_m)
+    t = c.wall_thickness_m / 2
+    boxes = {
+        "bin_floor": ([0, 0, -_FLOOR_THICKNESS_M / 2], [sx + 2 * t, sy + 2 * t, _FLOOR_THICKNESS_M / 2]),
+        "bin_wall_xp": ([sx + t, 0, sz], [t, sy + 2 * t, sz]),
+        "bin_wall_xn": ([-sx - t, 0, sz], [t, sy + 2 * t, sz]),
+        "bin_wall_yp": ([0, sy + t, sz], [sx, t, sz]),
+        "bin_wall_yn": ([0, -sy - t, sz], [sx, t, sz]),
+    }
+    for name, (pos, half) in boxes.items():
+        spec.worldbody.add_geom(
+            name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=pos, size=half, solref=solref, friction=friction
+        )
+
+
+def _mass_properties(model: ObjectModel) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mass (kg), centre of mass (m) and full inertia [ixx, iyy, izz, ixy, ixz, iyz] about it (kg m^2)."""
+    mesh = model.mesh
+    if mesh.is_volume:
+        props = mesh.mass_properties
+        volume, com, inertia = float(props["volume"]), np.asarray(props["center_mass"]), props["inertia"]
+    else:  # an open CAD mesh has no inside: use its convex hull
+        hull = mesh.convex_hull
+        volume, com, inertia = float(hull.volume), np.asarray(hull.center_mass), hull.moment_inertia
+    scale = model.density_kg_m3  # trimesh's inertia is for unit density
+    inertia = np.asarray(inertia) * scale
+    full = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
+    return volume * scale, com, np.array(full)
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
+
+
+def _check_no_initial_contact(mj_model: mujoco.MjModel, data: mujoco.MjData) -> None:
+    overlapping = [
+        (int(data.contact.geom1[i]), int(data.contact.geom2[i]))
+        for i in range(data.ncon)
+        if data.contact.dist[i] < 0
+    ]
+    if overlapping:
+        g1, g2 = overlapping[0]
+        raise DropError(
+            f"{len(overlapping)} contacts at t=0 (first: geom {mj_model.geom(g1).name or g1} with "
+            f"{mj_model.geom(g2).name or g2}); spawning overlapping parts throws them out of the bin. "
+            "This is a bug in the spawner: please report it with the scene and seed."
+        )
+
+
+def _body_poses(data: mujoco.MjData, n: int) -> np.ndarray:
+    qpos = data.qpos.reshape(n, 7)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, 3] = qpos[:, :3]
+    quat_xyzw = qpos[:, [4, 5, 6, 3]]
+    finite = np.all(np.isfinite(quat_xyzw), axis=1) & (np.linalg.norm(quat_xyzw, axis=1) > 0)
+    T[finite, :3, :3] = Rotation.from_quat(quat_xyzw[finite]).as_matrix()
+    T[~finite] = np.nan
+    return T
+
+
+def _max_penetration(data: mujoco.MjData) -> float:
+    if data.ncon == 0:
+        return 0.0
+    return float(max(0.0, -data.contact.dist[: data.ncon].min()))
+
+
+def _escaped(T_world_obj: np.ndarray, c: ContainerSpec) -> list[int]:
+    half = np.array(c.inner_size_m[:2]) / 2 + _INSIDE_TOLERANCE_M
+    p = T_world_obj[:, :3, 3]
+    outside = (np.abs(p[:, :2]) > half).any(axis=1) | (p[:, 2] < -_INSIDE_TOLERANCE_M)
+    return [int(i) for i in np.flatnonzero(outside | ~np.isfinite(p).all(axis=1))]
