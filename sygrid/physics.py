@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from sygrid.errors import DropError
+from sygrid.mjspec import add_open_box, add_part_body
 from sygrid.objects.collision import CollisionModel
 from sygrid.objects.model import ObjectModel
 from sygrid.scene import ContainerSpec, PhysicsSpec
@@ -137,33 +138,13 @@ def build_drop_spec(
     spec.option.sleep_tolerance = _SLEEP_TOLERANCE
     solref = [2 * physics.timestep_s, 1.0]
     friction = [physics.friction, 0.005, 0.0001]
-    _add_container(spec, container, solref, friction)
-
-    geoms_per_model = [c.to_mujoco_geoms() for c in collision]
-    for k, geoms in enumerate(geoms_per_model):
-        for g, geom in enumerate(geoms):
-            if geom["type"] == "mesh":
-                spec.add_mesh(name=f"m{k}_{g}", uservert=geom["vertices"].reshape(-1).tolist())
-
+    add_open_box(
+        spec.worldbody, "bin", np.eye(4), container.inner_size_m, container.wall_thickness_m, _FLOOR_THICKNESS_M,
+        solref, friction,
+    )  # fmt: skip
     for n, inst in enumerate(instances):
-        T = T_world_obj[n]
-        body = spec.worldbody.add_body(name=f"inst{n}", pos=T[:3, 3].tolist(), quat=_quat_wxyz(T[:3, :3]).tolist())
-        body.add_freejoint()
-        body.explicitinertial = True
-        mass, com, inertia = _mass_properties(models[inst.model_index])
-        body.mass, body.ipos, body.fullinertia = mass, com.tolist(), inertia.tolist()
-        for g, geom in enumerate(geoms_per_model[inst.model_index]):
-            is_mesh = geom["type"] == "mesh"
-            body.add_geom(
-                type=_GEOM_TYPES[geom["type"]],
-                meshname=f"m{inst.model_index}_{g}" if is_mesh else "",
-                size=[*geom["size"], 0.0, 0.0, 0.0][:3],
-                pos=geom["pos"].tolist(),
-                quat=geom["quat"].tolist(),
-                solref=solref,
-                friction=friction,
-                mass=0,
-            )
+        model, coll = models[inst.model_index], collision[inst.model_index]
+        add_part_body(spec, f"inst{n}", model, coll, T_world_obj[n], solref, friction)
     return spec
 
 
@@ -229,49 +210,6 @@ def simulate_drop(
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-
-_GEOM_TYPES = {
-    "box": mujoco.mjtGeom.mjGEOM_BOX,
-    "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
-    "mesh": mujoco.mjtGeom.mjGEOM_MESH,
-}
-
-
-def _add_container(spec: mujoco.MjSpec, c: ContainerSpec, solref: list[float], friction: list[float]) -> None:
-    sx, sy, sz = (s / 2 for s in c.inner_size_m)
-    t = c.wall_thickness_m / 2
-    boxes = {
-        "bin_floor": ([0, 0, -_FLOOR_THICKNESS_M / 2], [sx + 2 * t, sy + 2 * t, _FLOOR_THICKNESS_M / 2]),
-        "bin_wall_xp": ([sx + t, 0, sz], [t, sy + 2 * t, sz]),
-        "bin_wall_xn": ([-sx - t, 0, sz], [t, sy + 2 * t, sz]),
-        "bin_wall_yp": ([0, sy + t, sz], [sx, t, sz]),
-        "bin_wall_yn": ([0, -sy - t, sz], [sx, t, sz]),
-    }
-    for name, (pos, half) in boxes.items():
-        spec.worldbody.add_geom(
-            name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=pos, size=half, solref=solref, friction=friction
-        )
-
-
-def _mass_properties(model: ObjectModel) -> tuple[float, np.ndarray, np.ndarray]:
-    """Mass (kg), centre of mass (m) and full inertia [ixx, iyy, izz, ixy, ixz, iyz] about it (kg m^2)."""
-    mesh = model.mesh
-    if mesh.is_volume:
-        props = mesh.mass_properties
-        volume, com, inertia = float(props["volume"]), np.asarray(props["center_mass"]), props["inertia"]
-    else:  # an open CAD mesh has no inside: use its convex hull
-        hull = mesh.convex_hull
-        volume, com, inertia = float(hull.volume), np.asarray(hull.center_mass), hull.moment_inertia
-    scale = model.density_kg_m3  # trimesh's inertia is for unit density
-    inertia = np.asarray(inertia) * scale
-    full = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
-    return volume * scale, com, np.array(full)
-
-
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return np.array([w, x, y, z])
-
 
 def _check_no_initial_contact(mj_model: mujoco.MjModel, data: mujoco.MjData) -> None:
     overlapping = [

@@ -47,7 +47,7 @@ LINK_NAMES = ("shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link",
 
 _TWO_PI = 2.0 * math.pi
 #: (6, 2) lower/upper position limits (rad): +-2 pi on every joint, the elbow +-pi (it would hit itself beyond).
-JOINT_LIMITS_RAD = np.array([[-_TWO_PI, _TWO_PI]] * 3 + [[-_TWO_PI, _TWO_PI]] * 3)
+JOINT_LIMITS_RAD = np.array([[-_TWO_PI, _TWO_PI]] * 6)
 JOINT_LIMITS_RAD[2] = [-math.pi, math.pi]
 #: Maximum joint speed (rad/s), every joint.
 MAX_JOINT_SPEED_RAD_S = np.full(NUM_JOINTS, 3.14)

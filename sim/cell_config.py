@@ -1,0 +1,87 @@
+"""The simulated cell's layout and settings: where the robot, bin, tray and cameras are, and the controller gain."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sygrid.camera import CameraIntrinsics
+from sygrid.errors import ConfigError
+from sygrid.transforms import is_rigid, make_T
+
+
+def _default_camera_pose() -> np.ndarray:
+    """0.9 m above the bin floor, looking straight down (camera x along world x, image top towards +y)."""
+    return make_T(np.diag([1.0, -1.0, -1.0]), (-0.5, 0.0, 0.92))
+
+
+@dataclass(frozen=True, eq=False)
+class CellConfig:
+    """Layout and settings of the cell. Lengths in metres; poses are 4x4 in the world frame (table top, z up).
+
+    ``T_world_bin`` and ``T_world_tray`` are the centres of the inner floors. Camera intrinsics must be the kind a
+    MuJoCo camera renders: square pixels, principal point at the image centre (``CameraIntrinsics.from_fov``).
+    """
+
+    timestep_s: float = 0.002
+    table_height_m: float = 0.75
+    table_size_xy_m: tuple[float, float] = (1.2, 1.2)
+    table_center_xy_m: tuple[float, float] = (-0.3, -0.1)
+    T_world_base: np.ndarray = field(default_factory=lambda: np.eye(4))
+    T_world_bin: np.ndarray = field(default_factory=lambda: make_T(t=(-0.5, 0.0, 0.02)))
+    bin_inner_size_m: tuple[float, float, float] = (0.30, 0.20, 0.12)
+    bin_wall_thickness_m: float = 0.01
+    bin_floor_thickness_m: float = 0.02
+    T_world_tray: np.ndarray = field(default_factory=lambda: make_T(t=(-0.2, -0.42, 0.005)))
+    tray_inner_size_m: tuple[float, float, float] = (0.24, 0.16, 0.03)
+    tray_wall_thickness_m: float = 0.005
+    tray_floor_thickness_m: float = 0.005
+    T_world_camera: np.ndarray = field(default_factory=_default_camera_pose)
+    camera_intrinsics: CameraIntrinsics = field(default_factory=lambda: CameraIntrinsics.from_fov(640, 480, 45.0))
+    wrist_camera: bool = False
+    T_flange_wrist_camera: np.ndarray = field(default_factory=lambda: make_T(t=(0.0, -0.065, 0.03)))
+    wrist_camera_intrinsics: CameraIntrinsics = field(default_factory=lambda: CameraIntrinsics.from_fov(640, 480, 60.0))
+    #: Closed-loop bandwidth of the arm's computed-torque controller (rad/s); Kp = w^2, Kd = 2 w.
+    arm_bandwidth_rad_s: float = 100.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.timestep_s <= 0.01:
+            raise ConfigError(f"CellConfig.timestep_s must be in (0, 0.01] s, got {self.timestep_s}")
+        for name in ("T_world_base", "T_world_bin", "T_world_tray", "T_world_camera", "T_flange_wrist_camera"):
+            value = np.array(getattr(self, name), dtype=float)  # a private, read-only copy
+            if not is_rigid(value):
+                raise ConfigError(f"CellConfig.{name} must be a 4x4 rigid transform, got {value.tolist()}")
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
+        sizes = {
+            "table_height_m": (self.table_height_m,),
+            "table_size_xy_m": self.table_size_xy_m,
+            "bin_inner_size_m": self.bin_inner_size_m,
+            "bin_wall_thickness_m": (self.bin_wall_thickness_m,),
+            "bin_floor_thickness_m": (self.bin_floor_thickness_m,),
+            "tray_inner_size_m": self.tray_inner_size_m,
+            "tray_wall_thickness_m": (self.tray_wall_thickness_m,),
+            "tray_floor_thickness_m": (self.tray_floor_thickness_m,),
+        }
+        for name, values in sizes.items():
+            if min(values) <= 0:
+                raise ConfigError(f"CellConfig.{name} must be > 0, got {values}")
+        for name in ("camera_intrinsics", "wrist_camera_intrinsics"):
+            _check_mujoco_intrinsics(f"CellConfig.{name}", getattr(self, name))
+        if not 0.0 < self.arm_bandwidth_rad_s * self.timestep_s <= 0.5:
+            raise ConfigError(
+                f"CellConfig.arm_bandwidth_rad_s * timestep_s must be in (0, 0.5] for a stable controller, got "
+                f"{self.arm_bandwidth_rad_s} * {self.timestep_s}"
+            )
+
+
+def _check_mujoco_intrinsics(name: str, K: CameraIntrinsics) -> None:
+    square = abs(K.fx - K.fy) <= 1e-6 * K.fx
+    centred = abs(K.cx - (K.width - 1) / 2) <= 0.01 and abs(K.cy - (K.height - 1) / 2) <= 0.01
+    if not (square and centred):
+        raise ConfigError(
+            f"{name}: a MuJoCo camera renders square pixels with the principal point at the image centre "
+            f"(CameraIntrinsics.from_fov); got fx={K.fx}, fy={K.fy}, cx={K.cx}, cy={K.cy} for "
+            f"{K.width}x{K.height} (centre {(K.width - 1) / 2}, {(K.height - 1) / 2})"
+        )

@@ -1,0 +1,161 @@
+"""The static cell as an MjSpec: options, table, bin, tray, the UR5e placed from its DH parameters with its
+gripper, and the cameras. ``sim.world.CellWorld`` compiles it and adds the parts."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from sim import gripper_model
+from sim.cell_config import CellConfig
+from sygrid.mjspec import add_open_box, quat_wxyz
+from sygrid.robots import ur5e
+from sygrid.robots.kinematics import dh_transforms
+
+ARM_BODY_NAMES = ur5e.LINK_NAMES
+FLANGE_SITE = "flange"
+OVERHEAD_CAMERA = "overhead"
+WRIST_CAMERA = "wrist"
+_ENV_FRICTION = (0.5, 0.005, 0.0001)
+_ARM_RGBA = (0.75, 0.76, 0.78, 1.0)
+_JOINT_ARMATURE = (0.1, 0.1, 0.1, 0.05, 0.05, 0.05)  # reflected rotor inertia, kg m^2
+_JOINT_DAMPING = (1.0, 1.0, 1.0, 0.2, 0.2, 0.2)  # N m s/rad (compensated by the controller)
+
+
+def build_cell_spec(config: CellConfig) -> tuple[mujoco.MjSpec, gripper_model.GripperNames]:
+    """The MjSpec of the cell without parts: options, table, bin, tray, the arm with its gripper, cameras."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "sygrid_cell"
+    spec.compiler.degree = False  # joint ranges in radians
+    spec.option.timestep = config.timestep_s
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # with impratio: grasps hold without creeping
+    spec.option.impratio = 10.0
+    spec.stat.extent = 2.0  # fixes the clip planes: znear 0.02 m, zfar 100 m whatever parts are added
+    spec.stat.center = [-0.3, 0.0, 0.3]
+    spec.visual.map.znear = 0.01
+    spec.visual.quality.offsamples = 0
+    max_w = max(config.camera_intrinsics.width, config.wrist_camera_intrinsics.width, 1280)
+    max_h = max(config.camera_intrinsics.height, config.wrist_camera_intrinsics.height, 960)
+    spec.visual.global_.offwidth, spec.visual.global_.offheight = max_w, max_h
+    spec.visual.headlight.ambient, spec.visual.headlight.diffuse = [0.25] * 3, [0.3] * 3
+    spec.worldbody.add_light(
+        name="top", pos=[-0.3, 0.0, 2.0], dir=[0, 0, -1], diffuse=[0.45, 0.45, 0.45], castshadow=False
+    )
+    spec.worldbody.add_geom(
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[3, 3, 0.1],
+        pos=[0, 0, -config.table_height_m],
+        rgba=[0.35, 0.35, 0.38, 1],
+    )
+    solref = [2.0 * config.timestep_s, 1.0]
+    table = spec.worldbody.add_body(name="table")
+    tx, ty = config.table_size_xy_m
+    table.add_geom(
+        name="table_top",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        rgba=[0.55, 0.45, 0.35, 1],
+        pos=[*config.table_center_xy_m, -config.table_height_m / 2],
+        size=[tx / 2, ty / 2, config.table_height_m / 2],
+        friction=list(_ENV_FRICTION),
+        solref=solref,
+    )
+    env_friction = list(_ENV_FRICTION)
+    add_open_box(
+        spec.worldbody, "bin", config.T_world_bin, config.bin_inner_size_m, config.bin_wall_thickness_m,
+        config.bin_floor_thickness_m, solref, env_friction, rgba=(0.2, 0.35, 0.6, 1.0),
+    )  # fmt: skip
+    add_open_box(
+        spec.worldbody, "tray", config.T_world_tray, config.tray_inner_size_m, config.tray_wall_thickness_m,
+        config.tray_floor_thickness_m, solref, env_friction, rgba=(0.3, 0.55, 0.3, 1.0),
+    )  # fmt: skip
+    flange = _add_arm(spec, config.T_world_base)
+    names = gripper_model.add_gripper(spec, flange, solref)
+    R_mj = config.T_world_camera[:3, :3] @ _CV_TO_MUJOCO_CAMERA
+    spec.worldbody.add_camera(
+        name=OVERHEAD_CAMERA,
+        pos=config.T_world_camera[:3, 3].tolist(),
+        quat=quat_wxyz(R_mj).tolist(),
+        fovy=config.camera_intrinsics.fov_y_deg,
+    )
+    if config.wrist_camera:
+        T = config.T_flange_wrist_camera
+        flange.add_camera(
+            name=WRIST_CAMERA,
+            pos=T[:3, 3].tolist(),
+            quat=quat_wxyz(T[:3, :3] @ _CV_TO_MUJOCO_CAMERA).tolist(),
+            fovy=config.wrist_camera_intrinsics.fov_y_deg,
+        )
+    return spec, names
+
+
+# OpenCV camera axes (x right, y down, z forward) -> MuJoCo camera axes (x right, y up, looking along -z).
+_CV_TO_MUJOCO_CAMERA = np.diag([1.0, -1.0, -1.0])
+
+
+def _add_arm(spec: mujoco.MjSpec, T_world_base: np.ndarray) -> mujoco.MjsBody:
+    """The UR5e: a static base and six links placed from the DH parameters; returns the flange body.
+
+    Link ``i``'s body frame is its joint frame (DH frame ``i-1`` turned by ``q_i``), so joint ``i`` is a hinge about
+    the body's z axis, and the next body sits at ``Tz(d_i) Tx(a_i) Rx(alpha_i)``. The flange body is DH frame 6.
+    """
+    base = spec.worldbody.add_body(
+        name="robot_base", pos=T_world_base[:3, 3].tolist(), quat=quat_wxyz(T_world_base[:3, :3]).tolist()
+    )
+    _add_cylinders(base, "robot_base", ur5e.LINK_CYLINDERS_M[0], (0.2, 0.45, 0.75, 1.0))
+    offsets = dh_transforms(np.zeros(6))  # A_i at q_i = 0: the fixed part Tz(d_i) Tx(a_i) Rx(alpha_i)
+    parent, T_parent_body = base, np.eye(4)
+    for i, (link, joint) in enumerate(zip(ur5e.LINK_NAMES, ur5e.JOINT_NAMES, strict=True)):
+        body = parent.add_body(
+            name=link, pos=T_parent_body[:3, 3].tolist(), quat=quat_wxyz(T_parent_body[:3, :3]).tolist()
+        )
+        lo, hi = ur5e.JOINT_LIMITS_RAD[i]
+        body.add_joint(
+            name=joint,
+            type=mujoco.mjtJoint.mjJNT_HINGE,
+            axis=[0, 0, 1],
+            range=[lo, hi],
+            limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+            armature=_JOINT_ARMATURE[i],
+            damping=_JOINT_DAMPING[i],
+        )
+        body.explicitinertial = True
+        body.mass = float(ur5e.LINK_MASSES_KG[i])
+        body.ipos = (offsets[i] @ np.append(ur5e.LINK_COMS_M[i], 1.0))[:3].tolist()  # CoM: DH frame i -> body
+        body.inertia = _cylinder_inertia(float(ur5e.LINK_MASSES_KG[i]), *ur5e.LINK_INERTIA_CYLINDERS[i]).tolist()
+        _add_cylinders(body, link, ur5e.LINK_CYLINDERS_M[i + 1], _ARM_RGBA)
+        torque = float(ur5e.MAX_JOINT_TORQUE_NM[i])
+        motor = spec.add_actuator(name=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT, target=joint)
+        motor.set_to_motor()
+        motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        motor.ctrlrange = [-torque, torque]
+        parent, T_parent_body = body, offsets[i]
+    flange = parent.add_body(
+        name="flange", pos=T_parent_body[:3, 3].tolist(), quat=quat_wxyz(T_parent_body[:3, :3]).tolist()
+    )
+    flange.add_site(name=FLANGE_SITE, size=[0.005, 0, 0])
+    # Self-collision: neighbours two apart along the chain overlap by construction (compact wrist); skip them.
+    chain = ["robot_base", *ur5e.LINK_NAMES, "gripper"]
+    for a in range(len(chain) - 2):
+        spec.add_exclude(bodyname1=chain[a], bodyname2=chain[a + 2])
+    return flange
+
+
+def _add_cylinders(body: mujoco.MjsBody, name: str, cylinders: tuple, rgba: tuple[float, ...]) -> None:
+    for k, (p0, p1, radius) in enumerate(cylinders):
+        body.add_geom(
+            name=f"{name}_geom{k}",
+            type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            fromto=[*p0, *p1],
+            size=[radius, 0, 0],
+            rgba=rgba,
+            mass=0,
+        )
+
+
+def _cylinder_inertia(mass: float, axis: str, radius: float, length: float) -> np.ndarray:
+    """Principal moments (kg m^2) of a solid cylinder along ``axis`` in the body frame."""
+    along = 0.5 * mass * radius**2
+    across = mass * (3 * radius**2 + length**2) / 12.0
+    return np.array([along if a == axis else across for a in "xyz"])

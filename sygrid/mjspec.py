@@ -1,0 +1,117 @@
+"""MjSpec building blocks shared by the generator's drop and the simulated cell, so that a pile the generator
+renders and a pile the robot picks from are made of the same bodies: the open box (bin, tray) and the part body
+(free joint, true mass and inertia, collision geoms of its collision tier)."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sygrid.objects.collision import CollisionModel
+from sygrid.objects.model import ObjectModel
+
+_GEOM_TYPES = {
+    "box": mujoco.mjtGeom.mjGEOM_BOX,
+    "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
+    "mesh": mujoco.mjtGeom.mjGEOM_MESH,
+}
+COLLISION_GROUP = 3  # collision-only geoms: hidden in renders
+VISUAL_GROUP = 1
+
+
+def quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """A 3x3 rotation as MuJoCo's (w, x, y, z) quaternion."""
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
+
+
+def part_inertial(model: ObjectModel) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mass (kg), centre of mass (m, object frame) and MuJoCo's full inertia [ixx, iyy, izz, ixy, ixz, iyz]
+    (kg m^2, about the centre of mass), from the true mesh: a collision hull would fill the holes and overstate
+    both. An open CAD mesh has no inside, so its convex hull stands in."""
+    mesh = model.mesh if model.mesh.is_volume else model.mesh.convex_hull
+    inertia = np.asarray(mesh.moment_inertia) * model.density_kg_m3  # trimesh: unit density
+    full = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
+    return float(abs(mesh.volume)) * model.density_kg_m3, np.asarray(mesh.center_mass), np.array(full)
+
+
+def add_open_box(
+    parent: mujoco.MjsBody,
+    name: str,
+    T_parent_box: np.ndarray,
+    inner_size_m: tuple[float, float, float],
+    wall_m: float,
+    floor_m: float,
+    solref: list[float],
+    friction: list[float],
+    rgba: tuple[float, ...] = (0.5, 0.5, 0.55, 1.0),
+) -> mujoco.MjsBody:
+    """A static open box (bin, tray) whose frame is the centre of its inner floor."""
+    body = parent.add_body(name=name, pos=T_parent_box[:3, 3].tolist(), quat=quat_wxyz(T_parent_box[:3, :3]).tolist())
+    sx, sy, sz = (v / 2 for v in inner_size_m)
+    t = wall_m / 2
+    boxes = {
+        "floor": ([0, 0, -floor_m / 2], [sx + 2 * t, sy + 2 * t, floor_m / 2]),
+        "wall_xp": ([sx + t, 0, sz], [t, sy + 2 * t, sz]),
+        "wall_xn": ([-sx - t, 0, sz], [t, sy + 2 * t, sz]),
+        "wall_yp": ([0, sy + t, sz], [sx, t, sz]),
+        "wall_yn": ([0, -sy - t, sz], [sx, t, sz]),
+    }
+    for part, (pos, half) in boxes.items():
+        body.add_geom(
+            name=f"{name}_{part}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=pos, size=half, rgba=rgba,
+            friction=friction, solref=solref,
+        )  # fmt: skip
+    return body
+
+
+def add_mesh_asset(spec: mujoco.MjSpec, name: str, vertices: np.ndarray, faces: np.ndarray | None = None) -> str:
+    """Adds a mesh asset once per name (meshes are shared by all instances of a part)."""
+    if spec.mesh(name) is None:
+        mesh = spec.add_mesh(name=name, uservert=np.asarray(vertices, dtype=np.float64).ravel().tolist())
+        if faces is not None:
+            mesh.userface = np.asarray(faces, dtype=np.int32).ravel().tolist()
+    return name
+
+
+def add_part_body(
+    spec: mujoco.MjSpec,
+    name: str,
+    model: ObjectModel,
+    collision: CollisionModel | None,
+    T_world_obj: np.ndarray,
+    solref: list[float],
+    friction: list[float],
+    visual_rgba: tuple[float, ...] | None = None,
+) -> mujoco.MjsBody:
+    """A free body for one part instance: true mass and inertia, collision geoms from ``collision`` (its mesh,
+    convexified by MuJoCo, when None) and, with ``visual_rgba``, the true mesh as a non-colliding visual geom."""
+    body = spec.worldbody.add_body(
+        name=name, pos=T_world_obj[:3, 3].tolist(), quat=quat_wxyz(T_world_obj[:3, :3]).tolist()
+    )
+    body.add_freejoint(name=f"{name}_free")
+    body.explicitinertial = True
+    mass, com, inertia = part_inertial(model)
+    body.mass, body.ipos, body.fullinertia = mass, com.tolist(), inertia.tolist()
+    contact = {"solref": solref, "friction": friction, "mass": 0}
+    visible = {"rgba": list(visual_rgba)} if visual_rgba is not None else {}
+    if collision is None:
+        mesh = add_mesh_asset(spec, f"mesh_{model.content_hash[:16]}", model.mesh.vertices, model.mesh.faces)
+        body.add_geom(type=_GEOM_TYPES["mesh"], meshname=mesh, group=VISUAL_GROUP, **contact, **visible)
+        return body
+    if visual_rgba is not None:
+        mesh = add_mesh_asset(spec, f"mesh_{model.content_hash[:16]}", model.mesh.vertices, model.mesh.faces)
+        body.add_geom(
+            type=_GEOM_TYPES["mesh"], meshname=mesh, contype=0, conaffinity=0, group=VISUAL_GROUP, mass=0, **visible
+        )
+    for g, geom in enumerate(collision.to_mujoco_geoms()):
+        mesh = ""
+        if geom["type"] == "mesh":
+            asset = f"hull_{collision.content_hash[:16]}_{collision.tier.value}_{g}"
+            mesh = add_mesh_asset(spec, asset, geom["vertices"])
+        body.add_geom(
+            type=_GEOM_TYPES[geom["type"]], meshname=mesh, size=[*geom["size"], 0.0, 0.0, 0.0][:3],
+            pos=geom["pos"].tolist(), quat=geom["quat"].tolist(), group=COLLISION_GROUP, **contact,
+        )  # fmt: skip
+    return body
