@@ -37,7 +37,6 @@ _SETTLE_HOLD_S = 0.1
 _MIN_SIM_TIME_S = 0.2
 _FLOOR_THICKNESS_M = 0.02
 _INSIDE_TOLERANCE_M = 0.002
-_SLEEP_TOLERANCE = 0.01  # MuJoCo's velocity threshold (scaled by body size) below which an island may sleep
 
 
 @dataclass(frozen=True)
@@ -59,6 +58,7 @@ class StabilityReport:
     escaped: list[int] = field(default_factory=list)
     non_finite: list[int] = field(default_factory=list)
     max_linear_speed_m_s: float = 0.0
+    rest_drift_m: float | None = None  # largest move of any part when the pile, awake, runs on (if measured)
 
     @property
     def ok(self) -> bool:
@@ -73,6 +73,7 @@ class StabilityReport:
             "escaped": list(self.escaped),
             "non_finite": list(self.non_finite),
             "max_linear_speed_m_s": self.max_linear_speed_m_s,
+            "rest_drift_m": self.rest_drift_m,
         }
 
 
@@ -134,8 +135,9 @@ def build_drop_spec(
     spec.option.timestep = physics.timestep_s
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     # Island sleeping: parts at rest stop costing collision and solver time while the rest of the pile settles.
-    spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
-    spec.option.sleep_tolerance = _SLEEP_TOLERANCE
+    if physics.sleep_tolerance > 0:
+        spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
+        spec.option.sleep_tolerance = physics.sleep_tolerance
     solref = [2 * physics.timestep_s, 1.0]
     friction = [physics.friction, 0.005, 0.0001]
     add_open_box(
@@ -155,8 +157,14 @@ def simulate_drop(
     container: ContainerSpec,
     physics: PhysicsSpec,
     rng: np.random.Generator,
+    rest_check_s: float = 0.0,
 ) -> DropResult:
-    """Spawns, simulates until settled or ``physics.max_time_s``, and checks the pile."""
+    """Spawns, simulates until settled or ``physics.max_time_s``, and checks the pile.
+
+    With ``rest_check_s`` > 0 the settled pile is woken up and simulated that much longer without sleeping, and
+    the largest displacement of any part is reported as ``rest_drift_m`` (how far from rest "settled" was); the
+    returned poses are still those at the settle time.
+    """
     start = time.perf_counter()
     radii = np.array([models[i.model_index].diameter_m / 2 for i in instances])
     T_spawn = sample_spawn_poses(radii, container, physics.spawn_clearance_m, rng)
@@ -188,14 +196,22 @@ def simulate_drop(
     # Sleeping bodies skip collision detection: wake everything to measure the penetration of the final pile.
     mj_model.opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_SLEEP)
     mujoco.mj_forward(mj_model, data)
+    max_penetration_m = _max_penetration(data)
+    wall_time_s = time.perf_counter() - start
+    rest_drift_m = None
+    if rest_check_s > 0:
+        mujoco.mj_step(mj_model, data, nstep=max(1, round(rest_check_s / physics.timestep_s)))
+        moved = _body_poses(data, len(instances))[:, :3, 3] - T_world_obj[:, :3, 3]
+        rest_drift_m = float(np.nanmax(np.linalg.norm(moved, axis=1), initial=0.0))
     report = StabilityReport(
         settled=settled,
         sim_time_s=float(data.time),
-        wall_time_s=time.perf_counter() - start,
-        max_penetration_m=_max_penetration(data),
+        wall_time_s=wall_time_s,
+        max_penetration_m=max_penetration_m,
         escaped=_escaped(T_world_obj, container),
         non_finite=[n for n in range(len(instances)) if not np.all(np.isfinite(T_world_obj[n]))],
         max_linear_speed_m_s=lin_speed,
+        rest_drift_m=rest_drift_m,
     )
     if not settled:
         log.warning("the pile did not settle within %.2f s of simulated time", physics.max_time_s)
