@@ -69,7 +69,7 @@ class ContinuousSymmetrySpec(_Strict):
         return (axis[0] / norm, axis[1] / norm, axis[2] / norm)
 
 
-MATERIALS = ("steel", "zinc", "brass", "aluminium", "painted", "plastic")
+# The keys of sygrid.objects.cad.MATERIAL_DENSITY_KG_M3 (a test keeps the two in step).
 Material = Literal["steel", "zinc", "brass", "aluminium", "painted", "plastic"]
 
 

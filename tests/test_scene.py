@@ -80,3 +80,12 @@ def test_shipped_scenes_are_valid():
 
     scene = load_scene(DEFAULT_SCENE)
     assert len(scene.objects) >= 6
+
+
+def test_scene_materials_are_the_object_materials():
+    from typing import get_args
+
+    from sygrid.objects.cad import MATERIAL_DENSITY_KG_M3
+    from sygrid.scene import Material
+
+    assert set(get_args(Material)) == set(MATERIAL_DENSITY_KG_M3)
