@@ -1,0 +1,88 @@
+"""The ``rtde_control`` script's command codes (input_int_register_0) as ur_rtde 1.6.5 sends them, with the client
+call each one comes from, so logs can name a command instead of a number."""
+
+from __future__ import annotations
+
+COMMAND_NAMES: dict[int, str] = {
+    0: "noCmd (clear)",
+    1: "moveJ",
+    2: "moveJ_IK",
+    3: "moveL",
+    4: "moveL_FK",
+    6: "forceMode",
+    7: "forceModeStop",
+    8: "zeroFtSensor",
+    9: "speedJ",
+    10: "speedL",
+    11: "servoJ",
+    12: "servoC",
+    13: "setStandardDigitalOut (script)",
+    14: "setToolDigitalOut (script)",
+    15: "speedStop",
+    16: "servoStop",
+    17: "setPayload",
+    18: "teachMode",
+    19: "endTeachMode",
+    20: "forceModeSetDamping",
+    21: "forceModeSetGainScaling",
+    22: "setSpeedSlider (script)",
+    23: "setAnalogOutput (script)",
+    24: "servoL",
+    25: "toolContact",
+    26: "getStepTime",
+    27: "getActualJointPositionsHistory",
+    28: "getTargetWaypoint",
+    29: "setTcp",
+    30: "getInverseKinematics(x, qnear, max_position_error, max_orientation_error)",
+    31: "triggerProtectiveStop",
+    33: "stopL",
+    34: "stopJ",
+    35: "setWatchdog",
+    36: "isPoseWithinSafetyLimits",
+    37: "isJointsWithinSafetyLimits",
+    38: "getJointTorques",
+    39: "poseTrans",
+    40: "getTCPOffset",
+    41: "jogStart",
+    42: "jogStop",
+    43: "getForwardKinematics()",
+    44: "getForwardKinematics(q, tcp_offset)",
+    45: "movePath / moveJ(path) / moveL(path)",
+    46: "getInverseKinematics(x)",
+    47: "isSteady",
+    48: "setConfigurableDigitalOut (script)",
+    49: "setInputIntRegister (script)",
+    50: "setInputDoubleRegister (script)",
+    51: "moveUntilContact",
+    52: "freedriveMode",
+    53: "endFreedriveMode",
+    54: "getFreedriveStatus",
+    55: "setExternalForceTorque",
+    56: "ftRtdeInputEnable",
+    57: "enableExternalFtSensor",
+    58: "getActualToolFlangePose",
+    59: "setGravity",
+    60: "getInverseKinematicsHasSolution(x)",
+    61: "getInverseKinematicsHasSolution(x, qnear, max_position_error, max_orientation_error)",
+    62: "startContactDetection",
+    63: "stopContactDetection",
+    64: "readContactDetection",
+    65: "setTargetPayload",
+    66: "directTorque",
+    67: "getMassMatrix",
+    68: "getCoriolisAndCentrifugalTorques",
+    69: "getTargetJointAccelerations",
+    70: "getJacobian",
+    71: "getJacobianTimeDerivative",
+    99: "kickWatchdog",
+    255: "stopScript",
+}
+
+# The script re-executes these every cycle while they stay in the command register; the client never waits.
+REALTIME_CODES = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
+
+STOP_SCRIPT = 255
+
+
+def command_name(code: int) -> str:
+    return COMMAND_NAMES.get(code, f"unknown command {code}")

@@ -1,0 +1,184 @@
+"""Runs an ``EmulatedController`` in a child process and forwards its test hooks over a pipe.
+
+Needed whenever the ur_rtde client lives in the same Python program: the client's constructors hold the GIL while
+they wait for the controller's first state package (with no timeout), which would freeze an in-process emulator.
+The child's log records are kept in a ring buffer (``log_messages``) and WARNING and above also go to stderr.
+The child is started with the ``spawn`` method, so a script that uses this class needs the usual
+``if __name__ == "__main__":`` guard. The child also shortens the interpreter's GIL switch interval (its process is
+the emulator's alone), which keeps the tick within a fraction of a millisecond of its deadline.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import multiprocessing
+import os
+import sys
+from multiprocessing.connection import Connection
+from typing import Any
+
+from sim.controller.errors import EmulatorError
+from sim.controller.status import ControllerStatus
+
+log = logging.getLogger(__name__)
+
+# The tick thread waking from its sleep waits for the GIL up to the switch interval (5 ms by default) while a socket
+# thread runs Python; 0.2 ms keeps tick lateness well under a tick. Set only in processes the emulator owns.
+SWITCH_INTERVAL_S = 0.0002
+_HOOKS = ("state", "trigger_protective_stop", "inject_collision_force", "log_messages", "unlock_protective_stop")
+
+
+class _RingHandler(logging.Handler):
+    def __init__(self, size: int = 5000) -> None:
+        super().__init__()
+        self.lines: collections.deque[str] = collections.deque(maxlen=size)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(f"{record.levelname} {record.name}: {record.getMessage()}")
+
+
+def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict, controller_kwargs: dict) -> None:
+    from sim.controller.backend import make_backend
+    from sim.controller.controller import EmulatedController
+
+    ring = _RingHandler()
+    stderr = logging.StreamHandler(sys.stderr)
+    stderr.setLevel(logging.WARNING)
+    stderr.setFormatter(logging.Formatter(f"[emulator {host}] %(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.INFO, handlers=[ring, stderr], force=True)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    parent = os.getppid()
+    try:
+        arm = make_backend(backend, **backend_kwargs)
+        ctl = EmulatedController(arm, host=host, **controller_kwargs)
+        ctl.start()
+    except Exception as exc:
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    conn.send(("ok", None))
+    hooks = {
+        "state": ctl.state,
+        "trigger_protective_stop": ctl.trigger_protective_stop,
+        "unlock_protective_stop": ctl.unlock_protective_stop,
+        "inject_collision_force": getattr(arm, "inject_collision_force", None),
+        "log_messages": lambda: list(ring.lines),
+    }
+    try:
+        while True:
+            if not conn.poll(0.5):
+                if os.getppid() != parent:
+                    break  # the parent died without stopping us
+                continue
+            try:
+                name, args, kwargs = conn.recv()
+            except EOFError:
+                break
+            if name == "stop":
+                break
+            hook = hooks.get(name)
+            try:
+                if hook is None:
+                    raise EmulatorError(f"hook {name!r} is not available here; available: {sorted(_HOOKS)}")
+                conn.send(("ok", hook(*args, **kwargs)))
+            except Exception as exc:
+                conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        ctl.stop()
+        with contextlib.suppress(OSError):
+            conn.send(("ok", "stopped"))
+
+
+class ControllerProcess:
+    """``EmulatedController`` in a child process; a context manager. Keyword arguments go to the controller."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        backend: str = "kinematic",
+        backend_kwargs: dict[str, Any] | None = None,
+        start_timeout_s: float = 30.0,
+        **controller_kwargs: Any,
+    ) -> None:
+        self.host = host
+        self._args = (host, backend, backend_kwargs or {}, controller_kwargs)
+        self._start_timeout_s = start_timeout_s
+        self._conn: Connection | None = None
+        self._proc: multiprocessing.process.BaseProcess | None = None
+
+    def __enter__(self) -> ControllerProcess:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        parent_conn, child_conn = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=_child_main, args=(child_conn, *self._args), daemon=True, name=f"emulator-{self.host}"
+        )
+        self._proc.start()
+        self._conn = parent_conn
+        try:
+            self._receive(self._start_timeout_s, "start")
+        except EmulatorError:
+            self.stop()
+            raise
+
+    def _receive(self, timeout_s: float, what: str) -> Any:
+        assert self._conn is not None and self._proc is not None
+        waited = 0.0
+        while not self._conn.poll(0.05):
+            waited += 0.05
+            if not self._proc.is_alive():
+                raise EmulatorError(
+                    f"emulator process on {self.host} died (exit code {self._proc.exitcode}) "
+                    f"before answering {what!r}; see its stderr"
+                )
+            if waited >= timeout_s:
+                raise EmulatorError(f"emulator on {self.host} did not answer {what!r} within {timeout_s:g} s")
+        status, value = self._conn.recv()
+        if status != "ok":
+            raise EmulatorError(f"emulator on {self.host}: {what} failed: {value}")
+        return value
+
+    def call(self, hook: str, *args: Any, timeout_s: float = 10.0, **kwargs: Any) -> Any:
+        """Calls one of the child's hooks (``state``, ``trigger_protective_stop``, ...) and returns its result."""
+        if self._conn is None:
+            raise EmulatorError(f"emulator on {self.host} is not running; call start() first")
+        self._conn.send((hook, args, kwargs))
+        return self._receive(timeout_s, hook)
+
+    def state(self) -> ControllerStatus:
+        return self.call("state")
+
+    def trigger_protective_stop(self, reason: str = "test hook") -> None:
+        self.call("trigger_protective_stop", reason)
+
+    def inject_collision_force(self, force_n: float) -> None:
+        """Kinematic backend only: the contact force it reports until set back to 0."""
+        self.call("inject_collision_force", force_n)
+
+    def log_messages(self) -> list[str]:
+        return self.call("log_messages")
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stops the controller and the child (terminating it if it does not exit in time)."""
+        if self._conn is not None:
+            try:
+                self._conn.send(("stop", (), {}))
+                self._conn.poll(timeout_s)
+            except (OSError, BrokenPipeError):
+                pass
+            self._conn.close()
+            self._conn = None
+        if self._proc is not None:
+            self._proc.join(timeout_s)
+            if self._proc.is_alive():
+                log.warning("emulator process on %s did not exit; terminating it", self.host)
+                self._proc.terminate()
+                self._proc.join(timeout_s)
+            self._proc = None

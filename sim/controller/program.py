@@ -1,0 +1,377 @@
+"""The uploaded ``rtde_control`` program, run natively: the script's main loop (protocol note section 1.6) as a
+state machine stepped once per 2 ms controller cycle, with its commands implemented on ``ArmController``.
+
+Per cycle: while a synchronous command (a blocking move or stop) runs, the loop waits for it and then writes
+"done" (2). Otherwise it reads ``cmd`` from input_int_register_0 (+offset): realtime codes run every cycle and write
+"ready" (1); 0 clears ``executing`` and writes ready; any other code runs once, then writes done. Code 255 ends the
+program without done. All register indices are relative to the program's register offset (0 or 24).
+
+Failure semantics:
+- A motion the robot cannot execute (IK fails, target outside limits) halts the program (runtime_state STOPPED),
+  as the URScript runtime error does on a real robot; the client's wait sees "script is not running" -> False.
+- An unsupported non-realtime code writes zero results, withholds done and pauses the program until the client's
+  clear arrives (at most ``fault_hold_s``); the client's wait sees the pause and returns False, and the next command
+  works. Unsupported realtime codes cannot fail on the client side (it never waits for them): they are logged.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Protocol
+
+import numpy as np
+
+from sim.controller.arm import ArmController, Motion, within_joint_limits
+from sim.controller.commands import REALTIME_CODES, STOP_SCRIPT, command_name
+from sim.controller.errors import MotionError
+from sim.controller.ik_query import solve_ik
+from sim.controller.state import Registers
+from sygrid.robots.kinematics import T_to_pose, forward_kinematics, pose_to_T
+
+log = logging.getLogger(__name__)
+
+READY, DONE = 1, 2
+_PROGRESS_FINISHED = -1
+
+
+class ProgramHost(Protocol):
+    """What the program needs from the controller around it."""
+
+    def actual_q(self) -> np.ndarray: ...
+    def actual_torque(self) -> np.ndarray: ...
+    def q_history(self, steps: int) -> np.ndarray: ...
+    def trigger_protective_stop(self, reason: str) -> None: ...
+    def set_watchdog(self, min_frequency_hz: float) -> None: ...
+    def end_program(self, reason: str, error: bool) -> None: ...
+    def fault_command(self, code: int) -> None: ...
+
+
+class ControlProgram:
+    """One run of the rtde_control script."""
+
+    name = "rtde_control"
+
+    def __init__(self, regs: Registers, arm: ArmController, host: ProgramHost, register_offset: int) -> None:
+        self.regs, self.arm, self.host, self.offset = regs, arm, host, register_offset
+        self.executing = False
+        self.started = False
+        self.aborted = False
+        self._blocking: Callable[[], bool] | None = None  # returns True when the synchronous command is finished
+        self._async_motion: Motion | None = None
+        self._stop_thread_motion: Motion | None = None
+        self._stop_type = 0  # 0 = stopj, 1 = stopl; global in the script, set to 1 by every async stop
+        self._speed_type = 0  # 0 = speedl, 1 = speedj
+        self._async_wr_count = 0
+        self._async_op_id = 0
+        self._unsupported_rt_logged: int | None = None
+        self._handlers: dict[int, Callable[[], bool | None]] = {
+            1: self._movej,
+            2: self._movej_ik,
+            3: self._movel,
+            4: self._movel_fk,
+            8: lambda: None,  # zeroFtSensor: there is no force sensor to zero
+            9: self._speedj,
+            10: self._speedl,
+            11: self._servoj,
+            15: self._speed_stop,
+            16: self._servo_stop,
+            17: self._set_payload,
+            24: self._servol,
+            26: self._get_step_time,
+            27: self._q_history,
+            28: self._target_waypoint,
+            29: self._set_tcp,
+            30: self._ik_args,
+            31: self._protective_stop,
+            33: self._stop,
+            34: self._stop,
+            35: self._set_watchdog,
+            36: self._pose_within_limits,
+            37: self._joints_within_limits,
+            38: self._joint_torques,
+            39: self._pose_trans,
+            40: self._tcp_offset,
+            43: self._fk_default,
+            44: self._fk_args,
+            46: self._ik_default,
+            47: self._is_steady,
+            55: lambda: None,  # setExternalForceTorque: the wrench arrives as an RTDE input and is stored there
+            58: self._flange_pose,
+            59: lambda: None,  # setGravity: the kinematic and MuJoCo arms keep their own gravity
+            60: self._ik_has_solution,
+            61: self._ik_has_solution_args,
+            65: self._set_target_payload,
+        }
+
+    # --- registers (relative to the offset) ----------------------------------------------------------------
+    def in_int(self, i: int) -> int:
+        return self.regs.input_int[i + self.offset]
+
+    def in_double(self, i: int) -> float:
+        return self.regs.input_double[i + self.offset]
+
+    def in_vector(self, first: int, n: int = 6) -> np.ndarray:
+        return np.array(self.regs.input_double[first + self.offset : first + self.offset + n])
+
+    def out_int(self, i: int, value: int) -> None:
+        self.regs.output_int[i + self.offset] = int(value)
+
+    def out_vector(self, values: np.ndarray, first: int = 0) -> None:
+        for k, v in enumerate(values):
+            self.regs.output_double[first + k + self.offset] = float(v)
+
+    # --- the main loop -------------------------------------------------------------------------------------
+    def tick(self) -> None:
+        if not self.started:
+            self.started = True
+            self._write_async_progress(_PROGRESS_FINISHED)
+            self.out_int(0, READY)
+        self._track_async()
+        if self._blocking is not None:
+            if not self._blocking():
+                return
+            self._blocking = None
+            self.out_int(0, DONE)
+        cmd = self.in_int(0)
+        if cmd in REALTIME_CODES:
+            self._run(cmd)
+            self.out_int(0, READY)
+        elif cmd == 0:
+            self.executing = False
+            self._unsupported_rt_logged = None
+            self.out_int(0, READY)
+        elif not self.executing:
+            self.executing = True
+            if cmd == STOP_SCRIPT:
+                log.info("rtde_control: stopScript received; program ends")
+                self.host.end_program("stopScript (code 255)", error=False)
+                return
+            if self._run(cmd) and self._blocking is None and not self.aborted:
+                self.out_int(0, DONE)
+
+    def abort(self) -> None:
+        """The program is stopped or paused from outside: drop the synchronous command without signalling done."""
+        self.aborted = True
+        self._blocking = None
+        if self._async_motion is not None or self._stop_thread_motion is not None:
+            self._async_motion = self._stop_thread_motion = None
+            self._write_async_progress(_PROGRESS_FINISHED)
+
+    def _run(self, cmd: int) -> bool:
+        """Runs one command; False when it failed (the host has been told)."""
+        handler = self._handlers.get(cmd)
+        if handler is None:
+            self._unsupported(cmd)
+            return False
+        try:
+            handler()
+        except MotionError as exc:
+            log.error("rtde_control: %s failed: %s; program halted (a URScript runtime error)", command_name(cmd), exc)
+            self.host.end_program(f"{command_name(cmd)} failed: {exc}", error=True)
+            return False
+        return True
+
+    def _unsupported(self, cmd: int) -> None:
+        if cmd in REALTIME_CODES:
+            if self._unsupported_rt_logged != cmd:
+                self._unsupported_rt_logged = cmd
+                log.error(
+                    "rtde_control: command %d %s is not supported by the emulator; ignored (the client does "
+                    "not wait for realtime commands, so it cannot see a failure)",
+                    cmd,
+                    command_name(cmd),
+                )
+            return
+        log.error(
+            "rtde_control: command %d %s is not supported by the emulator; the call fails", cmd, command_name(cmd)
+        )
+        self.out_int(1, 0)
+        self.out_vector(np.zeros(6))
+        self.host.fault_command(cmd)
+
+    # --- async progress word (output_int_register_2) -------------------------------------------------------
+    def _write_async_progress(self, value: int) -> None:
+        self._async_wr_count = (self._async_wr_count + 1) % 128
+        if value == 0:
+            self._async_op_id = (self._async_op_id + 1) % 128
+        word = self._async_wr_count * 65536 + self._async_op_id * 16777216
+        if value >= 0:
+            word += min(value, 32767) + 32768
+        self.out_int(2, word)
+
+    def _track_async(self) -> None:
+        if self._async_motion is not None and self.arm.motion is not self._async_motion:
+            self._async_motion = None
+            self._write_async_progress(_PROGRESS_FINISHED)
+        if self._stop_thread_motion is not None and self.arm.motion is None:
+            self._stop_thread_motion = None
+            self._write_async_progress(_PROGRESS_FINISHED)
+
+    def _stop_async_move(self) -> None:
+        if self._async_motion is not None:
+            self._async_motion = None
+            self._write_async_progress(_PROGRESS_FINISHED)
+
+    # --- moves ---------------------------------------------------------------------------------------------
+    def _start_move(self, start: Callable[[], Motion]) -> None:
+        asynchronous = self.in_int(1) == 1
+        self._stop_async_move()
+        motion = start()
+        if asynchronous:
+            self._async_motion = motion
+            self._write_async_progress(0)
+        else:
+            self._blocking = lambda: self.arm.motion is not motion
+
+    def _ik(self, pose: np.ndarray, q_near: np.ndarray | None = None) -> np.ndarray:
+        q = solve_ik(pose_to_T(pose), self.host.actual_q() if q_near is None else q_near, self.arm.T_flange_tcp)
+        if q is None:
+            raise MotionError(f"get_inverse_kin: no solution for pose {np.round(pose, 5).tolist()}")
+        return q
+
+    def _movej(self) -> None:
+        q, v, a = self.in_vector(0), self.in_double(6), self.in_double(7)
+        self._start_move(lambda: self.arm.movej(q, v, a))
+
+    def _movej_ik(self) -> None:
+        q, v, a = self._ik(self.in_vector(0)), self.in_double(6), self.in_double(7)
+        self._start_move(lambda: self.arm.movej(q, v, a))
+
+    def _movel(self) -> None:
+        pose, v, a = self.in_vector(0), self.in_double(6), self.in_double(7)
+        self._start_move(lambda: self.arm.movel(pose, v, a))
+
+    def _movel_fk(self) -> None:
+        pose = T_to_pose(forward_kinematics(self.in_vector(0), self.arm.T_flange_tcp))
+        v, a = self.in_double(6), self.in_double(7)
+        self._start_move(lambda: self.arm.movel(pose, v, a))
+
+    def _stop(self) -> None:
+        """stopL (33) / stopJ (34), as exec_stopl_stopj: async stops run in a 'stop thread' and always use stopl."""
+        decel, asynchronous = self.in_double(0), self.in_int(1) == 1
+        if self._stop_thread_motion is not None:
+            self._stop_thread_motion = None
+            self._write_async_progress(_PROGRESS_FINISHED)
+        else:
+            self._stop_async_move()
+        if asynchronous:
+            self._stop_type = 1
+            self._write_async_progress(0)
+            self._stop_thread_motion = self.arm.stop(decel, linear=True)
+            if self._stop_thread_motion is None:
+                self._write_async_progress(_PROGRESS_FINISHED)
+        else:
+            self.arm.stop(decel, linear=self._stop_type == 1)
+            self._blocking = lambda: self.arm.motion is None
+
+    def _speedj(self) -> None:
+        self._speed_type = 1
+        self.arm.speedj(self.in_vector(0), self.in_double(6))
+
+    def _speedl(self) -> None:
+        self._speed_type = 0
+        self.arm.speedl(self.in_vector(0), self.in_double(6))
+
+    def _servoj(self) -> None:
+        self.arm.servo(self.in_vector(0), self.in_double(9))
+
+    def _servol(self) -> None:
+        self.arm.servo(self._ik(self.in_vector(0), self.arm.target_q), self.in_double(9))
+
+    def _speed_stop(self) -> None:
+        self.arm.stop(self.in_double(0), linear=self._speed_type == 0)
+        self._blocking = lambda: self.arm.motion is None
+
+    def _servo_stop(self) -> None:
+        self.arm.stop(self.in_double(0), linear=True)
+        self._blocking = lambda: self.arm.motion is None
+
+    def _protective_stop(self) -> None:
+        self.host.trigger_protective_stop("triggerProtectiveStop (command 31)")
+
+    def _set_watchdog(self) -> None:
+        self.host.set_watchdog(self.in_double(0))
+
+    # --- settings and queries ------------------------------------------------------------------------------
+    def _set_tcp(self) -> None:
+        self.arm.set_tcp(self.in_vector(0))
+
+    def _set_payload(self) -> None:
+        cog = self.in_vector(1, 3)
+        self.arm.set_payload(self.in_double(0), None if not np.any(cog) else cog)
+
+    def _set_target_payload(self) -> None:
+        cog = self.in_vector(1, 3)
+        self.arm.set_payload(self.in_double(0), None if not np.any(cog) else cog, self.in_vector(4))
+
+    def _tcp_offset(self) -> None:
+        self.out_vector(self.arm.tcp_pose)
+
+    def _fk_default(self) -> None:
+        self.out_vector(T_to_pose(forward_kinematics(self.host.actual_q(), self.arm.T_flange_tcp)))
+
+    def _fk_args(self) -> None:
+        # The TCP comes from d6..d11 even when the client's recipe 6 did not write them (stale registers).
+        q, tcp = self.in_vector(0), self.in_vector(6)
+        self.out_vector(T_to_pose(forward_kinematics(q, pose_to_T(tcp))))
+
+    def _ik_default(self) -> None:
+        self.out_vector(self._ik(self.in_vector(0)))
+
+    def _ik_args(self) -> None:
+        q = solve_ik(
+            pose_to_T(self.in_vector(0)),
+            self.in_vector(6),
+            self.arm.T_flange_tcp,
+            self.in_double(12),
+            self.in_double(13),
+        )
+        if q is None:
+            raise MotionError(
+                f"get_inverse_kin: no solution for pose {np.round(self.in_vector(0), 5).tolist()} within "
+                f"{self.in_double(12)} m / {self.in_double(13)} rad"
+            )
+        self.out_vector(q)
+
+    def _ik_has_solution(self) -> None:
+        q = solve_ik(pose_to_T(self.in_vector(0)), self.host.actual_q(), self.arm.T_flange_tcp)
+        self.out_int(1, q is not None)
+
+    def _ik_has_solution_args(self) -> None:
+        q = solve_ik(
+            pose_to_T(self.in_vector(0)),
+            self.in_vector(6),
+            self.arm.T_flange_tcp,
+            self.in_double(12),
+            self.in_double(13),
+        )
+        self.out_int(1, q is not None)
+
+    def _is_steady(self) -> None:
+        self.out_int(1, self.arm.is_steady)
+
+    def _joint_torques(self) -> None:
+        self.out_vector(self.host.actual_torque())
+
+    def _flange_pose(self) -> None:
+        self.out_vector(T_to_pose(forward_kinematics(self.host.actual_q())))
+
+    def _get_step_time(self) -> None:
+        self.regs.output_double[self.offset] = 0.002
+
+    def _q_history(self) -> None:
+        self.out_vector(self.host.q_history(self.in_int(1)))
+
+    def _target_waypoint(self) -> None:
+        self.out_vector(T_to_pose(forward_kinematics(self.arm.target_q, self.arm.T_flange_tcp)))
+
+    def _pose_trans(self) -> None:
+        self.out_vector(T_to_pose(pose_to_T(self.in_vector(0)) @ pose_to_T(self.in_vector(6))))
+
+    def _pose_within_limits(self) -> None:
+        q = solve_ik(pose_to_T(self.in_vector(0)), self.host.actual_q(), self.arm.T_flange_tcp)
+        self.out_int(1, q is not None)
+
+    def _joints_within_limits(self) -> None:
+        self.out_int(1, within_joint_limits(self.in_vector(0)))

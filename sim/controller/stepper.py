@@ -1,0 +1,132 @@
+"""Runs an ``ArmBackend`` for the controller tick: inline when stepping is cheap, or in its own thread when a step
+can block (MuJoCo shares its lock with the camera renderer), so a slow step never delays the 500 Hz stream.
+
+Threaded mode: the tick queues one ``(q, qd)`` target per 2 ms and reads the latest sample without waiting. The
+stepper thread replays every queued target in order (each for one controller period of physics), so simulated time
+stays tied to the commanded trajectory and catches up after a stall. When it falls more than ``max_lag_s`` behind,
+the oldest targets are dropped (logged) to bound the lag. Gripper commands are queued the same way.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from sim.controller.backend import ArmBackend, ArmSample
+
+log = logging.getLogger(__name__)
+
+CONTROLLER_PERIOD_S = 0.002
+
+
+class BackendRunner:
+    """Owns every call into the backend."""
+
+    def __init__(self, backend: ArmBackend, threaded: bool | None = None, max_lag_s: float = 0.5) -> None:
+        self.backend = backend
+        self.threaded = backend.step_may_block if threaded is None else threaded
+        self.steps_per_target = max(1, round(CONTROLLER_PERIOD_S / backend.dt_s))
+        self._max_targets = max(1, int(max_lag_s / CONTROLLER_PERIOD_S))
+        self._lock = threading.Lock()  # guards the queues and, inline, the backend itself
+        self._targets: collections.deque[tuple[np.ndarray, np.ndarray]] = collections.deque()
+        self._ops: list[Callable[[], None]] = []
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._latest = backend.sample()
+        self.dropped_targets = 0
+        self.max_advance_s = 0.0
+        self.advance_calls = 0
+
+    def start(self) -> None:
+        if self.threaded and self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="backend-stepper", daemon=True)
+            self._thread.start()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                log.warning("backend stepper still busy after %.1f s; leaving it (daemon thread)", timeout_s)
+            self._thread = None
+
+    def latest(self) -> ArmSample:
+        return self._latest
+
+    @property
+    def lag_targets(self) -> int:
+        """Targets queued but not yet simulated (each one is 2 ms of simulated time)."""
+        return len(self._targets)
+
+    def push_target(self, q: np.ndarray, qd: np.ndarray) -> ArmSample:
+        """Hands one tick's target to the backend; returns the newest sample available now."""
+        if not self.threaded:
+            with self._lock:
+                ops, self._ops = self._ops, []
+                for op in ops:
+                    op()
+                self._latest = self._timed_advance([(q, qd)])
+            return self._latest
+        with self._lock:
+            self._targets.append((q, qd))
+            if len(self._targets) > self._max_targets:
+                self._targets.popleft()
+                self.dropped_targets += 1
+                if self.dropped_targets == 1 or self.dropped_targets % 500 == 0:
+                    log.warning(
+                        "backend is %.1f s behind the controller; dropped %d targets so far",
+                        self._max_targets * CONTROLLER_PERIOD_S,
+                        self.dropped_targets,
+                    )
+        self._wake.set()
+        return self._latest
+
+    def call(self, op: Callable[[], None]) -> None:
+        """Runs ``op`` (e.g. a gripper command) on the backend before its next step."""
+        with self._lock:
+            self._ops.append(op)
+        self._wake.set()
+
+    def reset_arm(self, q: np.ndarray) -> None:
+        def _reset() -> None:
+            self.backend.reset_arm(q)
+
+        if self.threaded:
+            self.call(_reset)
+        else:
+            with self._lock:
+                _reset()
+                self._latest = self.backend.sample()
+
+    def _timed_advance(self, targets: list[tuple[np.ndarray, np.ndarray]]) -> ArmSample:
+        t0 = time.perf_counter()
+        sample = self.backend.advance(targets, self.steps_per_target)
+        self.max_advance_s = max(self.max_advance_s, time.perf_counter() - t0)
+        self.advance_calls += 1
+        return sample
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.05)
+            self._wake.clear()
+            with self._lock:
+                targets = list(self._targets)
+                self._targets.clear()
+                ops, self._ops = self._ops, []
+            try:
+                for op in ops:
+                    op()
+                if targets:
+                    self._latest = self._timed_advance(targets)
+                elif ops:
+                    self._latest = self.backend.sample()
+            except Exception:
+                log.exception("backend step failed; the arm state is frozen at the last good sample")
+                time.sleep(0.1)

@@ -1,0 +1,202 @@
+"""A small threaded TCP service: one accept thread, one reader thread per connection, and sends that never block.
+
+``Connection.send`` is safe to call from any thread (the 500 Hz tick included): it writes what the kernel
+accepts at once and keeps the rest in a per-connection pending buffer, which the reader thread and later sends
+flush. Messages marked ``droppable`` (state packages) are dropped whole, never cut, while that buffer is over its
+limit, so a client that stops reading costs memory up to the limit and never time on the tick.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable
+
+log = logging.getLogger(__name__)
+
+_ACCEPT_POLL_S = 0.2  # how often blocked accept/recv calls look at the stop flag
+_MAX_PENDING_BYTES = 256 * 1024  # above this, droppable messages are discarded
+
+
+class Connection:
+    """One accepted client socket (non-blocking)."""
+
+    def __init__(self, sock: socket.socket, peer: tuple[str, int], service_name: str) -> None:
+        self.sock = sock
+        self.peer = peer
+        self.service_name = service_name
+        self.sock.setblocking(False)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._lock = threading.Lock()
+        self._pending = bytearray()
+        self.closed = False
+        self.dropped_messages = 0
+        self.sent_messages = 0
+
+    def __repr__(self) -> str:
+        return f"<{self.service_name} connection from {self.peer[0]}:{self.peer[1]}>"
+
+    def send(self, data: bytes, droppable: bool = False) -> bool:
+        """Queues ``data`` and writes as much as the socket takes now. False when dropped or closed."""
+        with self._lock:
+            if self.closed:
+                return False
+            if droppable and len(self._pending) > _MAX_PENDING_BYTES:
+                self.dropped_messages += 1
+                return False
+            self._pending += data
+            self.sent_messages += 1
+            self._flush_locked()
+            return not self.closed
+
+    def flush(self) -> None:
+        with self._lock:
+            self._flush_locked()
+
+    @property
+    def has_pending(self) -> bool:
+        return bool(self._pending)
+
+    def _flush_locked(self) -> None:
+        while self._pending and not self.closed:
+            try:
+                n = self.sock.send(self._pending)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                log.debug("%r: send failed (%s); closing", self, exc)
+                self._close_locked()
+                return
+            del self._pending[:n]
+
+    def recv(self, timeout_s: float = _ACCEPT_POLL_S) -> bytes | None:
+        """Bytes received, ``None`` when nothing came within the timeout, ``b""`` when the peer closed."""
+        if self.closed:
+            return b""
+        want_write = [self.sock] if self._pending else []
+        try:
+            readable, writable, _ = select.select([self.sock], want_write, [], timeout_s)
+        except (OSError, ValueError):
+            return b""
+        if writable:
+            self.flush()
+        if not readable:
+            return None
+        try:
+            return self.sock.recv(65536)
+        except (BlockingIOError, InterruptedError):
+            return None
+        except OSError:
+            return b""
+
+    def send_blocking(self, data: bytes, timeout_s: float = 2.0) -> bool:
+        """For request/reply services (dashboard, gripper): waits up to ``timeout_s`` for the data to go out."""
+        if not self.send(data):
+            return False
+        end_s = time.monotonic() + timeout_s
+        while self.has_pending and not self.closed and time.monotonic() < end_s:
+            try:
+                select.select([], [self.sock], [], 0.05)
+            except (OSError, ValueError):
+                break
+            self.flush()
+        return not self.has_pending
+
+    def close(self) -> None:
+        with self._lock:
+            self._close_locked()
+
+    def _close_locked(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        with contextlib.suppress(OSError):
+            self.sock.shutdown(socket.SHUT_RDWR)
+        self.sock.close()
+
+
+class TcpService:
+    """Listens on ``host:port`` and runs ``handler(connection)`` in a thread per accepted connection."""
+
+    def __init__(self, name: str, host: str, port: int, handler: Callable[[Connection], None]) -> None:
+        self.name = name
+        self.host = host
+        self.port = port
+        self._handler = handler
+        self._listener: socket.socket | None = None
+        self._accept_thread: threading.Thread | None = None
+        self._threads: set[threading.Thread] = set()
+        self.connections: set[Connection] = set()
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+
+    def start(self) -> None:
+        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            listener.bind((self.host, self.port))
+        except OSError as exc:
+            listener.close()
+            raise OSError(
+                exc.errno,
+                f"{self.name}: cannot listen on {self.host}:{self.port} ({exc.strerror}); is another emulator "
+                f"running there? Pick another 127.0.0.x host or port",
+            ) from exc
+        listener.listen(16)
+        listener.settimeout(_ACCEPT_POLL_S)
+        self.port = listener.getsockname()[1]
+        self._listener = listener
+        self._accept_thread = threading.Thread(target=self._accept_loop, name=f"{self.name}-accept", daemon=True)
+        self._accept_thread.start()
+        log.debug("%s listening on %s:%d", self.name, self.host, self.port)
+
+    def _accept_loop(self) -> None:
+        assert self._listener is not None
+        while not self._stopping.is_set():
+            try:
+                sock, peer = self._listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                break
+            conn = Connection(sock, peer, self.name)
+            thread = threading.Thread(target=self._serve, args=(conn,), name=f"{self.name}-{peer[1]}", daemon=True)
+            with self._lock:
+                self.connections.add(conn)
+                self._threads.add(thread)
+            thread.start()
+
+    def _serve(self, conn: Connection) -> None:
+        log.debug("%r opened", conn)
+        try:
+            self._handler(conn)
+        except Exception:
+            log.exception("%r: handler failed", conn)
+        finally:
+            conn.close()
+            with self._lock:
+                self.connections.discard(conn)
+                self._threads.discard(threading.current_thread())
+            log.debug("%r closed", conn)
+
+    @property
+    def stopping(self) -> bool:
+        return self._stopping.is_set()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Closes the listener and every connection, then joins the threads (bounded by ``timeout_s`` each)."""
+        self._stopping.set()
+        if self._listener is not None:
+            self._listener.close()
+        if self._accept_thread is not None:
+            self._accept_thread.join(timeout_s)
+        with self._lock:
+            conns, threads = list(self.connections), list(self._threads)
+        for conn in conns:
+            conn.close()
+        for thread in threads:
+            thread.join(timeout_s)
