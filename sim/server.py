@@ -31,6 +31,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="kinematic",
         help="kinematic: perfect tracking, no physics; mujoco: the MuJoCo cell (default kinematic)",
     )
+    parser.add_argument(
+        "--parts-seed",
+        type=int,
+        default=None,
+        metavar="S",
+        help="mujoco backend: fill the bin with the parts of --scene dropped with this seed (default: an empty bin)",
+    )
+    parser.add_argument(
+        "--scene",
+        default=None,
+        metavar="SCENE.json",
+        help="mujoco backend: the scene whose parts fill the bin (default: 20 built-in parts); implies --parts-seed 0",
+    )
     parser.add_argument("--rtde-port", type=int, default=30004)
     parser.add_argument("--dashboard-port", type=int, default=29999)
     parser.add_argument("--script-ports", type=int, nargs="+", default=[30001, 30002, 30003])
@@ -68,7 +81,12 @@ def _summary(ctl: EmulatedController, backend: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     sys.setswitchinterval(SWITCH_INTERVAL_S)  # this process is the emulator's: short GIL slices keep the tick on time
-    backend = make_backend(args.backend)
+    backend_kwargs = {}
+    if args.scene is not None or args.parts_seed is not None:
+        if args.backend != "mujoco":
+            raise EmulatorError("--scene and --parts-seed need --backend mujoco (the kinematic backend has no parts)")
+        backend_kwargs = {"parts_scene": args.scene, "parts_seed": args.parts_seed or 0}
+    backend = make_backend(args.backend, **backend_kwargs)
     ports = ControllerPorts(args.rtde_port, args.dashboard_port, tuple(args.script_ports), args.gripper_port)
     done = threading.Event()
 

@@ -79,9 +79,11 @@ class StabilityReport:
 
 @dataclass
 class DropResult:
-    """Final poses ``T_world_obj`` (n, 4, 4) of every instance, in the scene frame, and the stability report."""
+    """Final poses ``T_world_obj`` (n, 4, 4) of every instance, in the scene frame, and the stability report.
+    ``collision[k]`` is the collision model that ``models[k]`` was dropped with."""
 
     models: list[ObjectModel]
+    collision: list[CollisionModel]
     instances: list[Instance]
     T_world_obj: np.ndarray
     report: StabilityReport
@@ -161,9 +163,9 @@ def simulate_drop(
 ) -> DropResult:
     """Spawns, simulates until settled or ``physics.max_time_s``, and checks the pile.
 
-    With ``rest_check_s`` > 0 the settled pile is woken up and simulated that much longer without sleeping, and
-    the largest displacement of any part is reported as ``rest_drift_m`` (how far from rest "settled" was); the
-    returned poses are still those at the settle time.
+    With ``rest_check_s`` > 0 the final poses are simulated again from rest (zero velocity, no sleeping) for that
+    long, as the sim cell does when it receives them, and the largest displacement of any part is reported as
+    ``rest_drift_m``: how far from a resting pile "settled" was.
     """
     start = time.perf_counter()
     radii = np.array([models[i.model_index].diameter_m / 2 for i in instances])
@@ -199,9 +201,11 @@ def simulate_drop(
     max_penetration_m = _max_penetration(data)
     wall_time_s, sim_time_s = time.perf_counter() - start, float(data.time)
     rest_drift_m = None
-    if rest_check_s > 0:
-        mujoco.mj_step(mj_model, data, nstep=max(1, round(rest_check_s / physics.timestep_s)))
-        moved = _body_poses(data, len(instances))[:, :3, 3] - T_world_obj[:, :3, 3]
+    if rest_check_s > 0:  # the poses are what leaves the drop: restart from them at rest, as the cell does
+        rest = mujoco.MjData(mj_model)
+        rest.qpos[:] = data.qpos
+        mujoco.mj_step(mj_model, rest, nstep=max(1, round(rest_check_s / physics.timestep_s)))
+        moved = _body_poses(rest, len(instances))[:, :3, 3] - T_world_obj[:, :3, 3]
         rest_drift_m = float(np.nanmax(np.linalg.norm(moved, axis=1), initial=0.0))
     report = StabilityReport(
         settled=settled,
@@ -222,7 +226,7 @@ def simulate_drop(
             "penetration at rest %.2f mm is above the bound %.2f mm",
             report.max_penetration_m * 1e3, physics.max_penetration_m * 1e3,
         )  # fmt: skip
-    return DropResult(list(models), list(instances), T_world_obj, report)
+    return DropResult(list(models), list(collision), list(instances), T_world_obj, report)
 
 
 # ---------------------------------------------------------------------------------------------- helpers

@@ -25,6 +25,7 @@ class WorldBackend:
 
     def __init__(self, world: Any) -> None:
         self.world = world
+        self.camera_load: Any = None  # a sim.cell.CameraLoad when the backend renders frames as load
         self.dt_s = float(world.dt_s)
         self._gripper_target_m = GRIPPER_STROKE_M
         with world.lock:
@@ -65,13 +66,30 @@ class WorldBackend:
         )
 
 
-def make_world_backend(**world_kwargs: Any) -> WorldBackend:
-    """Builds a fresh ``CellWorld`` and wraps it. Raises ``BackendUnavailableError`` when ``sim.world`` is missing."""
+def make_world_backend(
+    parts_scene: str | None = None, parts_seed: int | None = None, camera_hz: float = 0.0, **world_kwargs: Any
+) -> WorldBackend:
+    """Builds a fresh ``CellWorld`` and wraps it. With ``parts_seed`` (or ``parts_scene``) the bin holds the parts
+    of that scene (default: 20 built-in parts) dropped by the generator's drop; with ``camera_hz`` > 0 the overhead
+    camera renders at that rate in a background thread (load for benchmarks). Raises ``BackendUnavailableError``
+    when ``sim.world`` is missing."""
     try:
+        from sim.cell import CameraLoad, build_cell_world
         from sim.world import CellWorld
     except ImportError as exc:
         raise BackendUnavailableError(
             f"the 'mujoco' backend needs sim.world.CellWorld, which cannot be imported ({exc}); "
             "use the 'kinematic' backend instead"
         ) from exc
-    return WorldBackend(CellWorld(**world_kwargs))
+    if parts_scene is not None or parts_seed is not None:
+        world = build_cell_world(parts_scene, parts_seed or 0, world_kwargs.get("config"))
+    else:
+        world = CellWorld(**world_kwargs)
+    backend = WorldBackend(world)
+    if camera_hz > 0:
+        from sim.camera import SimCamera
+
+        camera = SimCamera(world)
+        camera.capture()  # the first capture sets up the renderer: do it before the tick starts
+        backend.camera_load = CameraLoad(camera, camera_hz).start()
+    return backend

@@ -1,0 +1,79 @@
+"""A cell with a bin of parts: the MuJoCo world plus a pile made by the generator's own drop.
+
+The parts enter the cell with the same object models, collision models and poses as in the generator
+(``sygrid.drop``): the drop runs in the bin frame and its poses map into the cell as ``T_world_bin @ T_bin_obj``.
+The scene's container is replaced by the cell's bin, so the pile fits the bin it is placed in.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+from perception.camera import Camera
+from sim.cell_config import CellConfig
+from sim.world import CellWorld
+from sygrid.drop import drop_scene
+from sygrid.errors import DropError
+from sygrid.scene import ContainerSpec, SceneSpec, default_scene, load_scene
+
+log = logging.getLogger(__name__)
+
+
+def cell_scene(scene: SceneSpec, config: CellConfig) -> SceneSpec:
+    """``scene`` with its container replaced by the cell's bin."""
+    container = ContainerSpec(
+        inner_size_m=config.bin_inner_size_m, wall_thickness_m=config.bin_wall_thickness_m, material="plastic"
+    )
+    return scene.model_copy(update={"container": container})
+
+
+def build_cell_world(
+    scene: SceneSpec | str | Path | None = None, seed: int = 0, config: CellConfig | None = None
+) -> CellWorld:
+    """A ``CellWorld`` whose bin holds the parts of ``scene`` (default: 20 built-in parts), dropped with ``seed``."""
+    config = config or CellConfig()
+    if scene is None:
+        scene = default_scene()
+    elif not isinstance(scene, SceneSpec):
+        scene = load_scene(scene)
+    base_dir = Path(".")
+    result = drop_scene(cell_scene(scene, config), seed, base_dir)
+    if not result.report.ok:
+        raise DropError(f"the drop of scene '{scene.name}' (seed {seed}) is unusable: {result.report.to_json()}")
+    world = CellWorld(config)
+    models = [result.models[i.model_index] for i in result.instances]
+    collision = [result.collision[i.model_index] for i in result.instances]
+    world.add_parts(models, world.T_world_bin @ result.T_world_obj, collision)
+    log.info("cell with %d parts of scene '%s' (seed %d)", len(models), scene.name, seed)
+    return world
+
+
+class CameraLoad:
+    """Captures frames from a camera at ``rate_hz`` in a daemon thread, as a perception client would, and keeps
+    the capture times (s). For benchmarks: the emulator's 500 Hz stream must hold while a camera renders."""
+
+    def __init__(self, camera: Camera, rate_hz: float) -> None:
+        self.camera, self.period_s = camera, 1.0 / rate_hz
+        self.capture_s: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="camera-load", daemon=True)
+
+    def start(self) -> CameraLoad:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+    def _run(self) -> None:
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            start = time.perf_counter()
+            self.camera.capture()
+            self.capture_s.append(time.perf_counter() - start)
+            next_t += self.period_s
+            self._stop.wait(max(0.0, next_t - time.monotonic()))
