@@ -70,6 +70,7 @@ class CameraLoad:
         self._thread.join(timeout=5.0)
 
     def _run(self) -> None:
+        self.camera.capture()  # sets up the renderer, whose GL context belongs to this thread; not timed
         next_t = time.monotonic()
         while not self._stop.is_set():
             start = time.perf_counter()

@@ -6,14 +6,13 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-import sys
 import threading
 import time
 
 from sim.controller.backend import BACKENDS, make_backend
 from sim.controller.controller import PROTECTIVE_STOP_FORCE_N, ControllerPorts, EmulatedController
 from sim.controller.errors import EmulatorError
-from sim.controller.process import SWITCH_INTERVAL_S
+from sim.controller.process import tune_emulator_process
 from sim.controller.state import ROBOT_MODE_NAMES, SAFETY_MODE_NAMES
 
 log = logging.getLogger(__name__)
@@ -80,7 +79,7 @@ def _summary(ctl: EmulatedController, backend: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    sys.setswitchinterval(SWITCH_INTERVAL_S)  # this process is the emulator's: short GIL slices keep the tick on time
+    tune_emulator_process()  # this process is the emulator's
     backend_kwargs = {}
     if args.scene is not None or args.parts_seed is not None:
         if args.backend != "mujoco":

@@ -89,7 +89,5 @@ def make_world_backend(
     if camera_hz > 0:
         from sim.camera import SimCamera
 
-        camera = SimCamera(world)
-        camera.capture()  # the first capture sets up the renderer: do it before the tick starts
-        backend.camera_load = CameraLoad(camera, camera_hz).start()
+        backend.camera_load = CameraLoad(SimCamera(world), camera_hz).start()
     return backend

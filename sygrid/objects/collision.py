@@ -53,6 +53,7 @@ log = logging.getLogger(__name__)
 _CACHE_FORMAT = "sygrid-collision/1"
 _CACHE_ENV = "SYGRID_CACHE_DIR"  # a root shared by SyGRID caches; collision models go to its "collision" folder
 _MIN_PIECE_VOLUME_RATIO = 1e-6  # pieces smaller than this fraction of the hull's volume are slivers: dropped
+_WARNED: set[tuple] = set()  # (content hash, tier, missed tolerances) already warned about in this process
 _MIN_CONCAVE_SAMPLES = 20  # fewer Monte-Carlo samples than this in the concave space: nothing to keep
 
 
@@ -471,6 +472,10 @@ def select_collision_model(
         return (relative, cand.n_pieces, cand.compute_s)
 
     best, missed = min(tried, key=badness)
+    warning_key = (model.content_hash, best.tier, tuple(missed))
+    if warning_key in _WARNED:  # once per part and outcome per process, not at every drop
+        return best
+    _WARNED.add(warning_key)
     log.warning(
         "%s: no collision tier of %s meets the tolerances; using %s, which misses %s",
         model.name,
