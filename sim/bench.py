@@ -89,7 +89,8 @@ def chart(results: dict):
     axes[0].axhline(TARGETS["gap_p99_ms"], color="grey", ls=":", lw=1, label="p99 target")
     for i, s in enumerate(stream):
         axes[0].annotate(f"{s['rate_hz']:.0f} Hz", (i, 0.3), ha="center", fontsize=8, color="white")
-    axes[0].set(xticks=x, xticklabels=labels, ylabel="ms", title="RTDE state stream (raw client)")
+    wrapped = [label.replace(", ", "\n") for label in labels]
+    axes[0].set(xticks=x, xticklabels=wrapped, ylabel="ms", title="RTDE state stream (raw client)")
     for s, label in zip(stream, labels, strict=True):
         axes[1].hist(s["fk_ms"], bins=40, histtype="step", label=label)
     axes[1].axvline(TARGETS["fk_p50_ms"], color="grey", ls=":", lw=1)
