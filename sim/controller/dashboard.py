@@ -46,19 +46,8 @@ class DashboardServer:
     def _serve(self, conn: Connection) -> None:
         if not conn.send_blocking((WELCOME + "\n").encode()):
             return
-        buffer = b""
-        while not self.service.stopping:
-            data = conn.recv()
-            if data is None:
-                continue
-            if not data:
-                return
-            buffer += data
-            while b"\n" in buffer:
-                raw, buffer = buffer.split(b"\n", 1)
-                line = raw.decode("utf-8", errors="replace").strip()
-                if not line:
-                    continue
+        for batch in self.service.lines(conn):
+            for line in batch:
                 reply = self.reply(line)
                 log.debug("dashboard %r -> %r", line, reply)
                 if not conn.send_blocking((reply + "\n").encode()):

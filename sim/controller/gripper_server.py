@@ -50,21 +50,8 @@ class GripperServer:
         self.service.stop()
 
     def _serve(self, conn: Connection) -> None:
-        buffer = b""
-        while not self.service.stopping:
-            data = conn.recv()
-            if data is None:
-                continue
-            if not data:
-                return
-            buffer += data
-            replies = []
-            while b"\n" in buffer:
-                raw, buffer = buffer.split(b"\n", 1)
-                line = raw.decode("ascii", errors="replace").strip()
-                if line:
-                    replies.append(self.handle(line))
-            if replies and not conn.send_blocking("".join(replies).encode()):
+        for batch in self.service.lines(conn, encoding="ascii"):
+            if not conn.send_blocking("".join(self.handle(line) for line in batch).encode()):
                 return
 
     def handle(self, line: str) -> str:

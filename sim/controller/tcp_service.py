@@ -14,7 +14,7 @@ import select
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 log = logging.getLogger(__name__)
 
@@ -200,3 +200,18 @@ class TcpService:
             conn.close()
         for thread in threads:
             thread.join(timeout_s)
+
+    def lines(self, conn: Connection, encoding: str = "utf-8") -> Iterator[list[str]]:
+        """The non-empty, stripped text lines a line-based client (dashboard, gripper) sends, one list per read,
+        until the client closes or the service stops."""
+        buffer = b""
+        while not self.stopping:
+            data = conn.recv()
+            if data is None:
+                continue
+            if not data:
+                return
+            *complete, buffer = (buffer + data).split(b"\n")
+            batch = [raw.decode(encoding, errors="replace").strip() for raw in complete]
+            if any(batch):
+                yield [line for line in batch if line]
