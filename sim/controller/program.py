@@ -319,14 +319,13 @@ class ControlProgram:
     def _ik_default(self) -> None:
         self.out_vector(self._ik(self.in_vector(0)))
 
+    def _ik_with_qnear_and_tolerances(self) -> np.ndarray | None:
+        """get_inverse_kin(x, qnear, maxPositionError, maxOrientationError): d0-5 x, d6-11 qnear, d12, d13."""
+        x, q_near = pose_to_T(self.in_vector(0)), self.in_vector(6)
+        return solve_ik(x, q_near, self.arm.T_flange_tcp, self.in_double(12), self.in_double(13))
+
     def _ik_args(self) -> None:
-        q = solve_ik(
-            pose_to_T(self.in_vector(0)),
-            self.in_vector(6),
-            self.arm.T_flange_tcp,
-            self.in_double(12),
-            self.in_double(13),
-        )
+        q = self._ik_with_qnear_and_tolerances()
         if q is None:
             raise MotionError(
                 f"get_inverse_kin: no solution for pose {np.round(self.in_vector(0), 5).tolist()} within "
@@ -339,14 +338,7 @@ class ControlProgram:
         self.out_int(1, q is not None)
 
     def _ik_has_solution_args(self) -> None:
-        q = solve_ik(
-            pose_to_T(self.in_vector(0)),
-            self.in_vector(6),
-            self.arm.T_flange_tcp,
-            self.in_double(12),
-            self.in_double(13),
-        )
-        self.out_int(1, q is not None)
+        self.out_int(1, self._ik_with_qnear_and_tolerances() is not None)
 
     def _is_steady(self) -> None:
         self.out_int(1, self.arm.is_steady)
