@@ -22,7 +22,9 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The full parser; only ``command``'s module is imported, to add its own arguments."""
-    parser = argparse.ArgumentParser(prog="sygrid", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="sygrid", description="SyGRID picking stack: synthetic data from CAD, perception, and the UR5e cell."
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in SUBCOMMANDS.items():
