@@ -19,6 +19,8 @@ import sys
 from multiprocessing.connection import Connection
 from typing import Any
 
+import numpy as np
+
 from sim.controller.errors import EmulatorError
 from sim.controller.status import ControllerStatus
 
@@ -35,7 +37,10 @@ def tune_emulator_process() -> None:
     500 Hz tick (measured by ``sygrid bench sim``: p99 gap 5.0 ms with the default, 3.4 ms with one thread)."""
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     os.environ.setdefault("LP_NUM_THREADS", "1")  # read by Mesa when the first GL context is made
-_HOOKS = ("state", "trigger_protective_stop", "inject_collision_force", "log_messages", "unlock_protective_stop")
+_HOOKS = (
+    "state", "trigger_protective_stop", "inject_collision_force", "log_messages", "unlock_protective_stop",
+    "part_poses",
+)  # fmt: skip
 
 
 class _RingHandler(logging.Handler):
@@ -72,6 +77,8 @@ def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict,
         "unlock_protective_stop": ctl.unlock_protective_stop,
         "inject_collision_force": getattr(arm, "inject_collision_force", None),
         "log_messages": lambda: list(ring.lines),
+        # The MuJoCo backend's parts, T_world_obj (n, 4, 4): ground truth for sim-in-the-loop tests.
+        "part_poses": (lambda: arm.world.part_poses()) if hasattr(arm, "world") else None,
     }
     try:
         while True:
@@ -169,6 +176,10 @@ class ControllerProcess:
     def inject_collision_force(self, force_n: float) -> None:
         """Kinematic backend only: the contact force it reports until set back to 0."""
         self.call("inject_collision_force", force_n)
+
+    def part_poses(self) -> np.ndarray:
+        """MuJoCo backend only: ``T_world_obj`` (n, 4, 4) of the cell's parts, for tests."""
+        return self.call("part_poses")
 
     def log_messages(self) -> list[str]:
         return self.call("log_messages")
