@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from sygrid.drop import drop_scene, save_poses
+from sygrid.physics import DropResult
 from sygrid.scene import load_scene
 
 
@@ -25,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
     return 0 if result.report.ok else 1
 
 
-def print_drop_summary(result) -> None:
+def print_drop_summary(result: DropResult) -> None:
     r = result.report
     names = [result.models[i.model_index].name for i in result.instances]
     for inst, name, T in zip(result.instances, names, result.T_world_obj, strict=True):
