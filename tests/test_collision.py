@@ -331,3 +331,13 @@ def test_vhacd_flat_faces_pitfall_is_caught(nut: ObjectModel, tmp_path: Path, mo
     garbage = build_collision_model(nut, "vhacd", cache_dir=tmp_path)
     with pytest.raises(AssertionError, match="missed_volume_ratio"):
         assert_valid_pieces(nut, garbage)
+
+
+def test_selection_tries_a_finer_coacd_before_vhacd(tmp_path):
+    """The pipe misses the excess tolerance with CoACD's default threshold (12 %); the finer try meets it."""
+    from sygrid.objects import builtin_part
+
+    chosen = select_collision_model(builtin_part("pipe"), cache_dir=tmp_path)
+    assert chosen.tier is CollisionTier.COACD
+    assert chosen.params.coacd_concavity_threshold == pytest.approx(CollisionParams().coacd_concavity_threshold * 0.4)
+    assert chosen.fidelity.excess_volume_ratio <= 0.05 and chosen.fidelity.missed_volume_ratio <= 0.05

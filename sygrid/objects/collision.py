@@ -33,7 +33,7 @@ import os
 import time
 import zipfile
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from functools import cache
 from pathlib import Path
 from typing import Literal, NamedTuple
@@ -54,6 +54,7 @@ _CACHE_FORMAT = "sygrid-collision/1"
 _CACHE_ENV = "SYGRID_CACHE_DIR"  # a root shared by SyGRID caches; collision models go to its "collision" folder
 _MIN_PIECE_VOLUME_RATIO = 1e-6  # pieces smaller than this fraction of the hull's volume are slivers: dropped
 _WARNED: set[tuple] = set()  # (content hash, tier, missed tolerances) already warned about in this process
+_COACD_REFINE_FACTOR = 0.4  # the finer CoACD try of select_collision_model: threshold 0.05 -> 0.02
 _MIN_CONCAVE_SAMPLES = 20  # fewer Monte-Carlo samples than this in the concave space: nothing to keep
 
 
@@ -416,7 +417,8 @@ def select_collision_model(
 
     Tiers are tried in the order given, by default cheapest first: hull (1 geom, milliseconds), coacd (2-35
     pieces, 0.3-7 s), vhacd (up to 32 pieces, 0.6-2.5 s); cost is the number of pieces, then the compute time.
-    A tier is only built when the cheaper ones failed. If none meets the tolerances, the one that misses them by
+    A tier is only built when the cheaper ones failed; coacd is tried twice, the second time with its concavity
+    threshold times 0.4 (finer, more pieces). If none meets the tolerances, the one that misses them by
     the least (summed relative shortfall; ties to the cheaper) is returned and a warning names each missed
     tolerance and by how much.
 
@@ -457,14 +459,22 @@ def select_collision_model(
             missed["min_concavity_kept"] = (fid.concavity_kept, min_concavity_kept)
         return missed
 
+    base = params or CollisionParams()
     tried: list[tuple[CollisionModel, dict[str, tuple[float, float]]]] = []
     for tier in order:
-        candidate = build_collision_model(model, tier, params, cache_dir)
-        missed = shortfalls(candidate.fidelity)
-        if not missed:
-            log.debug("%s: %s meets the collision tolerances", model.name, candidate.description)
-            return candidate
-        tried.append((candidate, missed))
+        # CoACD gets a second, finer try before the next tier: a lower concavity threshold keeps more detail
+        # for a few more pieces, which beats V-HACD's fixed 32 pieces (the pipe: 24 pieces, 1.9 % excess).
+        attempts = [base]
+        if tier is CollisionTier.COACD:
+            finer = base.coacd_concavity_threshold * _COACD_REFINE_FACTOR
+            attempts.append(replace(base, coacd_concavity_threshold=finer))
+        for attempt in attempts:
+            candidate = build_collision_model(model, tier, attempt, cache_dir)
+            missed = shortfalls(candidate.fidelity)
+            if not missed:
+                log.debug("%s: %s meets the collision tolerances", model.name, candidate.description)
+                return candidate
+            tried.append((candidate, missed))
 
     def badness(item: tuple[CollisionModel, dict[str, tuple[float, float]]]) -> tuple[float, int, float]:
         cand, missed = item
