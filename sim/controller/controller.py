@@ -38,6 +38,7 @@ from sim.controller.state import (
 )
 from sim.controller.status import ControllerStatus, TickStats
 from sim.controller.stepper import BackendRunner
+from sim.controller.tcp_service import start_all
 
 log = logging.getLogger(__name__)
 
@@ -127,16 +128,7 @@ class EmulatedController:
 
     def start(self) -> None:
         """Binds every port and starts the tick. Raises OSError naming the port when one is taken."""
-        services = [self.rtde, self.dashboard, self.gripper, self.script]
-        started = []
-        try:
-            for service in services:
-                service.start()
-                started.append(service)
-        except OSError:
-            for service in started:
-                service.stop()
-            raise
+        start_all([self.rtde, self.dashboard, self.gripper, self.script])
         self._runner.start()
         self._stop_event.clear()
         self._thread = threading.Thread(target=self._tick_loop, name="controller-tick", daemon=True)

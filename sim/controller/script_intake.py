@@ -15,7 +15,7 @@ import logging
 import re
 from collections.abc import Callable
 
-from sim.controller.tcp_service import Connection, TcpService
+from sim.controller.tcp_service import Connection, TcpService, start_all
 
 log = logging.getLogger(__name__)
 
@@ -86,15 +86,7 @@ class ScriptIntake:
         self._stopping = False
 
     def start(self) -> None:
-        started = []
-        try:
-            for service in self.services:
-                service.start()
-                started.append(service)
-        except OSError:
-            for service in started:
-                service.stop()
-            raise
+        start_all(self.services)
 
     def stop(self) -> None:
         self._stopping = True

@@ -215,3 +215,17 @@ class TcpService:
             batch = [raw.decode(encoding, errors="replace").strip() for raw in complete]
             if any(batch):
                 yield [line for line in batch if line]
+
+
+def start_all(services: list) -> None:
+    """Starts each service (anything with ``start``/``stop``); if one cannot bind its port, stops those already
+    started and re-raises, so a failed start leaves no port taken."""
+    started = []
+    try:
+        for service in services:
+            service.start()
+            started.append(service)
+    except OSError:
+        for service in started:
+            service.stop()
+        raise
