@@ -12,14 +12,20 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 from perception.camera import Camera
 from sim.cell_config import CellConfig
 from sim.world import CellWorld
 from sygrid.drop import drop_scene
 from sygrid.errors import DropError
+from sygrid.physics import DropResult
 from sygrid.scene import ContainerSpec, SceneSpec, default_scene, load_scene
 
 log = logging.getLogger(__name__)
+
+# Joint angles that turn the arm away from the bin, out of the overhead camera's view (default layout).
+Q_CLEAR_OF_CAMERA = (np.pi, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0)
 
 
 def cell_scene(scene: SceneSpec, config: CellConfig) -> SceneSpec:
@@ -39,16 +45,20 @@ def build_cell_world(
         scene = default_scene()
     elif not isinstance(scene, SceneSpec):
         scene = load_scene(scene)
-    base_dir = Path(".")
-    result = drop_scene(cell_scene(scene, config), seed, base_dir)
+    result = drop_scene(cell_scene(scene, config), seed, Path("."))
     if not result.report.ok:
         raise DropError(f"the drop of scene '{scene.name}' (seed {seed}) is unusable: {result.report.to_json()}")
     world = CellWorld(config)
+    add_pile(world, result)
+    log.info("cell with %d parts of scene '%s' (seed %d)", len(result.instances), scene.name, seed)
+    return world
+
+
+def add_pile(world: CellWorld, result: DropResult) -> list[str]:
+    """Puts a drop's pile (poses in the bin frame) into the world's bin, with the drop's collision models."""
     models = [result.models[i.model_index] for i in result.instances]
     collision = [result.collision[i.model_index] for i in result.instances]
-    world.add_parts(models, world.T_world_bin @ result.T_world_obj, collision)
-    log.info("cell with %d parts of scene '%s' (seed %d)", len(models), scene.name, seed)
-    return world
+    return world.add_parts(models, world.T_world_bin @ result.T_world_obj, collision)
 
 
 class CameraLoad:
