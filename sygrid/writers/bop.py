@@ -1,0 +1,234 @@
+"""BOP dataset writer and reader (the layout the BOP toolkit reads), millimetres in the files, metres inside.
+
+Layout under ``root``::
+
+    models/models_info.json, models/obj_OOOOOO.ply            (mm)
+    <split>/SSSSSS/rgb/IIIIII.png, depth/IIIIII.png            (uint16, depth_mm = value * depth_scale)
+    <split>/SSSSSS/mask/IIIIII_GGGGGG.png, mask_visib/...      (GGGGGG = index in the scene_gt list;
+                                                                an instance without a full mask gets its visible one)
+    <split>/SSSSSS/scene_gt.json, scene_camera.json, scene_gt_info.json
+
+Every file goes through ``write_bytes_atomic``; the per-scene JSONs are read, updated and rewritten atomically,
+images and masks first and ``scene_gt.json`` last, so a crash leaves either the old or the new entry, never half
+of a file.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sygrid.annotations import ImageAnnotation, InstanceAnnotation, check_item
+from sygrid.camera import CameraIntrinsics
+from sygrid.errors import ConfigError
+from sygrid.fileio import write_bytes_atomic, write_json_atomic
+from sygrid.objects.model import ObjectModel
+
+log = logging.getLogger(__name__)
+
+MM_PER_M = 1000.0
+_UINT16_MAX = 65535
+
+
+# ------------------------------------------------------------------------------------------ JSON <-> numpy helpers
+def gt_as_json(inst: InstanceAnnotation) -> dict:
+    """A ``scene_gt.json`` entry (new dict): rotation row-major, translation in millimetres."""
+    T = np.asarray(inst.T_camera_obj, dtype=np.float64)
+    return {
+        "cam_R_m2c": [float(v) for v in T[:3, :3].reshape(-1)],
+        "cam_t_m2c": [float(v) * MM_PER_M for v in T[:3, 3]],
+        "obj_id": int(inst.obj_id),
+    }
+
+
+def T_from_gt_json(entry: dict, where: str) -> np.ndarray:
+    """(4, 4) metres from a ``scene_gt.json`` entry; ``where`` names the file and key for errors."""
+    try:
+        R = np.asarray(entry["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
+        t = np.asarray(entry["cam_t_m2c"], dtype=np.float64).reshape(3) / MM_PER_M
+    except (KeyError, ValueError, TypeError) as err:
+        raise ConfigError(f"{where}: expected cam_R_m2c (9 numbers) and cam_t_m2c (3 numbers, mm): {err}") from err
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def gt_info_as_json(inst: InstanceAnnotation) -> dict:
+    """A ``scene_gt_info.json`` entry (new dict)."""
+    return {
+        "bbox_obj": [int(v) for v in inst.bbox_obj],
+        "bbox_visib": [int(v) for v in inst.bbox_visib],
+        "px_count_all": int(inst.px_count_all),
+        "px_count_valid": int(inst.px_count_valid),
+        "px_count_visib": int(inst.px_count_visib),
+        "visib_fract": float(inst.visib_fract),
+    }
+
+
+def camera_as_json(intrinsics: CameraIntrinsics, depth_scale_mm: float) -> dict:
+    """A ``scene_camera.json`` entry (new dict)."""
+    return {"cam_K": [float(v) for v in intrinsics.K.reshape(-1)], "depth_scale": float(depth_scale_mm)}
+
+
+def depth_to_png_units(depth_m: np.ndarray, depth_scale_mm: float) -> np.ndarray:
+    """(h, w) float metres (0 = no data) -> (h, w) uint16 in units of ``depth_scale_mm``; too far raises."""
+    units = np.round(np.asarray(depth_m, dtype=np.float64) * MM_PER_M / depth_scale_mm)
+    if np.any(units > _UINT16_MAX) or np.any(units < 0) or not np.all(np.isfinite(units)):
+        raise ValueError(
+            f"depth_m: values must be finite and in [0, {_UINT16_MAX * depth_scale_mm / MM_PER_M:.3f}] m for "
+            f"depth_scale {depth_scale_mm} mm, got [{np.nanmin(depth_m):.3f}, {np.nanmax(depth_m):.3f}] m"
+        )
+    return units.astype(np.uint16)
+
+
+def encode_png(image: np.ndarray, what: str) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError(f"{what}: cv2 could not encode an image of shape {image.shape} dtype {image.dtype} as PNG")
+    return buf.tobytes()
+
+
+def _read_png(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ConfigError(f"{path}: missing or not a readable PNG")
+    return image
+
+
+def _load_json(path: Path) -> dict:
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"{path}: not valid JSON ({err})") from err
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a JSON object keyed by image id, got {type(data).__name__}")
+    return data
+
+
+# ------------------------------------------------------------------------------------------------------ the writer
+class BopWriter:
+    """Writes items into a BOP dataset at ``root`` (``split`` e.g. ``train_pbr``), models on construction."""
+
+    def __init__(self, root: str | Path, models: Sequence[ObjectModel], split: str = "train_pbr") -> None:
+        if not split or "/" in split:
+            raise ValueError(f"split: expected a folder name such as 'train_pbr', got {split!r}")
+        self.root = Path(root)
+        self.split = split
+        self.models = {m.obj_id: m for m in models}
+        self.written: list[Path] = []
+        self._write_models()
+
+    def _write_models(self) -> None:
+        info = {}
+        for obj_id, model in sorted(self.models.items()):
+            info[str(obj_id)] = model.models_info_entry()
+            mesh_mm = model.mesh.copy()
+            mesh_mm.apply_scale(MM_PER_M)
+            payload = mesh_mm.export(file_type="ply")
+            self.written.append(write_bytes_atomic(self.root / "models" / f"obj_{obj_id:06d}.ply", payload))
+        self.written.append(write_json_atomic(self.root / "models" / "models_info.json", info))
+
+    def scene_dir(self, scene_id: int) -> Path:
+        return self.root / self.split / f"{scene_id:06d}"
+
+    def write(self, ann: ImageAnnotation, rgb: np.ndarray, depth_m: np.ndarray | None = None) -> list[Path]:
+        """Writes one image and its ground truth; returns the paths written."""
+        check_item(ann, rgb, depth_m)
+        unknown = sorted({i.obj_id for i in ann.instances} - set(self.models))
+        if unknown:
+            raise ValueError(f"obj_id {unknown} not among the writer's models {sorted(self.models)}")
+        if not ann.depth_scale_mm > 0:
+            raise ValueError(f"depth_scale_mm: expected > 0, got {ann.depth_scale_mm}")
+        sdir, im = self.scene_dir(ann.scene_id), f"{ann.image_id:06d}"
+        # Convert and check everything before the first write, so a bad item leaves the dataset untouched.
+        depth_png = None if depth_m is None else encode_png(depth_to_png_units(depth_m, ann.depth_scale_mm), "depth")
+        paths = [write_bytes_atomic(sdir / "rgb" / f"{im}.png", encode_png(np.asarray(rgb)[..., ::-1], "rgb"))]
+        if depth_png is not None:
+            paths.append(write_bytes_atomic(sdir / "depth" / f"{im}.png", depth_png))
+        for g, inst in enumerate(ann.instances):
+            name = f"{im}_{g:06d}.png"
+            visib = np.asarray(inst.mask_visib, dtype=bool)
+            full = visib if inst.mask_full is None else np.asarray(inst.mask_full, dtype=bool)
+            paths.append(write_bytes_atomic(sdir / "mask" / name, encode_png(full.astype(np.uint8) * 255, "mask")))
+            paths.append(
+                write_bytes_atomic(sdir / "mask_visib" / name, encode_png(visib.astype(np.uint8) * 255, "mask"))
+            )
+        key = str(ann.image_id)
+        updates = (
+            ("scene_gt_info.json", [gt_info_as_json(i) for i in ann.instances]),
+            ("scene_camera.json", camera_as_json(ann.intrinsics, ann.depth_scale_mm)),
+            ("scene_gt.json", [gt_as_json(i) for i in ann.instances]),  # last: the entry that commits the image
+        )
+        for fname, entry in updates:
+            path = sdir / fname
+            data = _load_json(path)
+            data[key] = entry
+            ordered = dict(sorted(data.items(), key=lambda kv: int(kv[0])))
+            paths.append(write_json_atomic(path, ordered))
+        self.written += paths
+        return paths
+
+    def finish(self) -> list[Path]:
+        """Nothing left to write (every item is complete on disk); logs and returns everything written."""
+        log.info("BOP dataset: %d files written under %s", len(self.written), self.root)
+        return list(self.written)
+
+
+# ------------------------------------------------------------------------------------------------------ the reader
+def load_bop_item(
+    root: str | Path, scene_id: int, image_id: int, split: str = "train_pbr"
+) -> tuple[ImageAnnotation, np.ndarray, np.ndarray | None]:
+    """Reads one image back: ``(annotation, rgb (h, w, 3) uint8, depth_m (h, w) float32 metres or None)``."""
+    sdir = Path(root) / split / f"{scene_id:06d}"
+    im, key = f"{image_id:06d}", str(image_id)
+    rgb = _read_png(sdir / "rgb" / f"{im}.png")[..., ::-1].copy()
+    h, w = rgb.shape[:2]
+    cams, gts, infos = (_load_json(sdir / f) for f in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"))
+    for fname, data in (("scene_camera.json", cams), ("scene_gt.json", gts)):
+        if key not in data:
+            raise ConfigError(f"{sdir / fname}: no entry for image {key} (have {sorted(data, key=int)[:10]}...)")
+    cam = cams[key]
+    try:
+        intrinsics = CameraIntrinsics.from_K(np.asarray(cam["cam_K"], dtype=float), w, h)
+        depth_scale_mm = float(cam.get("depth_scale", 1.0))
+    except (KeyError, ValueError, TypeError) as err:
+        raise ConfigError(f"{sdir / 'scene_camera.json'}[{key}]: expected cam_K (9 numbers): {err}") from err
+    depth_m = None
+    depth_path = sdir / "depth" / f"{im}.png"
+    if depth_path.exists():
+        depth_m = (_read_png(depth_path).astype(np.float64) * depth_scale_mm / MM_PER_M).astype(np.float32)
+    info_list = infos.get(key, [])
+    instances = []
+    for g, entry in enumerate(gts[key]):
+        where = f"{sdir / 'scene_gt.json'}[{key}][{g}]"
+        name = f"{im}_{g:06d}.png"
+        visib = _read_png(sdir / "mask_visib" / name) > 0
+        full_path = sdir / "mask" / name
+        full = _read_png(full_path) > 0 if full_path.exists() else None
+        info = info_list[g] if g < len(info_list) else {}
+        px_visib = int(info.get("px_count_visib", np.count_nonzero(visib)))
+        px_all = int(info.get("px_count_all", np.count_nonzero(full) if full is not None else px_visib))
+        instances.append(
+            InstanceAnnotation(
+                obj_id=int(entry["obj_id"]),
+                inst_id=g,
+                T_camera_obj=T_from_gt_json(entry, where),
+                mask_visib=visib,
+                mask_full=full,
+                bbox_visib=tuple(int(v) for v in info.get("bbox_visib", (-1, -1, -1, -1))),
+                bbox_obj=tuple(int(v) for v in info.get("bbox_obj", (-1, -1, -1, -1))),
+                px_count_all=px_all,
+                px_count_visib=px_visib,
+                visib_fract=float(info.get("visib_fract", px_visib / px_all if px_all else 0.0)),
+                px_count_valid=int(info.get("px_count_valid", px_all)),
+            )
+        )
+    ann = ImageAnnotation(image_id, intrinsics, tuple(instances), scene_id=scene_id, depth_scale_mm=depth_scale_mm)
+    return ann, rgb, depth_m

@@ -1,0 +1,119 @@
+"""YOLO segmentation dataset writer (the layout ultralytics trains on).
+
+Layout under ``root``::
+
+    images/<split>/SSSSSS_IIIIII.png
+    labels/<split>/SSSSSS_IIIIII.txt     one line per visible instance: ``class x1 y1 x2 y2 ...``
+    data.yaml                             path, train, val, names {index: name}
+
+``class`` is the index of the instance's ``obj_id`` in the sorted list of the writer's model ids. Coordinates are
+normalised by the image size (``x / width``, ``y / height``). A visible mask split by an occluder becomes one
+polygon through zero-width bridges (``sygrid.annotations.merge_polygons``), as the SyGRID labels did.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from sygrid.annotations import ImageAnnotation, check_item, mask_to_polygon
+from sygrid.fileio import write_bytes_atomic
+from sygrid.objects.model import ObjectModel
+from sygrid.writers.bop import encode_png
+
+log = logging.getLogger(__name__)
+
+_MIN_POLYGON_POINTS = 3  # ultralytics drops segments with fewer points
+
+
+def polygon_label_line(class_index: int, polygon: np.ndarray, width: int, height: int) -> str:
+    """``class x1 y1 ...`` with (n, 2) pixel coordinates normalised to [0, 1]."""
+    norm = np.clip(np.asarray(polygon, dtype=np.float64) / np.array([width, height]), 0.0, 1.0)
+    return " ".join([str(int(class_index)), *(f"{v:.6f}" for v in norm.reshape(-1))])
+
+
+def parse_label_line(line: str, width: int, height: int) -> tuple[int, np.ndarray]:
+    """Inverse of ``polygon_label_line``: ``(class index, (n, 2) pixel polygon)``."""
+    fields = line.split()
+    if len(fields) < 1 + 2 * _MIN_POLYGON_POINTS or len(fields) % 2 == 0:
+        raise ValueError(f"YOLO label line: expected 'class x1 y1 x2 y2 x3 y3 ...', got {line[:80]!r}")
+    xy = np.asarray(fields[1:], dtype=np.float64).reshape(-1, 2) * np.array([width, height])
+    return int(fields[0]), xy
+
+
+def data_yaml(root: Path, names: dict[int, str], train: str, val: str) -> str:
+    """The ``data.yaml`` text, written by hand (flat keys and one mapping; no YAML library needed)."""
+    lines = [f"path: {_yaml_str(str(root.resolve()))}", f"train: {train}", f"val: {val}", "names:"]
+    lines += [f"  {i}: {_yaml_str(n)}" for i, n in sorted(names.items())]
+    return "\n".join(lines) + "\n"
+
+
+def _yaml_str(text: str) -> str:
+    """A double-quoted YAML scalar (JSON string escaping is valid YAML)."""
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+class YoloWriter:
+    """Writes items into a YOLO segmentation dataset at ``root``; ``split`` per item (``train`` or ``val``)."""
+
+    def __init__(self, root: str | Path, models: Sequence[ObjectModel], split: str = "train") -> None:
+        _check_split(split)
+        self.root = Path(root)
+        self.split = split
+        self.obj_ids = sorted({m.obj_id for m in models})
+        if not self.obj_ids:
+            raise ValueError("models: expected at least one ObjectModel to name the YOLO classes")
+        self.class_index = {obj_id: i for i, obj_id in enumerate(self.obj_ids)}
+        self.names = {self.class_index[m.obj_id]: m.name for m in models}
+        self.written: list[Path] = []
+        self.written.append(self._write_yaml())
+
+    def _write_yaml(self) -> Path:
+        has_val = (self.root / "images" / "val").is_dir()
+        text = data_yaml(self.root, self.names, "images/train", "images/val" if has_val else "images/train")
+        return write_bytes_atomic(self.root / "data.yaml", text.encode())
+
+    def label_lines(self, ann: ImageAnnotation) -> list[str]:
+        """One label line per instance with a visible polygon of at least three points."""
+        w, h = ann.intrinsics.width, ann.intrinsics.height
+        lines = []
+        for inst in ann.instances:
+            if inst.obj_id not in self.class_index:
+                raise ValueError(f"obj_id {inst.obj_id} not among the writer's models {self.obj_ids}")
+            polygon = mask_to_polygon(inst.mask_visib)
+            if len(polygon) < _MIN_POLYGON_POINTS:
+                log.debug("image %s instance %d: visible polygon too small, no label", ann.name, inst.inst_id)
+                continue
+            lines.append(polygon_label_line(self.class_index[inst.obj_id], polygon, w, h))
+        return lines
+
+    def write(
+        self, ann: ImageAnnotation, rgb: np.ndarray, depth_m: np.ndarray | None = None, split: str | None = None
+    ) -> list[Path]:
+        """Writes one image and its label file (``depth_m`` is not part of the format); returns the paths."""
+        check_item(ann, rgb, depth_m)
+        split = self.split if split is None else split
+        _check_split(split)
+        lines = self.label_lines(ann)
+        image = write_bytes_atomic(
+            self.root / "images" / split / f"{ann.name}.png", encode_png(np.asarray(rgb)[..., ::-1], "rgb")
+        )
+        label = write_bytes_atomic(
+            self.root / "labels" / split / f"{ann.name}.txt", "".join(f"{ln}\n" for ln in lines).encode()
+        )
+        self.written += [image, label]
+        return [image, label]
+
+    def finish(self) -> list[Path]:
+        """Rewrites ``data.yaml`` (``val`` points at ``images/val`` once it exists); returns everything written."""
+        self.written.append(self._write_yaml())
+        log.info("YOLO dataset: %d files written under %s", len(self.written), self.root)
+        return list(self.written)
+
+
+def _check_split(split: str) -> None:
+    if split not in ("train", "val", "test"):
+        raise ValueError(f"split: expected 'train', 'val' or 'test', got {split!r}")
