@@ -36,6 +36,22 @@ def part_inertial(model: ObjectModel) -> tuple[float, np.ndarray, np.ndarray]:
     return float(abs(mesh.volume)) * model.density_kg_m3, np.asarray(mesh.center_mass), np.array(full)
 
 
+def open_box_parts(
+    inner_size_m: tuple[float, float, float], wall_m: float, floor_m: float
+) -> dict[str, tuple[list[float], list[float]]]:
+    """The five boxes of an open box whose frame is the centre of its inner floor: name -> (centre, half-size),
+    metres. Shared by the physics/cell bodies and the renderer's bin, so all three see the same bin."""
+    sx, sy, sz = (v / 2 for v in inner_size_m)
+    t = wall_m / 2
+    return {
+        "floor": ([0, 0, -floor_m / 2], [sx + 2 * t, sy + 2 * t, floor_m / 2]),
+        "wall_xp": ([sx + t, 0, sz], [t, sy + 2 * t, sz]),
+        "wall_xn": ([-sx - t, 0, sz], [t, sy + 2 * t, sz]),
+        "wall_yp": ([0, sy + t, sz], [sx, t, sz]),
+        "wall_yn": ([0, -sy - t, sz], [sx, t, sz]),
+    }
+
+
 def add_open_box(
     parent: mujoco.MjsBody,
     name: str,
@@ -49,16 +65,7 @@ def add_open_box(
 ) -> mujoco.MjsBody:
     """A static open box (bin, tray) whose frame is the centre of its inner floor."""
     body = parent.add_body(name=name, pos=T_parent_box[:3, 3].tolist(), quat=quat_wxyz(T_parent_box[:3, :3]).tolist())
-    sx, sy, sz = (v / 2 for v in inner_size_m)
-    t = wall_m / 2
-    boxes = {
-        "floor": ([0, 0, -floor_m / 2], [sx + 2 * t, sy + 2 * t, floor_m / 2]),
-        "wall_xp": ([sx + t, 0, sz], [t, sy + 2 * t, sz]),
-        "wall_xn": ([-sx - t, 0, sz], [t, sy + 2 * t, sz]),
-        "wall_yp": ([0, sy + t, sz], [sx, t, sz]),
-        "wall_yn": ([0, -sy - t, sz], [sx, t, sz]),
-    }
-    for part, (pos, half) in boxes.items():
+    for part, (pos, half) in open_box_parts(inner_size_m, wall_m, floor_m).items():
         body.add_geom(
             name=f"{name}_{part}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=pos, size=half, rgba=rgba,
             friction=friction, solref=solref,

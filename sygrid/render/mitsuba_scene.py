@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sygrid.camera import CameraIntrinsics
+from sygrid.mjspec import open_box_parts
 from sygrid.objects.model import ObjectModel
 from sygrid.physics import Instance
 from sygrid.render.materials import floor_bsdf, material_bsdf
@@ -114,8 +115,7 @@ def build_shapes(
     if len(T_world_obj) != len(instances):
         raise ValueError(f"T_world_obj has {len(T_world_obj)} poses for {len(instances)} instances")
     out = MitsubaShapes()
-    t, f = container.wall_thickness_m, BIN_FLOOR_THICKNESS_M
-    sx, sy, sz = (v / 2 for v in container.inner_size_m)
+    f = BIN_FLOOR_THICKNESS_M
     floor = mi.load_dict(floor_bsdf(rng))
     out.shapes["floor"] = make_mesh(
         "floor",
@@ -124,14 +124,7 @@ def build_shapes(
         floor,
     )
     bin_bsdf = mi.load_dict(material_bsdf(container.material, rng))
-    boxes = {
-        "floor": ([0, 0, -f / 2], [sx + 2 * t, sy + 2 * t, f / 2]),
-        "wall_xp": ([sx + t, 0, sz], [t, sy + 2 * t, sz]),
-        "wall_xn": ([-sx - t, 0, sz], [t, sy + 2 * t, sz]),
-        "wall_yp": ([0, sy + t, sz], [sx, t, sz]),
-        "wall_yn": ([0, -sy - t, sz], [sx, t, sz]),
-    }
-    for part, (centre, half) in boxes.items():
+    for part, (centre, half) in open_box_parts(container.inner_size_m, container.wall_thickness_m, f).items():
         out.shapes[f"bin_{part}"] = _box_mesh(f"bin_{part}", np.array(centre), np.array(half), bin_bsdf)
     bsdfs = [mi.load_dict(material_bsdf(m.material, rng)) for m in models]
     for k, (inst, T) in enumerate(zip(instances, np.asarray(T_world_obj, dtype=float), strict=True)):
