@@ -17,6 +17,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "parts": ("launch.parts", "list the built-in parts, or export one as a mesh"),
     "bench": ("launch.bench", "run a benchmark and write its JSON and chart"),
     "sim": ("sim.server", "serve a simulated UR5e cell that ur_rtde clients can drive"),
+    "generate": ("launch.generate", "generate (or resume) a dataset from a recipe: BOP, YOLO and COCO labels"),
+    "show": ("launch.show", "draw the labels of a few dataset items over their images (PNG)"),
 }
 
 
