@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("launch.bench", "run a benchmark and write its JSON and chart"),
     "sim": ("sim.server", "serve a simulated UR5e cell that ur_rtde clients can drive"),
     "generate": ("launch.generate", "generate (or resume) a dataset from a recipe: BOP, YOLO and COCO labels"),
+    "train": ("launch.train", "train the detector or the pose model on a generated dataset, export ONNX"),
     "show": ("launch.show", "draw the labels of a few dataset items over their images (PNG)"),
 }
 
