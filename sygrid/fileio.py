@@ -1,4 +1,5 @@
-"""Crash-safe file writing: a reader sees the old file or the new one, never half of one."""
+"""File I/O at the edges: crash-safe writes (a reader sees the old file or the new one, never half of one) and JSON
+reading with errors that name the file."""
 
 from __future__ import annotations
 
@@ -6,6 +7,9 @@ import json
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
+
+from sygrid.errors import ConfigError
 
 
 def write_bytes_atomic(path: str | Path, payload: bytes) -> Path:
@@ -27,3 +31,16 @@ def write_bytes_atomic(path: str | Path, payload: bytes) -> Path:
 
 def write_json_atomic(path: str | Path, data: object, indent: int | None = 1) -> Path:
     return write_bytes_atomic(path, json.dumps(data, indent=indent).encode())
+
+
+def read_json(path: str | Path, what: str) -> Any:
+    """Parses a JSON file; unreadable files and syntax errors raise ConfigError naming the file and the position."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the {what} ({exc.strerror})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: not valid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None

@@ -26,6 +26,7 @@ from pydantic import (
 )
 
 from sygrid.errors import ConfigError
+from sygrid.fileio import read_json
 
 Vec3 = tuple[float, float, float]
 Positive = Annotated[float, Field(gt=0)]
@@ -263,21 +264,17 @@ def parse_scene(data: Any, source: str = "<scene>") -> SceneSpec:
     try:
         return SceneSpec.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"{source}: " + "; ".join(_describe(e) for e in exc.errors())) from None
+        raise ConfigError(validation_message(exc, source)) from None
+
+
+def validation_message(exc: ValidationError, source: str) -> str:
+    """A pydantic error as ``source: field.path: expectation, got value; ...`` (shared by every JSON schema)."""
+    return f"{source}: " + "; ".join(_describe(e) for e in exc.errors())
 
 
 def load_scene(path: str | Path) -> SceneSpec:
     """Reads and validates a scene JSON file."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the scene file ({exc.strerror})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{path}: not valid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
-    return parse_scene(data, str(path))
+    return parse_scene(read_json(path, "scene file"), str(path))
 
 
 def scene_to_json(scene: SceneSpec) -> dict:

@@ -4,10 +4,13 @@ Layout under ``root``::
 
     images/<split>/SSSSSS_IIIIII.png
     annotations/instances_<split>.json     images, categories (id = obj_id), annotations (visible-mask RLE)
+    annotations/items_<split>/SSSSSS_IIIIII.json   one record per image: what the JSON is assembled from
 
-Images are written as they come; the JSON is kept in memory and written atomically by ``finish()`` (and
-``flush()``). An existing JSON is loaded on construction and extended, so an interrupted run resumes without
-duplicate ids.
+Each ``write`` stores its image and a per-image record atomically, so an item is either complete or absent and the
+cost of an item does not grow with the dataset; ``finish()`` (and ``flush()``) assembles the COCO JSON from all
+records. Ids are stable: the image id comes from ``(scene_id, image_id)``, annotation ids are numbered in image
+order at assembly, so the file does not depend on the order items arrive in (parallel or resumed runs), and
+writing an image again replaces it.
 """
 
 from __future__ import annotations
@@ -40,6 +43,11 @@ def rle_to_mask(rle: dict) -> np.ndarray:
     return mask_utils.decode({"size": rle["size"], "counts": rle["counts"].encode("ascii")}).astype(bool)
 
 
+def coco_image_id(scene_id: int, image_id: int) -> int:
+    """The COCO image id of BOP image ``scene_id/image_id`` (>= 1, unique for up to a million images a scene)."""
+    return scene_id * 1_000_000 + image_id + 1
+
+
 class CocoWriter:
     """Writes items into a COCO dataset at ``root`` for one ``split``."""
 
@@ -49,49 +57,29 @@ class CocoWriter:
         self.root = Path(root)
         self.split = split
         self.json_path = self.root / "annotations" / f"instances_{split}.json"
+        self.items_dir = self.root / "annotations" / f"items_{split}"
         self.categories = [{"id": int(m.obj_id), "name": m.name} for m in sorted(models, key=lambda m: m.obj_id)]
         if not self.categories:
             raise ValueError("models: expected at least one ObjectModel to name the COCO categories")
-        self.images: list[dict] = []
-        self.annotations: list[dict] = []
-        if self.json_path.exists():
-            self._resume()
         self.written: list[Path] = []
 
-    def _resume(self) -> None:
-        try:
-            data = json.loads(self.json_path.read_text())
-            self.images, self.annotations = list(data["images"]), list(data["annotations"])
-        except (json.JSONDecodeError, KeyError, TypeError) as err:
-            raise ConfigError(f"{self.json_path}: expected a COCO JSON with 'images' and 'annotations': {err}") from err
-        log.info("COCO: resuming %s with %d images", self.json_path, len(self.images))
-
     def write(self, ann: ImageAnnotation, rgb: np.ndarray, depth_m: np.ndarray | None = None) -> list[Path]:
-        """Writes the image file and records its annotations (``depth_m`` is not part of the format)."""
+        """Writes the image file and its annotation record (``depth_m`` is not part of the format)."""
         check_item(ann, rgb, depth_m)
         known = {c["id"] for c in self.categories}
         for inst in ann.instances:
             if inst.obj_id not in known:
                 raise ValueError(f"obj_id {inst.obj_id} not among the writer's models {sorted(known)}")
         file_name = f"{ann.name}.png"
-        if any(im["file_name"] == file_name for im in self.images):
-            raise ValueError(f"image {file_name}: already in {self.json_path}; scene_id/image_id must be unique")
-        path = write_bytes_atomic(
-            self.root / "images" / self.split / file_name, encode_png(np.asarray(rgb)[..., ::-1], "rgb")
-        )
-        image_id = 1 + max((im["id"] for im in self.images), default=0)
-        self.images.append(
-            {"id": image_id, "file_name": file_name, "width": ann.intrinsics.width, "height": ann.intrinsics.height}
-        )
-        next_id = 1 + max((a["id"] for a in self.annotations), default=0)
+        image_id = coco_image_id(ann.scene_id, ann.image_id)
+        annotations = []
         for inst in ann.instances:
             if inst.px_count_visib == 0:
                 continue
             rle = mask_to_rle(inst.mask_visib)
             x, y, w, h = inst.bbox_visib
-            self.annotations.append(
+            annotations.append(
                 {
-                    "id": next_id,
                     "image_id": image_id,
                     "category_id": int(inst.obj_id),
                     "segmentation": rle,
@@ -100,17 +88,41 @@ class CocoWriter:
                     "iscrowd": 0,
                 }
             )
-            next_id += 1
-        self.written.append(path)
-        return [path]
+        image = {"id": image_id, "file_name": file_name, "width": ann.intrinsics.width, "height": ann.intrinsics.height}
+        paths = [
+            write_bytes_atomic(
+                self.root / "images" / self.split / file_name, encode_png(np.asarray(rgb)[..., ::-1], "rgb")
+            ),
+            write_json_atomic(self.items_dir / f"{ann.name}.json", {"image": image, "annotations": annotations}, None),
+        ]
+        self.written += paths
+        return paths
+
+    def _records(self) -> list[dict]:
+        records = []
+        for path in sorted(self.items_dir.glob("*.json")):
+            try:
+                record = json.loads(path.read_text())
+                _ = (record["image"]["id"], record["annotations"])  # shape check
+            except (json.JSONDecodeError, KeyError, TypeError) as err:
+                raise ConfigError(
+                    f"{path}: expected a COCO image record with 'image' and 'annotations': {err}"
+                ) from err
+            records.append(record)
+        return sorted(records, key=lambda r: r["image"]["id"])
 
     def flush(self) -> Path:
-        """Writes the annotation JSON atomically with everything recorded so far."""
-        data = {"images": self.images, "annotations": self.annotations, "categories": self.categories}
+        """Assembles the annotation JSON from every image record so far and writes it atomically."""
+        images, annotations = [], []
+        for record in self._records():
+            images.append(record["image"])
+            for a in record["annotations"]:
+                annotations.append({"id": len(annotations) + 1, **a})
+        data = {"images": images, "annotations": annotations, "categories": self.categories}
         return write_json_atomic(self.json_path, data, indent=None)
 
     def finish(self) -> list[Path]:
         """Writes the annotation JSON; returns everything written."""
         self.written.append(self.flush())
-        log.info("COCO dataset: %d images, %d annotations in %s", len(self.images), len(self.annotations), self.root)
+        log.info("COCO dataset written to %s", self.json_path)
         return list(self.written)

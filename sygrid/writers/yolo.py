@@ -4,7 +4,7 @@ Layout under ``root``::
 
     images/<split>/SSSSSS_IIIIII.png
     labels/<split>/SSSSSS_IIIIII.txt     one line per visible instance: ``class x1 y1 x2 y2 ...``
-    data.yaml                             path, train, val, names {index: name}
+    data.yaml                             train, val (test), names {index: name}
 
 ``class`` is the index of the instance's ``obj_id`` in the sorted list of the writer's model ids. Coordinates are
 normalised by the image size (``x / width``, ``y / height``). A visible mask split by an occluder becomes one
@@ -44,9 +44,10 @@ def parse_label_line(line: str, width: int, height: int) -> tuple[int, np.ndarra
     return int(fields[0]), xy
 
 
-def data_yaml(root: Path, names: dict[int, str], train: str, val: str) -> str:
-    """The ``data.yaml`` text, written by hand (flat keys and one mapping; no YAML library needed)."""
-    lines = [f"path: {_yaml_str(str(root.resolve()))}", f"train: {train}", f"val: {val}", "names:"]
+def data_yaml(names: dict[int, str], splits: dict[str, str]) -> str:
+    """The ``data.yaml`` text, written by hand (flat keys and one mapping; no YAML library needed). No ``path``
+    key: ultralytics then takes the folder of the YAML file, so the dataset can be moved or copied."""
+    lines = [f"{split}: {folder}" for split, folder in splits.items()] + ["names:"]
     lines += [f"  {i}: {_yaml_str(n)}" for i, n in sorted(names.items())]
     return "\n".join(lines) + "\n"
 
@@ -72,8 +73,11 @@ class YoloWriter:
         self.written.append(self._write_yaml())
 
     def _write_yaml(self) -> Path:
-        has_val = (self.root / "images" / "val").is_dir()
-        text = data_yaml(self.root, self.names, "images/train", "images/val" if has_val else "images/train")
+        present = {s for s in ("train", "val", "test") if (self.root / "images" / s).is_dir()}
+        splits = {"train": "images/train", "val": "images/val" if "val" in present else "images/train"}
+        if "test" in present:
+            splits["test"] = "images/test"
+        text = data_yaml(self.names, splits)
         return write_bytes_atomic(self.root / "data.yaml", text.encode())
 
     def label_lines(self, ann: ImageAnnotation) -> list[str]:

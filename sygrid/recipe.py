@@ -1,0 +1,99 @@
+"""A dataset recipe: which scene to drop and render, in which formats and splits, with which render-mode mix.
+
+A recipe is a JSON file (the ones the project trains on live in ``launch/recipes/``)::
+
+    {"name": "builtin_train", "scene": "../scenes/builtin_bin.json", "split": "train", "val_fraction": 0.1,
+     "formats": ["bop", "yolo", "coco"], "raster_fraction": 0.5}
+
+``scene`` is a scene file path (relative to the recipe) or an inline scene object. ``raster_fraction`` of the items
+are rendered with the rasterised mode instead of the scene's path-traced one: cheap items that also cover the look
+of the simulated cell's camera. ``depth_noise`` writes depth through the stereo noise model instead of exact depth.
+Errors name the file and the field, as the scene's do.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from sygrid.errors import ConfigError
+from sygrid.fileio import read_json
+from sygrid.scene import SceneSpec, load_scene, parse_scene, scene_to_json, validation_message
+
+Format = Literal["bop", "yolo", "coco"]
+Fraction = Annotated[float, Field(ge=0, le=1)]
+
+
+class RecipeSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str
+    scene: str | dict[str, Any]
+    split: Literal["train", "test"] = "train"
+    val_fraction: Annotated[float, Field(ge=0, le=0.5)] = 0.1
+    formats: tuple[Format, ...] = ("bop", "yolo", "coco")
+    raster_fraction: Fraction = 0.0
+    depth_noise: bool = False
+    full_masks: bool = True
+    max_drop_attempts: int = Field(default=3, ge=1, le=20)
+
+    @field_validator("formats")
+    @classmethod
+    def _formats(cls, formats: tuple[str, ...]) -> tuple[str, ...]:
+        if not formats:
+            raise ValueError("must name at least one of 'bop', 'yolo', 'coco'")
+        if len(set(formats)) != len(formats):
+            raise ValueError(f"must not repeat a format, got {list(formats)}")
+        return formats
+
+
+class Recipe:
+    """A validated recipe with its scene resolved; ``base_dir`` is what the scene's relative paths are relative to."""
+
+    def __init__(self, spec: RecipeSpec, scene: SceneSpec, base_dir: Path) -> None:
+        self.spec = spec
+        self.scene = scene
+        self.base_dir = base_dir
+
+    def to_json(self) -> dict:
+        """The recipe with the scene inlined: what a dataset records, so it can be regenerated without the files."""
+        return {**self.spec.model_dump(mode="json"), "scene": scene_to_json(self.scene)}
+
+    def sha256(self) -> str:
+        return hashlib.sha256(json.dumps(self.to_json(), sort_keys=True).encode()).hexdigest()
+
+    def bop_split(self, is_val: bool) -> str:
+        """BOP folder of an item: ``train_pbr`` / ``val_pbr`` for training recipes, ``test`` for test recipes."""
+        if self.spec.split == "test":
+            return "test"
+        return "val_pbr" if is_val else "train_pbr"
+
+    def label_split(self, is_val: bool) -> str:
+        """YOLO / COCO split of an item: ``train`` / ``val``, or ``test``."""
+        if self.spec.split == "test":
+            return "test"
+        return "val" if is_val else "train"
+
+
+def parse_recipe(data: Any, source: str, base_dir: Path) -> Recipe:
+    """Validates recipe data; ``source`` names it in errors, ``base_dir`` resolves a scene path."""
+    try:
+        spec = RecipeSpec.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(validation_message(exc, source)) from None
+    if isinstance(spec.scene, str):
+        scene_path = base_dir / spec.scene
+        if not scene_path.is_file():
+            raise ConfigError(f"{source}: scene: no scene file at {scene_path}")
+        return Recipe(spec, load_scene(scene_path), scene_path.parent)
+    return Recipe(spec, parse_scene(spec.scene, f"{source}: scene"), base_dir)
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Reads and validates a recipe file."""
+    path = Path(path)
+    return parse_recipe(read_json(path, "recipe file"), str(path), path.parent)
