@@ -168,7 +168,8 @@ def simulate_drop(
     ``rest_drift_m``: how far from a resting pile "settled" was.
     """
     start = time.perf_counter()
-    radii = np.array([models[i.model_index].diameter_m / 2 for i in instances])
+    bounding = [bounding_radius_m(m, c) for m, c in zip(models, collision, strict=True)]
+    radii = np.array([bounding[i.model_index] for i in instances])
     T_spawn = sample_spawn_poses(radii, container, physics.spawn_clearance_m, rng)
     spec = build_drop_spec(models, collision, instances, T_spawn, container, physics)
     mj_model = spec.compile()
@@ -230,6 +231,21 @@ def simulate_drop(
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+
+def bounding_radius_m(model: ObjectModel, collision: CollisionModel) -> float:
+    """Radius of a sphere about the object origin that holds the mesh and every collision geom. Not the model's
+    half diameter: the origin need not be the centre of the smallest enclosing sphere (an L-bracket's is not), and
+    decomposition pieces may stand slightly proud of the mesh."""
+    points = [model.mesh.convex_hull.vertices] + [p.vertices for p in collision.pieces]
+    radius = max(float(np.linalg.norm(p, axis=1).max()) for p in points)
+    for prim in collision.primitives:
+        if prim.kind == "box":
+            corner_reach = float(np.linalg.norm(prim.size_m))
+        else:
+            corner_reach = float(np.hypot(prim.size_m[0], prim.size_m[1]))
+        radius = max(radius, float(np.linalg.norm(prim.T_obj_geom[:3, 3])) + corner_reach)
+    return radius
+
 
 def _check_no_initial_contact(mj_model: mujoco.MjModel, data: mujoco.MjData) -> None:
     overlapping = [
