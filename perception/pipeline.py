@@ -1,0 +1,165 @@
+"""The perception pipeline: a frame (RGB, depth, intrinsics) -> detections -> 6D poses (+ depth refinement).
+
+Loaded from a model folder whose ``manifest.json`` names the files and settings::
+
+    {"format": "sygrid-models/1",
+     "objects": [{"builtin": "hex_nut"}, {"file": "cad/bracket.ply", "unit": "mm", "obj_id": 12}],
+     "detector": {"onnx": "detector.onnx", "conf_threshold": 0.4},
+     "pose": {"onnx": "pose.onnx", "method": "direct"},
+     "refine": {"enabled": true}}
+
+``objects`` uses the scene description's object entries (paths relative to the folder). The detector gives
+classes, boxes and masks; the pose model a pose per detection of a part it knows; the refiner (point-to-plane
+ICP against the depth inside the mask) a refined pose where it can be trusted. Any stage can be overridden by
+the caller (``PipelineOverrides``), which is how the benchmark sweeps input sizes and methods.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from perception.camera import Frame
+from perception.detector import YoloSegDetector
+from perception.pose import PoseEstimator
+from perception.refine import DepthRefiner
+from perception.results import Detection, ObjectPose
+from sygrid.drop import resolve_object
+from sygrid.errors import ConfigError
+from sygrid.fileio import read_json
+from sygrid.objects.model import ObjectModel
+from sygrid.scene import ObjectSpec, validation_message
+
+MANIFEST_NAME = "manifest.json"
+MANIFEST_FORMAT = "sygrid-models/1"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DetectorEntry(_Strict):
+    onnx: str
+    conf_threshold: float = Field(default=0.4, gt=0, lt=1)
+    iou_threshold: float = Field(default=0.6, gt=0, le=1)
+    input_size: int | None = Field(default=None, ge=32, le=4096)
+
+
+class PoseEntry(_Strict):
+    onnx: str
+    method: Literal["direct", "pnp"] = "direct"
+
+
+class RefineEntry(_Strict):
+    enabled: bool = True
+
+
+class Manifest(_Strict):
+    format: Literal["sygrid-models/1"]
+    objects: tuple[ObjectSpec, ...]
+    detector: DetectorEntry
+    pose: PoseEntry
+    refine: RefineEntry = RefineEntry()
+    min_mask_px: int = Field(default=30, ge=0)
+
+
+@dataclass(frozen=True)
+class PipelineOverrides:
+    """Settings a caller may change without editing the manifest (None keeps the manifest's)."""
+
+    detector_input_size: int | None = None
+    conf_threshold: float | None = None
+    pose_method: str | None = None
+    refine: bool | None = None
+    num_threads: int = 2
+
+
+@dataclass
+class PerceptionResult:
+    """Poses of the parts found in one frame, best score first, with the detections and stage timings (ms)."""
+
+    poses: list[ObjectPose]
+    detections: list[Detection]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class PerceptionPipeline:
+    """Detector + pose estimator + optional depth refiner over a set of object models."""
+
+    def __init__(
+        self,
+        detector: YoloSegDetector,
+        pose: PoseEstimator,
+        models: dict[int, ObjectModel],
+        refiner: DepthRefiner | None = None,
+        pose_method: str = "direct",
+        min_mask_px: int = 30,
+    ) -> None:
+        self.detector, self.pose, self.models, self.refiner = detector, pose, models, refiner
+        self.pose_method = pose_method
+        self.min_mask_px = min_mask_px
+
+    @classmethod
+    def from_folder(cls, folder: str | Path, overrides: PipelineOverrides | None = None) -> PerceptionPipeline:
+        """Loads the manifest's models; errors name the folder's files and fields."""
+        folder = Path(folder)
+        o = overrides or PipelineOverrides()
+        manifest = load_manifest(folder)
+        models = {m.obj_id: m for m in (resolve_object(spec, folder) for spec in manifest.objects)}
+        d = manifest.detector
+        detector = YoloSegDetector(
+            folder / d.onnx,
+            conf_threshold=o.conf_threshold or d.conf_threshold,
+            iou_threshold=d.iou_threshold,
+            input_size=o.detector_input_size or d.input_size,
+            num_threads=o.num_threads,
+        )
+        pose = PoseEstimator(folder / manifest.pose.onnx, models=models, num_threads=o.num_threads)
+        refine = manifest.refine.enabled if o.refine is None else o.refine
+        return cls(
+            detector,
+            pose,
+            models,
+            DepthRefiner() if refine else None,
+            pose_method=o.pose_method or manifest.pose.method,
+            min_mask_px=manifest.min_mask_px,
+        )
+
+    def run(self, frame: Frame) -> PerceptionResult:
+        """Detects, estimates and (optionally) refines every part in ``frame``; an empty frame gives no poses."""
+        timings: dict[str, float] = {}
+        t = time.perf_counter()
+        detections = self.detector.detect(frame.rgb)
+        timings["detect"] = 1e3 * (time.perf_counter() - t)
+        # A sliver of a part cannot carry a pose (too few pixels for the RoI or the depth fit).
+        usable = [
+            d for d in detections if d.obj_id in self.models and (d.mask is None or d.mask.sum() >= self.min_mask_px)
+        ]
+        t = time.perf_counter()
+        poses = self.pose.estimate(frame.rgb, usable, frame.intrinsics, method=self.pose_method)
+        timings["pose"] = 1e3 * (time.perf_counter() - t)
+        t = time.perf_counter()
+        if self.refiner is not None:
+            poses = [self.refiner.refine(p, frame.depth_m, frame.intrinsics, self.models[p.obj_id]) for p in poses]
+        timings["refine"] = 1e3 * (time.perf_counter() - t)
+        timings["total"] = sum(timings.values())
+        poses.sort(key=lambda p: -p.score)
+        return PerceptionResult(poses, detections, timings)
+
+
+def load_manifest(folder: Path) -> Manifest:
+    path = folder / MANIFEST_NAME
+    if not path.is_file():
+        raise ConfigError(f"{folder}: not a model folder (no {MANIFEST_NAME})")
+    try:
+        manifest = Manifest.model_validate(read_json(path, "model manifest"))
+    except ValidationError as exc:
+        raise ConfigError(validation_message(exc, str(path))) from None
+    for key, entry in (("detector.onnx", manifest.detector.onnx), ("pose.onnx", manifest.pose.onnx)):
+        if not (folder / entry).is_file():
+            raise ConfigError(f"{path}: {key}: no file {folder / entry}")
+    return manifest
