@@ -11,6 +11,39 @@ from sygrid.errors import ConfigError
 from sygrid.transforms import is_rigid, make_T
 
 
+@dataclass(frozen=True, eq=False)
+class BoardPlate:
+    """A flat printed plate rigidly mounted on the flange (a calibration target): visual only, no mass, no contacts.
+
+    ``image`` (H, W, 3) uint8 RGB is printed on one face of a ``size_xy_m`` plate (the image stretched over the face,
+    so keep its aspect ratio), ``thickness_m`` thick. ``T_flange_plate`` is the pose of the image frame in the flange
+    frame, in the OpenCV board convention: origin at the image's top-left corner, x along the image columns, y along
+    the rows, z into the plate (the printed face looks along -z). The sim knows nothing of the pattern; a ChArUco
+    board's ``image`` comes from ``robot.charuco.CharucoBoard.plate``.
+    """
+
+    image: np.ndarray
+    size_xy_m: tuple[float, float]
+    T_flange_plate: np.ndarray
+    thickness_m: float = 0.004
+
+    def __post_init__(self) -> None:
+        image = np.array(self.image)  # a private, read-only copy
+        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) < 2:
+            raise ConfigError(f"BoardPlate.image must be (H, W, 3) uint8 RGB, got {image.dtype} {image.shape}")
+        image.flags.writeable = False
+        object.__setattr__(self, "image", image)
+        if len(self.size_xy_m) != 2 or min(self.size_xy_m) <= 0 or self.thickness_m <= 0:
+            raise ConfigError(
+                f"BoardPlate.size_xy_m and thickness_m must be > 0 m, got {self.size_xy_m}, {self.thickness_m}"
+            )
+        T = np.array(self.T_flange_plate, dtype=float)
+        if not is_rigid(T):
+            raise ConfigError(f"BoardPlate.T_flange_plate must be a 4x4 rigid transform, got {T.tolist()}")
+        T.flags.writeable = False
+        object.__setattr__(self, "T_flange_plate", T)
+
+
 def _default_camera_pose() -> np.ndarray:
     """0.9 m above the bin floor, looking straight down (camera x along world x, image top towards +y)."""
     return make_T(np.diag([1.0, -1.0, -1.0]), (-0.5, 0.0, 0.92))
@@ -44,6 +77,8 @@ class CellConfig:
     wrist_camera_intrinsics: CameraIntrinsics = field(default_factory=lambda: CameraIntrinsics.from_fov(640, 480, 60.0))
     #: Closed-loop bandwidth of the arm's computed-torque controller (rad/s); Kp = w^2, Kd = 2 w.
     arm_bandwidth_rad_s: float = 100.0
+    #: A calibration plate on the flange (hand-eye calibration); None: no plate (the default cell).
+    calibration_board: BoardPlate | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 < self.timestep_s <= 0.01:
@@ -73,6 +108,10 @@ class CellConfig:
             raise ConfigError(
                 f"CellConfig.arm_bandwidth_rad_s * timestep_s must be in (0, 0.5] for a stable controller, got "
                 f"{self.arm_bandwidth_rad_s} * {self.timestep_s}"
+            )
+        if self.calibration_board is not None and not isinstance(self.calibration_board, BoardPlate):
+            raise ConfigError(
+                f"CellConfig.calibration_board must be a BoardPlate or None, got {type(self.calibration_board)}"
             )
 
 

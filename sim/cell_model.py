@@ -7,7 +7,7 @@ import mujoco
 import numpy as np
 
 from sim import gripper_model
-from sim.cell_config import CellConfig
+from sim.cell_config import BoardPlate, CellConfig
 from sygrid.mjspec import add_open_box, quat_wxyz
 from sygrid.robots import ur5e
 from sygrid.robots.kinematics import dh_transforms
@@ -16,6 +16,7 @@ ARM_BODY_NAMES = ur5e.LINK_NAMES
 FLANGE_SITE = "flange"
 OVERHEAD_CAMERA = "overhead"
 WRIST_CAMERA = "wrist"
+CALIBRATION_BOARD = "calibration_board"  #: the plate's geom, texture and material, and a site at its image frame
 _ENV_FRICTION = (0.5, 0.005, 0.0001)
 _ARM_RGBA = (0.75, 0.76, 0.78, 1.0)
 _JOINT_ARMATURE = (0.1, 0.1, 0.1, 0.05, 0.05, 0.05)  # reflected rotor inertia, kg m^2
@@ -72,6 +73,8 @@ def build_cell_spec(config: CellConfig) -> tuple[mujoco.MjSpec, gripper_model.Gr
     )  # fmt: skip
     flange = _add_arm(spec, config.T_world_base)
     names = gripper_model.add_gripper(spec, flange, solref)
+    if config.calibration_board is not None:
+        _add_board_plate(spec, flange, config.calibration_board)
     R_mj = config.T_world_camera[:3, :3] @ _CV_TO_MUJOCO_CAMERA
     spec.worldbody.add_camera(
         name=OVERHEAD_CAMERA,
@@ -140,6 +143,47 @@ def _add_arm(spec: mujoco.MjSpec, T_world_base: np.ndarray) -> mujoco.MjsBody:
     for a in range(len(chain) - 2):
         spec.add_exclude(bodyname1=chain[a], bodyname2=chain[a + 2])
     return flange
+
+
+# A box's +z face shows a 2D texture (texrepeat 1 1, texuniform false) once, image columns along the box's +x and
+# image rows along its -y (checked by detecting a rendered ChArUco board); its -z face shows the image mirrored. So
+# the printed face is the box's +z face and the plate's image frame (z into the plate) is the box frame turned by
+# diag(1, -1, -1).
+_R_PLATE_BOX = np.diag([1.0, -1.0, -1.0])
+
+
+def _add_board_plate(spec: mujoco.MjSpec, flange: mujoco.MjsBody, plate: BoardPlate) -> None:
+    """The calibration plate on the flange body: a thin textured box, visual only (no mass, no contacts)."""
+    h, w = plate.image.shape[:2]
+    texture = spec.add_texture(name=CALIBRATION_BOARD, type=mujoco.mjtTexture.mjTEXTURE_2D, width=w, height=h)
+    texture.nchannel = 3
+    texture.data = np.ascontiguousarray(plate.image).tobytes()
+    material = spec.add_material(name=CALIBRATION_BOARD, texuniform=False, texrepeat=[1.0, 1.0])
+    material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = CALIBRATION_BOARD
+    material.specular, material.shininess = 0.0, 0.0  # matte print: no highlight that washes the pattern out
+    sx, sy = plate.size_xy_m
+    T_plate_box = np.eye(4)
+    T_plate_box[:3, :3] = _R_PLATE_BOX
+    T_plate_box[:3, 3] = [sx / 2, sy / 2, plate.thickness_m / 2]  # printed face in the plate's z = 0 plane
+    T_flange_box = plate.T_flange_plate @ T_plate_box
+    flange.add_geom(
+        name=CALIBRATION_BOARD,
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[sx / 2, sy / 2, plate.thickness_m / 2],
+        pos=T_flange_box[:3, 3].tolist(),
+        quat=quat_wxyz(T_flange_box[:3, :3]).tolist(),
+        material=CALIBRATION_BOARD,
+        rgba=[1.0, 1.0, 1.0, 1.0],
+        contype=0,
+        conaffinity=0,
+        mass=0.0,
+    )
+    flange.add_site(
+        name=CALIBRATION_BOARD,
+        pos=plate.T_flange_plate[:3, 3].tolist(),
+        quat=quat_wxyz(plate.T_flange_plate[:3, :3]).tolist(),
+        size=[0.002, 0, 0],
+    )
 
 
 def _add_cylinders(body: mujoco.MjsBody, name: str, cylinders: tuple, rgba: tuple[float, ...]) -> None:
