@@ -118,7 +118,7 @@ class KinematicBackend:
             return
         step = float(np.clip(error, -self._gripper_speed_m_s * self.dt_s, self._gripper_speed_m_s * self.dt_s))
         new_width = self._width_m + step
-        if self.object_width_m is not None and step < 0 and new_width <= self.object_width_m < self._width_m:
+        if self.object_width_m is not None and step < 0 and new_width <= self.object_width_m <= self._width_m:
             new_width, self._object_detected = self.object_width_m, True
         self._width_m = new_width
 

@@ -39,8 +39,12 @@ def tune_emulator_process() -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")  # read by Mesa when the first GL context is made
 _HOOKS = (
     "state", "trigger_protective_stop", "inject_collision_force", "log_messages", "unlock_protective_stop",
-    "part_poses",
+    "part_poses", "capture", "part_names", "set_part_poses", "park_parts",
 )  # fmt: skip
+
+# Where parked ("removed") parts wait: high above the cell (behind the camera), spread out, held against gravity so they stay put.
+_PARK_ORIGIN_M = np.array([5.0, 5.0, 3.0])
+_PARK_SPACING_M = 0.5
 
 
 class _RingHandler(logging.Handler):
@@ -79,6 +83,10 @@ def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict,
         "log_messages": lambda: list(ring.lines),
         # The MuJoCo backend's parts, T_world_obj (n, 4, 4): ground truth for sim-in-the-loop tests.
         "part_poses": (lambda: arm.world.part_poses()) if hasattr(arm, "world") else None,
+        "part_names": (lambda: arm.world.part_names()) if hasattr(arm, "world") else None,
+        "set_part_poses": (lambda T: arm.world.set_part_poses(T)) if hasattr(arm, "world") else None,
+        "park_parts": (lambda idx: _park_parts(arm.world, idx)) if hasattr(arm, "world") else None,
+        "capture": _capture_hook(arm) if hasattr(arm, "world") else None,
     }
     try:
         while True:
@@ -103,6 +111,48 @@ def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict,
         ctl.stop()
         with contextlib.suppress(OSError):
             conn.send(("ok", "stopped"))
+
+
+def _capture_hook(arm: Any) -> Any:
+    """The overhead camera of the backend's world, rendered in this (the hook) thread: ``SimCamera`` takes
+    ``world.lock`` only while it copies the scene, so the stepper thread keeps stepping while it rasterises.
+    Returns the ``Frame``'s fields as a dict of arrays (picklable)."""
+    camera = None
+
+    def capture(**camera_kwargs: Any) -> dict:
+        nonlocal camera
+        if camera is None:
+            from sim.camera import SimCamera
+
+            camera = SimCamera(arm.world, **camera_kwargs)
+        frame = camera.capture()
+        return {
+            "rgb": frame.rgb,
+            "depth_m": frame.depth_m,
+            "intrinsics": frame.intrinsics,
+            "timestamp_s": frame.timestamp_s,
+            "T_base_camera": frame.T_base_camera,
+        }
+
+    return capture
+
+
+def _park_parts(world: Any, indices: list[int]) -> None:
+    """Moves parts ``indices`` out of the cell (high above it, at rest, held against gravity): "removes" them
+    without recompiling the world (tests: an empty bin, a part taken away before the gripper closes)."""
+    import mujoco
+
+    with world.lock:
+        T = world.part_poses()
+        for i in indices:
+            if not 0 <= i < len(T):
+                raise ValueError(f"part index {i} out of range: the cell has {len(T)} parts")
+            T[i] = np.eye(4)
+            T[i, :3, 3] = _PARK_ORIGIN_M + [_PARK_SPACING_M * i, 0.0, 0.0]
+            body = mujoco.mj_name2id(world.model, mujoco.mjtObj.mjOBJ_BODY, world.part_names()[i])
+            # An applied force that cancels gravity (body_gravcomp cannot be switched on after compiling).
+            world.data.xfrc_applied[body, :3] = -world.model.body_subtreemass[body] * world.model.opt.gravity
+        world.set_part_poses(T)
 
 
 class ControllerProcess:
@@ -180,6 +230,23 @@ class ControllerProcess:
     def part_poses(self) -> np.ndarray:
         """MuJoCo backend only: ``T_world_obj`` (n, 4, 4) of the cell's parts, for tests."""
         return self.call("part_poses")
+
+    def capture(self, timeout_s: float = 10.0) -> dict:
+        """MuJoCo backend only: one overhead-camera frame of the child's world (``sim.camera.SimCamera``), as the
+        fields of a ``perception.camera.Frame`` (use ``sim.emulator_camera.EmulatorCamera`` for a ``Camera``)."""
+        return self.call("capture", timeout_s=timeout_s)
+
+    def part_names(self) -> list[str]:
+        """MuJoCo backend only: the parts' body names (``part<k>_<model name>``), in ``part_poses`` order."""
+        return self.call("part_names")
+
+    def set_part_poses(self, T_world_obj: np.ndarray) -> None:
+        """MuJoCo backend only: teleports every part to ``T_world_obj`` (n, 4, 4), at rest."""
+        self.call("set_part_poses", np.asarray(T_world_obj, dtype=float))
+
+    def park_parts(self, indices: list[int]) -> None:
+        """MuJoCo backend only: takes parts out of the cell (parked high above it, at rest)."""
+        self.call("park_parts", [int(i) for i in indices])
 
     def log_messages(self) -> list[str]:
         return self.call("log_messages")
