@@ -102,6 +102,7 @@ class YoloWriter:
         split = self.split if split is None else split
         _check_split(split)
         lines = self.label_lines(ann)
+        new_split = not (self.root / "images" / split).is_dir()
         image = write_bytes_atomic(
             self.root / "images" / split / f"{ann.name}.png", encode_png(np.asarray(rgb)[..., ::-1], "rgb")
         )
@@ -109,6 +110,8 @@ class YoloWriter:
             self.root / "labels" / split / f"{ann.name}.txt", "".join(f"{ln}\n" for ln in lines).encode()
         )
         self.written += [image, label]
+        if new_split:  # data.yaml names the splits: keep it true even if the run never reaches finish()
+            self.written.append(self._write_yaml())
         return [image, label]
 
     def finish(self) -> list[Path]:
