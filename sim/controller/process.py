@@ -37,12 +37,14 @@ def tune_emulator_process() -> None:
     500 Hz tick (measured by ``sygrid bench sim``: p99 gap 5.0 ms with the default, 3.4 ms with one thread)."""
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     os.environ.setdefault("LP_NUM_THREADS", "1")  # read by Mesa when the first GL context is made
+
+
 _HOOKS = (
     "state", "trigger_protective_stop", "inject_collision_force", "log_messages", "unlock_protective_stop",
     "part_poses", "capture", "part_names", "set_part_poses", "park_parts",
 )  # fmt: skip
 
-# Where parked ("removed") parts wait: high above the cell (behind the camera), spread out, held against gravity so they stay put.
+# Where parked ("removed") parts wait: high above the cell (behind the camera), spread out, held against gravity.
 _PARK_ORIGIN_M = np.array([5.0, 5.0, 3.0])
 _PARK_SPACING_M = 0.5
 
@@ -148,7 +150,7 @@ def _park_parts(world: Any, indices: list[int]) -> None:
             if not 0 <= i < len(T):
                 raise ValueError(f"part index {i} out of range: the cell has {len(T)} parts")
             T[i] = np.eye(4)
-            T[i, :3, 3] = _PARK_ORIGIN_M + [_PARK_SPACING_M * i, 0.0, 0.0]
+            T[i, :3, 3] = _PARK_ORIGIN_M + np.array([_PARK_SPACING_M * i, 0.0, 0.0])
             body = mujoco.mj_name2id(world.model, mujoco.mjtObj.mjOBJ_BODY, world.part_names()[i])
             # An applied force that cancels gravity (body_gravcomp cannot be switched on after compiling).
             world.data.xfrc_applied[body, :3] = -world.model.body_subtreemass[body] * world.model.opt.gravity

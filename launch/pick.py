@@ -1,0 +1,219 @@
+"""``sygrid pick --config launch/cells/sim.toml``: the picking runtime on a cell file.
+
+On a simulated cell it starts the UR controller emulator (MuJoCo backend) on the file's loopback address with the
+scene's parts dropped with the seed, then runs ``robot.picker.Picker`` until the bin is empty or nothing is safe,
+prints the success rate and cycle times and writes ``pick_report.json`` and ``pick_report.png`` (per-cycle
+timeline of the stage timings, and the first frame with the estimated poses drawn) to ``--out``.
+On a hardware cell the same code connects to the robot, gripper and OAK camera named in the file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robot.cell_setup import CellSetup, load_cell_setup
+from robot.picker import STAGES, Picker, RunReport
+from sygrid.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CONFIG = Path(__file__).parent / "cells" / "sim.toml"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="cell file (TOML)")
+    parser.add_argument("--max-cycles", type=int, default=None, help="stop after this many cycles")
+    parser.add_argument("--out", type=Path, default=Path("out/pick"), help="report folder")
+    parser.add_argument("--seed", type=int, default=None, help="sim cells: override the drop seed")
+    parser.add_argument("--perception", choices=("models", "oracle"), default=None, help="override the file's")
+
+
+@dataclass
+class SceneShot:
+    """The first cycle's frame and perception result, for the report picture."""
+
+    frame: Any = None
+    result: Any = None
+
+
+@contextlib.contextmanager
+def open_cell(
+    setup: CellSetup, seed: int | None = None, perception_kind: str | None = None, controller_kwargs: dict | None = None
+) -> Iterator[tuple[Picker, Any]]:
+    """Starts (sim) or connects to (hardware) everything the cell file names; yields ``(picker, process)``
+    (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit."""
+    from robot.grasp import GraspPlanner, PlannerConfig
+    from robot.gripper import make_gripper
+    from robot.ur import URRobot
+
+    d = setup.data
+    kind = perception_kind or d.perception.kind
+    with contextlib.ExitStack() as stack:
+        process = None
+        if setup.is_sim:
+            from sim.cell_config import CellConfig
+            from sim.controller import ControllerProcess
+            from sim.emulator_camera import EmulatorCamera
+
+            scene = setup.resolve(d.sim.scene)
+            kwargs = {"parts_scene": str(scene) if scene else None, "parts_seed": d.sim.seed if seed is None else seed}
+            process = stack.enter_context(
+                ControllerProcess(
+                    d.sim.host, backend="mujoco", backend_kwargs=kwargs, start_timeout_s=120.0,
+                    unlock_delay_s=d.sim.unlock_delay_s, **(controller_kwargs or {}),
+                )
+            )  # fmt: skip
+            camera = EmulatorCamera(process)
+            cell = CellConfig()
+            T_base_camera = np.linalg.inv(cell.T_world_base) @ cell.T_world_camera
+        else:
+            from perception.oak import OakCamera, OakConfig
+
+            oak = {k: v for k, v in d.camera.model_dump().items() if k != "kind" and v is not None}
+            camera = stack.enter_context(OakCamera(OakConfig(**oak)))
+        if d.calibration.source == "file":
+            from robot.calibration import load_calibration
+
+            T_base_camera = load_calibration(setup.resolve(d.calibration.file)).T_base_camera
+        if kind == "oracle":
+            if process is None:
+                raise ConfigError(f"{setup.path}: perception 'oracle' exists only in the simulated cell")
+            from sim.oracle_perception import OraclePerception
+            from sygrid.drop import resolve_objects
+            from sygrid.scene import default_scene, load_scene
+
+            perception = OraclePerception(process, cell.T_world_base, T_base_camera)
+            spec = load_scene(scene) if scene else default_scene()
+            models = {m.obj_id: m for m in resolve_objects(spec, Path("."))}
+        else:
+            from perception.pipeline import PerceptionPipeline, PipelineOverrides
+
+            models_dir = setup.resolve(d.perception.models_dir)
+            overrides = PipelineOverrides(
+                detector_input_size=d.perception.detector_input_size, refine=d.perception.refine,
+                num_threads=d.perception.num_threads,
+            )  # fmt: skip
+            perception = PerceptionPipeline.from_folder(models_dir, overrides)
+            models = perception.models
+        try:
+            planner_config = PlannerConfig(**setup.planner_overrides)
+        except (TypeError, ConfigError) as exc:
+            raise ConfigError(f"{setup.path}: [planner]: {exc}") from None
+        planner = GraspPlanner(models, planner_config)
+        robot = stack.enter_context(URRobot(setup.robot))
+        gripper = stack.enter_context(make_gripper(setup.gripper, io=robot))
+        gripper.activate()
+        q_observe = robot.ik(planner_config.T_base_place, planner.q_reference)
+        if q_observe is None:
+            raise ConfigError(f"{setup.path}: the place pose (planner T_base_place) is unreachable for the robot")
+        picker = Picker(robot, gripper, camera, perception, planner, T_base_camera, q_observe, setup.picker)
+        yield picker, process
+
+
+def run(args: argparse.Namespace) -> int:
+    setup = load_cell_setup(args.config)
+    kind = args.perception or setup.data.perception.kind
+    if kind == "models" and not (setup.resolve(setup.data.perception.models_dir) / "manifest.json").is_file():
+        raise ConfigError(
+            f"{args.config}: perception.models_dir {setup.resolve(setup.data.perception.models_dir)} has no "
+            "manifest.json (train the built-in models first, or run with --perception oracle in the simulated cell)"
+        )
+    shot = SceneShot()
+    t0 = time.perf_counter()
+    with open_cell(setup, args.seed, args.perception) as (picker, _process):
+
+        def keep_first(record: Any, frame: Any, result: Any) -> None:
+            if shot.frame is None:
+                shot.frame, shot.result = frame, result
+
+        picker.on_cycle = keep_first
+        print(f"picking on {setup.data.cell.name or args.config} (perception: {kind}) ...")
+        report = picker.run(args.max_cycles)
+        models = {k: getattr(v, "model", v) for k, v in picker.planner._models.items()}
+    wall = time.perf_counter() - t0
+    print_summary(report, wall)
+    out_json, out_png = write_report(report, args.out, shot, picker.T_base_camera, setup, kind, models)
+    print(f"wrote {out_json}\nwrote {out_png}")
+    return 0 if report.stop_reason == "bin_empty" else 1
+
+
+def print_summary(report: RunReport, wall_s: float) -> None:
+    times = report.sim_cycle_times_s()
+    rate = report.success_rate
+    print(
+        f"stopped: {report.stop_reason} ({report.stop_detail})\n"
+        f"picked {report.n_picked} part(s) in {len(report.attempts)} attempt(s) over {len(report.cycles)} cycle(s): "
+        f"success rate {100 * rate:.0f}%"
+        + (f", failures {report.failures_by_cause()}" if report.failures_by_cause() else "")
+    )
+    if times:
+        print(
+            f"cycle time (simulated/robot s): median {np.median(times):.2f}, p90 {np.percentile(times, 90):.2f}; "
+            f"wall {wall_s:.1f} s in all"
+        )
+    pp = [c.stage_wall_s["perceive"] + c.stage_wall_s["plan"] for c in report.cycles if c.n_poses]
+    if pp:
+        print(f"perception + planning wall per cycle: median {1e3 * np.median(pp):.0f} ms")
+
+
+def write_report(
+    report: RunReport, out: Path, shot: SceneShot, T_base_camera: np.ndarray, setup: CellSetup, kind: str, models: Any
+) -> tuple[Path, Path]:
+    from sygrid.fileio import write_bytes_atomic
+
+    out.mkdir(parents=True, exist_ok=True)
+    data = {"config": str(setup.path), "perception": kind, **report.to_json()}
+    json_path = write_bytes_atomic(out / "pick_report.json", json.dumps(data, indent=1, default=float).encode())
+    png_path = out / "pick_report.png"
+    save_report_picture(report, shot, models, png_path)
+    return json_path, png_path
+
+
+def save_report_picture(report: RunReport, shot: SceneShot, models: Any, path: Path) -> Path:
+    """Per-cycle stage timeline (wall s, stacked bars) beside the first frame with the estimated poses drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sygrid.visualize import bounds_from_extents, draw_3d_box, draw_axes, draw_bbox
+
+    fig, (ax_t, ax_i) = plt.subplots(1, 2, figsize=(13, 4.8), gridspec_kw={"width_ratios": [1.1, 1]})
+    idx = np.arange(len(report.cycles))
+    bottom = np.zeros(len(report.cycles))
+    for stage in STAGES:
+        vals = np.array([c.stage_wall_s.get(stage, 0.0) for c in report.cycles])
+        ax_t.bar(idx, vals, bottom=bottom, label=stage)
+        bottom += vals
+    for c in report.cycles:
+        mark = "ok" if c.picked else c.end.replace("_", " ")
+        ax_t.text(c.index, bottom[c.index], mark, ha="center", va="bottom", fontsize=7, rotation=90)
+    ax_t.set(xlabel="cycle", ylabel="wall time [s]", title=f"pick cycles ({report.stop_reason})")
+    ax_t.legend(fontsize=7, ncols=2)
+    if shot.frame is not None:
+        img = shot.frame.rgb.copy()
+        K = shot.frame.intrinsics.K
+        for pose in shot.result.poses:
+            x0, y0, x1, y1 = pose.detection.bbox_xyxy
+            img = draw_bbox(img, (x0, y0, x1 - x0, y1 - y0), (255, 255, 0))
+            model = models.get(pose.obj_id) if hasattr(models, "get") else None
+            if model is not None:
+                img = draw_3d_box(img, K, pose.T_camera_object, bounds_from_extents(model.extents_m), (0, 255, 0))
+            img = draw_axes(img, K, pose.T_camera_object, 0.02)
+        ax_i.imshow(img)
+        ax_i.set_title(f"first frame: {len(shot.result.poses)} estimated pose(s)")
+    ax_i.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

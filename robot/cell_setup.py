@@ -1,0 +1,137 @@
+"""A picking cell's configuration file (TOML): which robot, gripper, camera, calibration, perception, planner and
+cycle settings, so the same runtime drives the simulated cell and a real UR5e with an OAK camera.
+
+Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
+
+    [cell]        kind = "sim" | "hardware"
+    [sim]         host, scene, seed, unlock_delay_s         (sim cells only: the emulator on a loopback address)
+    [robot]       robot.ur.URConfig fields (host defaults to [sim] host), workspace = {lo_m, hi_m}
+    [gripper]     robot.gripper config: kind = "robotiq_socket" | "digital_output", ... (host defaults to the robot)
+    [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps)
+    [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
+    [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, detector_input_size
+    [planner]     robot.grasp.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
+    [picker]      robot.picker.PickerConfig fields
+
+Relative paths are taken from the configuration file's folder. Errors name the file and the field.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import tomllib
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from robot.picker import PickerConfig
+from robot.ur_config import URConfig
+from sygrid.errors import ConfigError
+from sygrid.scene import validation_message
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CellSection(_Strict):
+    kind: Literal["sim", "hardware"]
+    name: str = ""
+
+
+class SimSection(_Strict):
+    host: str = "127.0.0.50"
+    scene: str | None = None  # None: the generator's default scene
+    seed: int = Field(default=0, ge=0)
+    unlock_delay_s: float = Field(default=5.0, ge=0)  # e-Series refuses an unlock for 5 s after a stop
+
+
+class CameraSection(_Strict):
+    kind: Literal["sim", "oak"]
+    device: str | None = None
+    rgb_size: tuple[int, int] | None = None
+    fps: float | None = None
+
+
+class CalibrationSection(_Strict):
+    source: Literal["sim", "file"]
+    file: str | None = None
+
+
+class PerceptionSection(_Strict):
+    kind: Literal["models", "oracle"] = "models"
+    models_dir: str = "models/builtin"
+    refine: bool | None = None
+    detector_input_size: int | None = Field(default=None, ge=32, le=4096)
+    num_threads: int = Field(default=2, ge=1)
+
+
+class CellFile(_Strict):
+    cell: CellSection
+    sim: SimSection | None = None
+    robot: dict[str, Any]
+    gripper: dict[str, Any]
+    camera: CameraSection
+    calibration: CalibrationSection
+    perception: PerceptionSection = PerceptionSection()
+    planner: dict[str, float | int | bool] = Field(default_factory=dict)
+    picker: dict[str, float | int | None] = Field(default_factory=dict)
+
+
+class CellSetup:
+    """A validated cell file: the sections as objects, paths resolved against the file's folder."""
+
+    def __init__(self, data: CellFile, path: Path) -> None:
+        self.data, self.path = data, path
+        where = str(path)
+        if data.cell.kind == "sim":
+            if data.sim is None:
+                raise ConfigError(f"{where}: [cell] kind = 'sim' needs a [sim] section (host, scene, seed)")
+            if data.camera.kind != "sim":
+                raise ConfigError(f"{where}: camera.kind must be 'sim' in a simulated cell, got {data.camera.kind!r}")
+        else:
+            if data.perception.kind == "oracle":
+                raise ConfigError(f"{where}: perception.kind = 'oracle' exists only in the simulated cell")
+            if data.calibration.source == "sim":
+                raise ConfigError(f"{where}: calibration.source = 'sim' exists only in the simulated cell; use 'file'")
+        if data.calibration.source == "file" and not data.calibration.file:
+            raise ConfigError(f"{where}: calibration.file is required when calibration.source = 'file'")
+        robot = dict(data.robot)
+        if data.sim is not None:
+            robot.setdefault("host", data.sim.host)
+        self.robot = URConfig.from_dict(robot, f"{where}: [robot]")
+        from robot.gripper import gripper_config_from_dict
+
+        self.gripper = gripper_config_from_dict(data.gripper, f"{where}: [gripper]", default_host=self.robot.host)
+        try:
+            self.picker = PickerConfig(**data.picker)
+        except (TypeError, ConfigError) as exc:
+            raise ConfigError(f"{where}: [picker]: {exc}") from None
+        self.planner_overrides = dict(data.planner)
+
+    @property
+    def is_sim(self) -> bool:
+        return self.data.cell.kind == "sim"
+
+    def resolve(self, value: str | None) -> Path | None:
+        """A path from the file, relative to the file's folder."""
+        if value is None:
+            return None
+        p = Path(value)
+        return p if p.is_absolute() else (self.path.parent / p)
+
+
+def load_cell_setup(path: str | Path) -> CellSetup:
+    """Reads and validates a cell file; ``ConfigError`` naming the file and the field on bad input."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such cell configuration file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        data = CellFile.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError(validation_message(exc, str(path))) from None
+    return CellSetup(data, path)

@@ -1,0 +1,131 @@
+"""What the grasp planner knows of the scene besides the parts' poses: the bin, and the depth camera's points.
+
+The bin is an open box (``sygrid.mjspec.open_box_parts``, the same five boxes the simulated cell and the
+generator's drop build), given by the pose of the centre of its inner floor in the robot base frame. The depth
+frame becomes points in the base frame; the points that are the bin itself (floor, walls, anything outside it)
+are dropped, because the planner checks the bin exactly from its geometry, and what is left is the pile.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sygrid.camera import CameraIntrinsics
+from sygrid.errors import ConfigError
+from sygrid.mjspec import open_box_parts
+from sygrid.transforms import invert, is_rigid, make_T, transform_points
+
+
+def _default_bin_pose() -> np.ndarray:
+    """The simulated cell's bin (``sim.cell_config.CellConfig``: robot base at the world origin)."""
+    return make_T(t=(-0.5, 0.0, 0.02))
+
+
+@dataclass(frozen=True, eq=False)
+class BinGeometry:
+    """An open bin: ``T_base_bin`` is the centre of its inner floor (z up, out of the bin), metres.
+
+    Defaults: the simulated cell's bin (300 x 200 x 120 mm inside, 10 mm walls, 20 mm floor).
+    """
+
+    T_base_bin: np.ndarray = field(default_factory=_default_bin_pose)
+    inner_size_m: tuple[float, float, float] = (0.30, 0.20, 0.12)
+    wall_thickness_m: float = 0.01
+    floor_thickness_m: float = 0.02
+
+    def __post_init__(self) -> None:
+        T = np.array(self.T_base_bin, dtype=float)
+        if not is_rigid(T):
+            raise ConfigError(f"BinGeometry.T_base_bin must be a 4x4 rigid transform, got {T.tolist()}")
+        T.flags.writeable = False
+        object.__setattr__(self, "T_base_bin", T)
+        if len(self.inner_size_m) != 3 or min(self.inner_size_m) <= 0:
+            raise ConfigError(f"BinGeometry.inner_size_m must be 3 lengths > 0 m, got {self.inner_size_m}")
+        if self.wall_thickness_m <= 0 or self.floor_thickness_m <= 0:
+            raise ConfigError(
+                f"BinGeometry wall and floor thickness must be > 0 m, got {self.wall_thickness_m}, "
+                f"{self.floor_thickness_m}"
+            )
+
+    @property
+    def floor_normal(self) -> np.ndarray:
+        """(3,) the floor's normal (the bin's z axis) in the base frame."""
+        return self.T_base_bin[:3, 2].copy()
+
+    @property
+    def floor_point(self) -> np.ndarray:
+        """(3,) the centre of the inner floor in the base frame."""
+        return self.T_base_bin[:3, 3].copy()
+
+    def wall_boxes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The four walls as oriented boxes in the base frame: centres ``(4, 3)``, rotations ``(4, 3, 3)``, half
+        sizes ``(4, 3)`` (the floor is checked as a plane, see ``height_above_floor_m``)."""
+        parts = open_box_parts(self.inner_size_m, self.wall_thickness_m, self.floor_thickness_m)
+        walls = [parts[name] for name in ("wall_xp", "wall_xn", "wall_yp", "wall_yn")]
+        centres = transform_points(self.T_base_bin, np.array([c for c, _ in walls], dtype=float))
+        halves = np.array([h for _, h in walls], dtype=float)
+        return centres, np.broadcast_to(self.T_base_bin[:3, :3], (4, 3, 3)).copy(), halves
+
+    def height_above_floor_m(self, points_base: np.ndarray) -> np.ndarray:
+        """(...,) signed height of points ``(..., 3)`` above the inner floor's plane."""
+        return (np.asarray(points_base) - self.floor_point) @ self.floor_normal
+
+    def pile_points(self, points_base: np.ndarray, surface_tolerance_m: float) -> np.ndarray:
+        """The points ``(n, 3)`` that lie inside the bin, more than ``surface_tolerance_m`` from its floor and walls
+        (those are the bin itself, or beyond it); parts sticking out over the rim are kept."""
+        points_base = np.asarray(points_base, dtype=float)
+        p_bin = transform_points(invert(self.T_base_bin), points_base)
+        return points_base[self.in_pile_bin_frame(p_bin, surface_tolerance_m)]
+
+    def in_pile_bin_frame(self, points_bin: np.ndarray, surface_tolerance_m: float) -> np.ndarray:
+        """``(n,)`` bool: ``pile_points``'s test for points ``(n, 3)`` already in the bin frame."""
+        half_x, half_y = self.inner_size_m[0] / 2, self.inner_size_m[1] / 2
+        return (
+            (np.abs(points_bin[:, 0]) < half_x - surface_tolerance_m)
+            & (np.abs(points_bin[:, 1]) < half_y - surface_tolerance_m)
+            & (points_bin[:, 2] > surface_tolerance_m)
+        )
+
+
+def depth_points(
+    depth_m: np.ndarray,
+    intrinsics: CameraIntrinsics | np.ndarray,
+    T_frame_camera: np.ndarray,
+    stride_px: int = 1,
+) -> np.ndarray:
+    """``(n, 3)`` points of a depth frame (metres, 0 = no data) in the frame ``T_frame_camera`` maps to (e.g. the
+    robot base), every ``stride_px``-th pixel in each direction (the cloud's spacing; the planner needs a few
+    millimetres, not every pixel).
+
+    Raises:
+        ValueError: the depth is not a 2-D array, or the intrinsics do not match its size.
+    """
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_m must be a (H, W) array in metres, got shape {depth.shape}")
+    if isinstance(intrinsics, CameraIntrinsics):
+        if (intrinsics.height, intrinsics.width) != depth.shape:
+            raise ValueError(
+                f"depth_m is {depth.shape[1]}x{depth.shape[0]} but the intrinsics are for "
+                f"{intrinsics.width}x{intrinsics.height}"
+            )
+        K = intrinsics.K
+    else:
+        K = np.asarray(intrinsics, dtype=float)
+        if K.shape != (3, 3):
+            raise ValueError(f"intrinsics must be a CameraIntrinsics or a 3x3 K matrix, got shape {K.shape}")
+    stride = max(int(stride_px), 1)
+    z = depth[::stride, ::stride]
+    v, u = np.nonzero(z > 0)
+    z = z[v, u]
+    # sygrid.camera.unproject_depth's pinhole model, only at the pixels with data, in float32 element-wise
+    # arithmetic (no BLAS threads: this runs beside the perception stack on two cores)
+    x = (u * stride - np.float32(K[0, 2])) * z / np.float32(K[0, 0])
+    y = (v * stride - np.float32(K[1, 2])) * z / np.float32(K[1, 1])
+    T = np.asarray(T_frame_camera, dtype=np.float32)
+    out = np.empty((len(z), 3))
+    for i in range(3):
+        out[:, i] = T[i, 0] * x + T[i, 1] * y + T[i, 2] * z + T[i, 3]
+    return out

@@ -1,0 +1,483 @@
+"""The pick cycle as an explicit state machine: capture -> perceive -> plan -> approach -> grasp -> verify ->
+place -> next.
+
+Every part is injected (``Picker(robot, gripper, camera, perception, planner, ...)``), each through a small
+protocol below, so the same cycle drives the simulated cell (the emulator through ur_rtde, a rendered camera) and
+the real one (a UR5e, an OAK camera), and unit tests can swap any part for a fake.
+
+One cycle (``Picker.cycle``) takes one frame, estimates the parts, plans, and tries the planned grasps best first:
+
+- ``approach``: open the gripper to the grasp's opening, joint move to the lift pose (above the pre-grasp on the
+  approach line), straight lines to the pre-grasp and the grasp;
+- ``grasp``: close; the gripper's object detection must say "held" (False: closed on air or the part slid away);
+- ``verify``: straight line back out to the lift; the gripper must still report the object and its opening must
+  not have collapsed below the planned grasp width less ``slip_width_tolerance_m`` (the part slipped out);
+- ``place``: joint move to the place pose, open, and the cycle counts the pick as done. The look after lifting is
+  the next cycle's frame (the arm is then clear of the camera): if a part of the same model is still where the
+  picked one was (``still_there_distance_m``), the pick is marked failed (``part_still_in_bin``).
+
+Retries: a refused motion (``MotionRefusedError``: checked, nothing sent) moves on to the next candidate; a grasp
+that fails verification, a protective stop or a dropped connection (after ``robot.recover()``) end the cycle, and
+the next cycle looks again (the pile has changed). The run stops cleanly when the camera sees no parts
+("bin_empty"), when no safe grasp is left ("nothing_safe", with the planner's reasons), after ``max_cycles``, or
+after ``max_failed_cycles`` cycles in a row without a pick. A motion error that cannot be recovered (an
+emergency stop) is raised.
+
+Times: stage timings are wall seconds; ``sim_time_s`` is the camera's timestamp (simulated seconds in the
+simulated cell, the device clock on hardware), so a cycle's robot time is the difference between two captures.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from perception.camera import Frame
+from robot.gripper import GripperError
+from robot.ur_errors import ConnectionLostError, MotionFailedError, MotionRefusedError, ProtectiveStopError
+from sygrid.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+STAGES = ("capture", "perceive", "plan", "approach", "grasp", "verify", "place")
+#: Why a run stopped.
+STOP_REASONS = ("bin_empty", "nothing_safe", "max_cycles", "too_many_failures")
+#: The outcome of one attempt (one planned grasp tried): "picked" or a failure cause.
+FAILURE_CAUSES = (
+    "motion_refused",  # checked and refused, nothing sent: next candidate
+    "gripper_empty",  # closed on air (no object detected)
+    "slipped",  # lost the part while lifting
+    "protective_stop",
+    "connection_lost",
+    "motion_failed",  # another recoverable motion failure (program stopped, timeout)
+    "part_still_in_bin",  # placed "something", but the next look shows the part where it was
+)
+
+
+# ---------------------------------------------------------------------------------------------- protocols
+
+
+class RobotLike(Protocol):
+    """What the cycle needs of ``robot.ur.URRobot``."""
+
+    def q(self) -> np.ndarray: ...
+    def T_base_tcp(self) -> np.ndarray: ...
+    def move_l(
+        self, T_base_tcp: np.ndarray, speed_m_s: float | None = None, accel_m_s2: float | None = None
+    ) -> Any: ...
+    def move_j(self, q: np.ndarray, speed_rad_s: float | None = None, accel_rad_s2: float | None = None) -> Any: ...
+    def recover(self, timeout_s: float | None = None) -> None: ...
+
+
+class GripperLike(Protocol):
+    """What the cycle needs of ``robot.gripper.Gripper``."""
+
+    can_set_width: bool
+
+    def open(self, width_m: float | None = None, speed_m_s: float | None = None) -> None: ...
+    def close(self, force_n: float | None = None, speed_m_s: float | None = None) -> bool | None: ...
+    def width_m(self) -> float | None: ...
+    def object_detected(self) -> bool | None: ...
+
+
+class CameraLike(Protocol):
+    def capture(self) -> Frame: ...
+
+
+class PerceptionLike(Protocol):
+    """``perception.pipeline.PerceptionPipeline`` (or the simulated cell's oracle): ``run(frame)`` returns an object
+    with ``poses`` (``ObjectPose`` list), ``detections`` and ``timings_ms``."""
+
+    def run(self, frame: Frame) -> Any: ...
+
+
+class PlannerLike(Protocol):
+    """``robot.grasp.GraspPlanner``."""
+
+    def plan(
+        self,
+        poses: Sequence[Any],
+        T_base_camera: np.ndarray,
+        depth_m: np.ndarray | None = None,
+        intrinsics: Any = None,
+        q_seed: np.ndarray | None = None,
+    ) -> Any: ...
+
+
+# ---------------------------------------------------------------------------------------------- config & records
+
+
+@dataclass(frozen=True)
+class PickerConfig:
+    """Settings of the cycle. Speeds in m/s (straight lines) and rad/s (joint moves); None: the robot's default.
+
+    approach_speed_m_s: pre-grasp -> grasp and grasp -> lift; transit_linear_speed_m_s: lift -> pre-grasp.
+    transit_speed_rad_s: joint moves (to the lift,
+    to the place pose). grip_force_n: closing force (None: the gripper's default). max_attempts_per_cycle: planned
+    grasps tried in one cycle before looking again. slip_width_tolerance_m: after lifting, an opening smaller than
+    the planned grasp width less this means the part slipped out. still_there_distance_m: a part of the same model
+    this close to a picked one in the next frame means the pick failed.
+    """
+
+    max_cycles: int = 50
+    max_attempts_per_cycle: int = 3
+    max_failed_cycles: int = 3
+    approach_speed_m_s: float | None = 0.25
+    transit_linear_speed_m_s: float | None = 0.5
+    approach_accel_m_s2: float | None = 1.2
+    transit_speed_rad_s: float | None = 2.0
+    transit_accel_rad_s2: float | None = 3.0
+    grip_force_n: float | None = None
+    slip_width_tolerance_m: float = 0.004
+    still_there_distance_m: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name in ("max_cycles", "max_attempts_per_cycle", "max_failed_cycles"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
+                raise ConfigError(f"PickerConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
+        for name in ("slip_width_tolerance_m", "still_there_distance_m"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"PickerConfig.{name} must be >= 0, got {getattr(self, name)!r}")
+
+
+@dataclass
+class Attempt:
+    """One planned grasp tried: which part, how it ended (``outcome`` "picked" or a ``FAILURE_CAUSES`` entry),
+    in which stage, and the error message where there was one."""
+
+    part_index: int
+    obj_id: int
+    outcome: str
+    stage: str
+    detail: str = ""
+    T_base_obj: list | None = None  # where the part was estimated (for the next look and the report)
+
+
+@dataclass
+class CycleRecord:
+    """One cycle: wall seconds per stage, the camera's time at capture, what was seen and planned, the attempts."""
+
+    index: int
+    sim_time_s: float
+    stage_wall_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    n_detections: int = 0
+    n_poses: int = 0
+    n_planned: int = 0
+    perception_ms: dict[str, float] = field(default_factory=dict)
+    plan_summary: str = ""
+    attempts: list[Attempt] = field(default_factory=list)
+    end: str = ""  # "picked", "failed", or a stop reason
+    sim_cycle_s: float | None = None  # filled when the next capture's time is known
+
+    @property
+    def picked(self) -> bool:
+        return any(a.outcome == "picked" for a in self.attempts)
+
+
+@dataclass
+class RunReport:
+    """A whole run: the cycles, why it stopped (``STOP_REASONS``) and the details (e.g. the planner's reasons)."""
+
+    cycles: list[CycleRecord]
+    stop_reason: str
+    stop_detail: str = ""
+
+    @property
+    def attempts(self) -> list[Attempt]:
+        return [a for c in self.cycles for a in c.attempts]
+
+    @property
+    def n_picked(self) -> int:
+        return sum(a.outcome == "picked" for a in self.attempts)
+
+    @property
+    def success_rate(self) -> float:
+        """Picks over attempts that sent motion (refused candidates moved nothing and do not count)."""
+        tried = [a for a in self.attempts if a.outcome != "motion_refused"]
+        return self.n_picked / len(tried) if tried else float("nan")
+
+    def failures_by_cause(self) -> dict[str, int]:
+        counts: dict[str, int] = {}
+        for a in self.attempts:
+            if a.outcome != "picked":
+                counts[a.outcome] = counts.get(a.outcome, 0) + 1
+        return counts
+
+    def sim_cycle_times_s(self) -> list[float]:
+        """Robot time of the cycles that picked a part (camera time from their capture to the next one)."""
+        return [c.sim_cycle_s for c in self.cycles if c.picked and c.sim_cycle_s is not None]
+
+    def to_json(self) -> dict:
+        return {
+            "stop_reason": self.stop_reason,
+            "stop_detail": self.stop_detail,
+            "n_picked": self.n_picked,
+            "n_attempts": len(self.attempts),
+            "success_rate": self.success_rate,
+            "failures_by_cause": self.failures_by_cause(),
+            "sim_cycle_times_s": self.sim_cycle_times_s(),
+            "cycles": [{**asdict(c), "picked": c.picked} for c in self.cycles],
+        }
+
+
+# ---------------------------------------------------------------------------------------------- the picker
+
+
+class Picker:
+    """The pick cycle; see the module docstring.
+
+    Args:
+        robot, gripper, camera, perception, planner: the injected parts (see the protocols).
+        T_base_camera: the camera pose in the robot base frame (hand-eye calibration), 4x4.
+        q_observe: joint angles (rad) where the arm waits while the camera looks (clear of its view); the arm
+            goes there first and after every failed cycle.
+        config: the cycle's settings.
+        on_cycle: called with each finished ``CycleRecord`` and its frame and perception result (for pictures).
+    """
+
+    def __init__(
+        self,
+        robot: RobotLike,
+        gripper: GripperLike,
+        camera: CameraLike,
+        perception: PerceptionLike,
+        planner: PlannerLike,
+        T_base_camera: np.ndarray,
+        q_observe: np.ndarray,
+        config: PickerConfig | None = None,
+        on_cycle: Callable[[CycleRecord, Frame, Any], None] | None = None,
+    ) -> None:
+        self.robot, self.gripper, self.camera = robot, gripper, camera
+        self.perception, self.planner = perception, planner
+        self.T_base_camera = np.asarray(T_base_camera, dtype=float)
+        if self.T_base_camera.shape != (4, 4):
+            raise ConfigError(f"Picker: T_base_camera must be 4x4, got shape {self.T_base_camera.shape}")
+        self.q_observe = np.asarray(q_observe, dtype=float)
+        self.config = config or PickerConfig()
+        self.on_cycle = on_cycle
+        self._last_picked: Attempt | None = None
+
+    # --- the run ---------------------------------------------------------------------------------------------
+    def run(self, max_cycles: int | None = None) -> RunReport:
+        """Picks until the bin is empty, nothing is safe, ``max_cycles`` (default ``config.max_cycles``) or too
+        many failed cycles in a row."""
+        limit = max_cycles or self.config.max_cycles
+        cycles: list[CycleRecord] = []
+        failed_in_row = 0
+        self._to_observe()
+        while True:
+            if len(cycles) >= limit:
+                return self._finish(cycles, "max_cycles", f"stopped after {limit} cycle(s)")
+            record = self.cycle(len(cycles))
+            if cycles and cycles[-1].sim_cycle_s is None:
+                cycles[-1].sim_cycle_s = record.sim_time_s - cycles[-1].sim_time_s
+            cycles.append(record)
+            if record.end in ("bin_empty", "nothing_safe"):
+                return self._finish(cycles, record.end, record.plan_summary)
+            failed_in_row = 0 if record.picked else failed_in_row + 1
+            if failed_in_row >= self.config.max_failed_cycles:
+                return self._finish(
+                    cycles, "too_many_failures", f"{failed_in_row} cycles in a row without a pick; last: {record.end}"
+                )
+
+    def _finish(self, cycles: list[CycleRecord], reason: str, detail: str) -> RunReport:
+        report = RunReport(cycles, reason, detail)
+        log.info(
+            "pick run stopped (%s): %d picked in %d attempts; %s", reason, report.n_picked, len(report.attempts), detail
+        )
+        return report
+
+    # --- one cycle -------------------------------------------------------------------------------------------
+    def cycle(self, index: int = 0) -> CycleRecord:
+        """capture -> perceive -> plan -> (approach -> grasp -> verify -> place) per planned grasp until one
+        picks; returns the record (``end``: "picked", "failed", "bin_empty" or "nothing_safe")."""
+        t = time.perf_counter()
+        frame = self.camera.capture()
+        record = CycleRecord(index=index, sim_time_s=float(frame.timestamp_s))
+        record.stage_wall_s["capture"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        result = self.perception.run(frame)
+        record.stage_wall_s["perceive"] = time.perf_counter() - t
+        record.n_detections, record.n_poses = len(result.detections), len(result.poses)
+        record.perception_ms = {k: float(v) for k, v in getattr(result, "timings_ms", {}).items()}
+        self._look_after_last_pick(result.poses)
+
+        try:
+            if not result.poses:
+                record.end, record.plan_summary = "bin_empty", "the camera sees no parts (no detections)"
+                return record
+            t = time.perf_counter()
+            plan = self.planner.plan(
+                result.poses, self.T_base_camera, frame.depth_m, frame.intrinsics, q_seed=self.robot.q()
+            )
+            record.stage_wall_s["plan"] = time.perf_counter() - t
+            record.n_planned, record.plan_summary = len(plan.grasps), plan.summary()
+            if plan.nothing_safe:
+                record.end = "nothing_safe"
+                return record
+            record.end = "failed"
+            for grasp in plan.grasps[: self.config.max_attempts_per_cycle]:
+                attempt = self._attempt(grasp, record)
+                record.attempts.append(attempt)
+                if attempt.outcome == "picked":
+                    record.end = "picked"
+                    self._last_picked = attempt
+                    break
+                if attempt.outcome != "motion_refused":
+                    break  # something moved or failed: look again
+            if record.end != "picked":
+                self._to_observe()
+            return record
+        finally:
+            log.info(
+                "cycle %d: %s (%s) in %.2f s wall", index, record.end, _attempts_text(record.attempts),
+                sum(record.stage_wall_s.values()),
+            )  # fmt: skip
+            if self.on_cycle is not None:
+                self.on_cycle(record, frame, result)
+
+    def _attempt(self, grasp: Any, record: CycleRecord) -> Attempt:
+        attempt = Attempt(grasp.part_index, grasp.obj_id, "picked", "approach", T_base_obj=grasp.T_base_obj.tolist())
+        cfg, stage = self.config, "approach"
+        timer = _StageTimer(record.stage_wall_s)
+        try:
+            with timer("approach"):
+                if self.gripper.can_set_width:
+                    self.gripper.open(width_m=min(grasp.opening_width_m, self._stroke()))
+                else:
+                    self.gripper.open()
+                # Joint move to the lift pose (back out along the approach, above the pile and the bin's rim),
+                # then straight lines down the checked approach: a joint move straight to the pre-grasp could
+                # sweep the arm through the bin wall.
+                self.robot.move_j(grasp.q_lift, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
+                self.robot.move_l(grasp.T_base_pregrasp, cfg.transit_linear_speed_m_s, cfg.approach_accel_m_s2)
+                self.robot.move_l(grasp.T_base_grasp, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
+            stage = "grasp"
+            with timer("grasp"):
+                held = self.gripper.close(force_n=cfg.grip_force_n)
+            if held is False:
+                self._back_out(grasp, timer)
+                return _fail(attempt, "gripper_empty", stage, "the fingers closed without meeting the part")
+            stage = "verify"
+            with timer("verify"):
+                self.robot.move_l(grasp.T_base_lift, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
+                why = self._slip_reason(grasp)
+            if why:
+                self.gripper.open()
+                return _fail(attempt, "slipped", stage, why)
+            stage = "place"
+            with timer("place"):
+                self.robot.move_j(grasp.q_place, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
+                self.gripper.open()
+            attempt.stage = "place"
+            return attempt
+        except MotionRefusedError as exc:
+            return _fail(attempt, "motion_refused", stage, str(exc))
+        except MotionFailedError as exc:
+            if not exc.recoverable:
+                raise
+            cause = _motion_cause(exc)
+            log.warning("attempt on part %d: %s during %s (%s); recovering", grasp.part_index, cause, stage, exc)
+            self.robot.recover()
+            self._after_recovery(grasp)
+            return _fail(attempt, cause, stage, str(exc))
+
+    # --- helpers ---------------------------------------------------------------------------------------------
+    def _slip_reason(self, grasp: Any) -> str:
+        """Why the part is not in the gripper after lifting ("" when it is)."""
+        if self.gripper.object_detected() is False:
+            return "the gripper no longer reports an object after lifting"
+        width = self.gripper.width_m()
+        if width is not None and width < grasp.grasp_width_m - self.config.slip_width_tolerance_m:
+            return f"the fingers closed to {1e3 * width:.1f} mm, the part is {1e3 * grasp.grasp_width_m:.1f} mm wide"
+        return ""
+
+    def _back_out(self, grasp: Any, timer: _StageTimer) -> None:
+        with timer("grasp"):
+            self.gripper.open()
+            self.robot.move_l(grasp.T_base_pregrasp, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
+
+    def _after_recovery(self, grasp: Any) -> None:
+        """After a recovered failure the arm is at rest somewhere on the way: let go, and back out along the
+        approach to the pre-grasp height before the joint move to the observe pose."""
+        try:
+            self.gripper.open()
+        except GripperError as exc:
+            log.warning("the gripper did not open after recovery (%s)", exc)
+        T = np.array(self.robot.T_base_tcp())
+        T[2, 3] = max(T[2, 3], grasp.T_base_pregrasp[2, 3])
+        try:
+            self.robot.move_l(T, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
+        except MotionRefusedError as exc:
+            log.warning("cannot back out straight up after recovery (%s); going to the observe pose directly", exc)
+        except MotionFailedError as exc:
+            if not exc.recoverable:
+                raise
+            log.warning("backing out after recovery failed too (%s); recovering again", exc)
+            self.robot.recover()
+
+    def _to_observe(self) -> None:
+        if np.max(np.abs(np.asarray(self.robot.q()) - self.q_observe)) > 1e-3:
+            self.robot.move_j(self.q_observe, self.config.transit_speed_rad_s, self.config.transit_accel_rad_s2)
+
+    def _stroke(self) -> float:
+        config = getattr(self.gripper, "config", None)
+        return float(getattr(config, "stroke_m", np.inf))
+
+    def _look_after_last_pick(self, poses: Sequence[Any]) -> None:
+        """The look after lifting: a part of the picked model still where the picked one was means it is not
+        gone (the gripper reported something, but not that part)."""
+        last, self._last_picked = self._last_picked, None
+        if last is None or last.T_base_obj is None:
+            return
+        p_was = np.asarray(last.T_base_obj)[:3, 3]
+        for pose in poses:
+            if pose.obj_id != last.obj_id:
+                continue
+            p_now = (self.T_base_camera @ np.asarray(pose.T_camera_object))[:3, 3]
+            if np.linalg.norm(p_now - p_was) < self.config.still_there_distance_m:
+                last.outcome, last.detail = "part_still_in_bin", "the next frame shows the part where it was"
+                log.warning("part %d (obj %d) is still in the bin after its pick", last.part_index, last.obj_id)
+                return
+
+
+class _StageTimer:
+    """Adds the wall time of ``with timer(stage):`` blocks to ``totals[stage]``."""
+
+    def __init__(self, totals: dict[str, float]) -> None:
+        self.totals = totals
+        self._stage = ""
+        self._t0 = 0.0
+
+    def __call__(self, stage: str) -> _StageTimer:
+        self._stage = stage
+        return self
+
+    def __enter__(self) -> None:
+        self._t0 = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        self.totals[self._stage] = self.totals.get(self._stage, 0.0) + time.perf_counter() - self._t0
+
+
+def _fail(attempt: Attempt, cause: str, stage: str, detail: str) -> Attempt:
+    attempt.outcome, attempt.stage, attempt.detail = cause, stage, detail
+    return attempt
+
+
+def _motion_cause(exc: MotionFailedError) -> str:
+    if isinstance(exc, ProtectiveStopError):
+        return "protective_stop"
+    if isinstance(exc, ConnectionLostError):
+        return "connection_lost"
+    return "motion_failed"
+
+
+def _attempts_text(attempts: list[Attempt]) -> str:
+    return ", ".join(f"part {a.part_index}: {a.outcome}" for a in attempts) or "no attempt"

@@ -1,0 +1,50 @@
+"""The overhead camera of an emulated cell, seen from outside the emulator's process.
+
+``EmulatorCamera`` asks a ``ControllerProcess`` (MuJoCo backend) for a frame: the child renders its own
+``CellWorld`` with ``SimCamera`` (between physics steps, under the world's lock only while it copies the scene)
+and sends the arrays over the pipe. So the picking runtime sees frames exactly as from an OAK: RGB, metric depth
+registered to it, intrinsics and a timestamp (the world's simulated time). ``T_base_camera`` is withheld unless
+``report_T_base_camera``: the runtime takes the camera pose from its calibration, as on hardware.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from perception.camera import Camera, Frame
+from sygrid.camera import CameraIntrinsics
+
+
+class EmulatorCamera(Camera):
+    """A ``perception.camera.Camera`` over ``process.capture()`` (``sim.controller.ControllerProcess``)."""
+
+    def __init__(self, process: Any, report_T_base_camera: bool = False, timeout_s: float = 10.0) -> None:
+        self._process = process
+        self._report = report_T_base_camera
+        self._timeout_s = timeout_s
+        self._intrinsics: CameraIntrinsics | None = None
+        self.last_T_base_camera: np.ndarray | None = None  # the true pose of the last frame (for checks)
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        if self._intrinsics is None:
+            self.capture()
+        assert self._intrinsics is not None
+        return self._intrinsics
+
+    def capture(self) -> Frame:
+        fields = self._process.capture(timeout_s=self._timeout_s)
+        self._intrinsics = fields["intrinsics"]
+        self.last_T_base_camera = fields["T_base_camera"]
+        return Frame(
+            rgb=fields["rgb"],
+            depth_m=fields["depth_m"],
+            intrinsics=fields["intrinsics"],
+            timestamp_s=float(fields["timestamp_s"]),
+            T_base_camera=fields["T_base_camera"] if self._report else None,
+        )
+
+    def close(self) -> None:
+        """Nothing to release here: the renderer belongs to the emulator's process."""

@@ -1,0 +1,414 @@
+"""The grasp candidates and the grasp planner on hand-made scenes (no rendering): antipodal candidates checked
+against the mesh, the symmetry expansion, and the planner's picks, rejections and waypoints in the default cell."""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+import pytest
+import trimesh
+
+from perception.results import Detection, ObjectPose
+from robot.grasp import REJECTION_CAUSES, GraspPlanner, PartEstimate, PlannerConfig
+from robot.grasp_geometry import GripperGeometry, obb_gap_m, points_box_distance_m, required_backoff_m
+from robot.grasp_scene import BinGeometry, depth_points
+from robot.grasps import (
+    GraspSetParams,
+    antipodal_grasps,
+    deduplicate,
+    expand_by_symmetry,
+    grasp_candidates,
+    resolve_cache_dir,
+)
+from sygrid.camera import CameraIntrinsics, unproject_depth
+from sygrid.errors import ConfigError
+from sygrid.objects import GraspAnnotation, ObjectModel, builtin_part
+from sygrid.robots.kinematics import forward_kinematics
+from sygrid.transforms import invert, make_T, rotation_about, transform_points
+
+# Fewer samples than the defaults: the same grasps, a few times faster to build.
+PARAMS = GraspSetParams(n_surface_samples=150, n_dense_samples=1500)
+FLOOR_Z = 0.02  # the default cell's bin floor (base frame)
+BIN_CENTRE = np.array([-0.5, 0.0, FLOOR_Z])
+MM = 1e-3
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory):
+    return tmp_path_factory.mktemp("grasp_cache")
+
+
+@pytest.fixture(scope="module")
+def planner(cache_dir) -> GraspPlanner:
+    models = [builtin_part(n) for n in ("hex_nut", "pipe", "spur_gear", "washer")]
+    return GraspPlanner(models, PlannerConfig(grasp_params=PARAMS), cache_dir=cache_dir)
+
+
+def _flat(name: str, x: float, y: float, yaw_rad: float = 0.0, on_z: float = FLOOR_Z) -> np.ndarray:
+    """``T_base_obj`` of a built-in part lying on its z face (resting at ``on_z``), at (x, y), turned by yaw."""
+    half_height = builtin_part(name).extents_m[2] / 2
+    return make_T(rotation_about(np.array([0.0, 0.0, 1.0]), yaw_rad), (x, y, on_z + half_height))
+
+
+def _lying_pipe(x: float, y: float, axis_xy: tuple[float, float], on_z: float = FLOOR_Z) -> np.ndarray:
+    """The pipe lying on its side, its axis along ``axis_xy`` (base frame)."""
+    z = np.array([*axis_xy, 0.0]) / np.linalg.norm(axis_xy)
+    x_axis = np.cross(np.array([0.0, 0.0, 1.0]), z)
+    R = np.column_stack([x_axis, np.cross(z, x_axis), z])
+    return make_T(R, (x, y, on_z + 21.3 * MM / 2))
+
+
+# ---------------------------------------------------------------------------------------------- box maths
+
+
+def test_box_maths_on_known_configurations():
+    unit = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])[None]  # one box, half size 1, at the origin
+    # in the box's column: ahead of it (z = 5) it may go 4 - clearance deeper, behind it (z = -3) it must stay
+    # back 4 + clearance; beside it (x = 5) nothing; behind the sweep's start nothing
+    points = np.array([[[0.0, 0.0, 5.0]], [[0.0, 0.0, -3.0]], [[5.0, 0.0, 0.0]], [[0.0, 0.0, -3.0]]])
+    backoff = required_backoff_m(points[:3], unit, 0.1)
+    np.testing.assert_allclose(backoff, [-3.9, 4.1, -np.inf])
+    assert required_backoff_m(points[3:], unit, 0.1, sweep_length_m=1.5)[0] == -np.inf
+    assert required_backoff_m(points[3:], unit, 0.1, sweep_length_m=2.0)[0] == pytest.approx(4.1)
+    np.testing.assert_allclose(points_box_distance_m(points[:3], unit), [4.0, 2.0, 4.0])
+    # separating axes: face to face, overlap, and a cube turned 45 degrees (its edge towards the other's face)
+    eye, half = np.eye(3), np.ones(3)
+    assert obb_gap_m(np.zeros(3), eye, half, np.array([2.5, 0.0, 0.0]), eye, half) == pytest.approx(0.5)
+    assert obb_gap_m(np.zeros(3), eye, half, np.array([1.5, 0.5, 0.0]), eye, half) == pytest.approx(-0.5)
+    turned = rotation_about(np.array([0.0, 0.0, 1.0]), np.pi / 4)
+    gap = obb_gap_m(np.zeros(3), eye, half, np.array([3.0, 0.0, 0.0]), turned, half)
+    assert gap == pytest.approx(3.0 - 1.0 - np.sqrt(2.0))
+    # broadcasting: (2, 1) against (3,) boxes
+    many = obb_gap_m(np.zeros((2, 1, 3)), eye, half, np.array([[2.5, 0, 0], [0, 3.0, 0], [0, 0, 4.0]]), eye, half)
+    np.testing.assert_allclose(many, [[0.5, 1.0, 2.0]] * 2)
+
+
+def test_depth_points_agree_with_the_camera_model():
+    """The planner's strided float32 cloud against ``sygrid.camera.unproject_depth`` then ``transform_points``."""
+    K = CameraIntrinsics.from_fov(64, 48, 40.0)
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.4, 0.9, (48, 64)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = 0.0  # no data
+    T = make_T(rotation_about(np.array([1.0, 2.0, 3.0]), 0.7), (0.1, -0.2, 0.5))
+    for stride in (1, 3):
+        reference = unproject_depth(K.K, depth)[::stride, ::stride].reshape(-1, 3)
+        reference = transform_points(T, reference[np.isfinite(reference[:, 2])])
+        np.testing.assert_allclose(depth_points(depth, K, T, stride), reference, atol=1e-6)
+        np.testing.assert_allclose(depth_points(depth, K.K, T, stride), reference, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------- candidates
+
+
+@pytest.mark.parametrize(
+    ("name", "widths_mm"),
+    [("washer", {2.5, 24.0}), ("pipe", {21.3, 50.0}), ("l_bracket", {2.0, 20.0})],
+)
+def test_candidates_are_antipodal_within_the_stroke(name, widths_mm, cache_dir):
+    model = builtin_part(name)
+    grasps = grasp_candidates(model, PARAMS, cache_dir=cache_dir)
+    assert len(grasps) > 20
+    g = PARAMS.gripper
+    # the part's widths between the pads are its true dimensions: across the outer faces, or across a wall/sheet
+    assert set(np.round(grasps.width_m / MM, 1)) == widths_mm
+    assert np.all(grasps.width_m + 2 * PARAMS.min_open_clearance_m <= g.stroke_m + 1e-12)
+    assert np.all((grasps.opening_m > grasps.width_m) & (grasps.opening_m <= g.stroke_m + 1e-12))
+    # An independent look at the mesh (another sample): with the pads closed to the width, each pad touches the
+    # part on a surface facing it within the friction cone, and nothing of the part lies beyond a pad's plane.
+    points, faces = trimesh.sample.sample_surface(model.mesh, 6000, seed=np.random.default_rng(99))
+    normals = model.mesh.face_normals[faces]
+    cos_cone = math.cos(math.atan(PARAMS.friction_coefficient))
+    for T, width in zip(grasps.T_obj_grasp, grasps.width_m, strict=True):
+        R, t = T[:3, :3], T[:3, 3]
+        p, n_x = (points - t) @ R, normals @ R[:, 0]
+        on_pads = (np.abs(p[:, 1]) <= g.pad_width_m / 2) & (np.abs(p[:, 2]) <= g.pad_length_m / 2)
+        for sign in (1.0, -1.0):
+            contact = on_pads & (np.abs(p[:, 0] - sign * width / 2) <= 1.0 * MM) & (sign * n_x >= cos_cone)
+            assert contact.sum() >= 3, f"{name}: a pad touches nothing at {T.tolist()}"
+        beyond = on_pads & (np.abs(p[:, 0]) > width / 2 + 1.0 * MM)
+        assert not beyond.any(), f"{name}: the part sticks out past a pad at {T.tolist()}"
+
+
+def test_symmetry_expansion_multiplies_the_hex_nut_candidates(cache_dir):
+    nut = builtin_part("hex_nut")
+    symmetries = nut.symmetry_transforms()
+    assert len(symmetries) == 12  # D6: 6 rotations about the axis, each with and without the flip
+    base = antipodal_grasps(nut, PARAMS)
+    expanded = expand_by_symmetry(base, nut)
+    assert len(expanded) == 12 * len(base)
+    np.testing.assert_allclose(
+        expanded.T_obj_grasp[5 * len(base) : 6 * len(base)], symmetries[5] @ base.T_obj_grasp, atol=1e-12
+    )
+    np.testing.assert_array_equal(expanded.width_m, np.tile(base.width_m, 12))
+    # the finished set: more than the sample alone gave, and closed under every symmetry (each mapped grasp is
+    # within the de-duplication tolerance of a kept one)
+    final = grasp_candidates(nut, PARAMS, cache_dir=cache_dir)
+    assert len(deduplicate(base, PARAMS)) < len(final) <= len(expanded)
+    positions = final.T_obj_grasp[:, :3, 3]
+    for S in symmetries[1:]:
+        mapped = S @ final.T_obj_grasp
+        dist = np.linalg.norm(mapped[:, None, :3, 3] - positions[None], axis=2)
+        same_approach = np.einsum("ai,bi->ab", mapped[:, :3, 2], final.T_obj_grasp[:, :3, 2]) > math.cos(0.3)
+        near = (dist < 2 * PARAMS.dedup_position_m) & same_approach
+        assert near.any(axis=1).all()
+    # a continuous axis: 36 steps about it, times the flip
+    washer = builtin_part("washer")
+    small = antipodal_grasps(washer, GraspSetParams(n_surface_samples=20, n_dense_samples=500))
+    assert len(expand_by_symmetry(small, washer)) == 72 * len(small)
+
+
+def test_candidates_are_cached_by_mesh_and_parameters(cache_dir, tmp_path, caplog):
+    nut = builtin_part("hex_nut")
+    first = grasp_candidates(nut, PARAMS, cache_dir=tmp_path)
+    files = sorted(tmp_path.glob("*.npz"))
+    assert len(files) == 1 and files[0].name.startswith(nut.content_hash[:16])
+    again = grasp_candidates(nut, PARAMS, cache_dir=tmp_path)
+    np.testing.assert_array_equal(again.T_obj_grasp, first.T_obj_grasp)
+    np.testing.assert_array_equal(again.contact_z_m, first.contact_z_m)
+    other = GraspSetParams(n_surface_samples=150, n_dense_samples=1500, friction_coefficient=0.3)
+    grasp_candidates(nut, other, cache_dir=tmp_path)
+    assert len(list(tmp_path.glob("*.npz"))) == 2  # another parameter, another entry
+    files[0].write_bytes(b"not an npz")  # a damaged entry is rebuilt, with a warning
+    rebuilt = grasp_candidates(nut, PARAMS, cache_dir=tmp_path)
+    np.testing.assert_array_equal(rebuilt.T_obj_grasp, first.T_obj_grasp)
+    assert "unreadable grasp cache entry" in caplog.text
+    assert resolve_cache_dir(tmp_path) == tmp_path
+
+
+def test_declared_grasps_are_used_expanded_and_measured(tmp_path):
+    """A part with declared grasps uses them (not the mesh's antipodal pairs), with its symmetries."""
+    block = trimesh.creation.box((0.03, 0.02, 0.01))
+    # from above, across the 20 mm, 8 mm off the centre along the 30 mm
+    top_down_across_y = np.array([[0, 1, 0, 0.008], [1, 0, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]], dtype=float)
+    model = ObjectModel(
+        obj_id=9,
+        name="block",
+        mesh=block,
+        symmetries_discrete=(np.diag([-1.0, -1.0, 1.0, 1.0]),),  # 180 degrees about z
+        grasps=(GraspAnnotation(top_down_across_y, 0.02, 0.8),),
+    )
+    grasps = grasp_candidates(model, PARAMS, cache_dir=tmp_path)
+    assert grasps.source == "declared" and len(grasps) == 2  # the declared grasp and its turned copy (at -8 mm)
+    np.testing.assert_allclose(sorted(grasps.T_obj_grasp[:, 0, 3]), [-0.008, 0.008])
+    np.testing.assert_allclose(grasps.width_m, 0.02)
+    np.testing.assert_allclose(grasps.contact_z_m, [[-0.005, 0.005]] * 2, atol=0.5 * MM)  # the block's 10 mm
+    planner = GraspPlanner([model], PlannerConfig(grasp_params=PARAMS), cache_dir=tmp_path)
+    T_base_block = make_T(t=(-0.5, 0.0, FLOOR_Z + 0.005))
+    g = planner.plan_parts([PartEstimate(9, T_base_block)]).best
+    np.testing.assert_allclose(np.abs(g.T_base_grasp[:3, 0]), [0.0, 1.0, 0.0], atol=1e-9)  # across the 20 mm
+    assert g.grasp_width_m == pytest.approx(0.02)
+    wide = ObjectModel(obj_id=10, name="wide", mesh=block, grasps=(GraspAnnotation(top_down_across_y, 0.09),))
+    with pytest.raises(ConfigError, match=r"wide: declared grasp\(s\) \[0\] are wider"):
+        grasp_candidates(wide, PARAMS, cache_dir=tmp_path)
+
+
+def test_defaults_match_the_simulated_cell():
+    """robot may not import sim; the planner's defaults repeat its numbers, and this keeps them equal."""
+    from sim.cell_config import CellConfig
+    from sim.gripper_model import STROKE_M, T_FLANGE_TCP, add_gripper
+
+    g = GripperGeometry()
+    assert g.stroke_m == STROKE_M
+    np.testing.assert_allclose(g.T_flange_tcp, T_FLANGE_TCP)
+    spec = mujoco.MjSpec()
+    add_gripper(spec, spec.worldbody, pad_solref=[0.004, 1.0])
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)  # fingers closed: the pads' inner faces at x = 0
+    boxes = dict(zip(("pad_pos", "pad_neg", "link_pos", "link_neg", "housing"), g.boxes(0.0)[:5], strict=True))
+    names = {"pad_pos": "finger_a_pad", "pad_neg": "finger_b_pad", "link_pos": "finger_a_link"}
+    names |= {"link_neg": "finger_b_link", "housing": "housing"}
+    for box, geom in names.items():
+        centre = data.geom(f"gripper_{geom}").xpos - T_FLANGE_TCP[:3, 3]
+        half = model.geom(f"gripper_{geom}").size
+        np.testing.assert_allclose(boxes[box][0], centre - half, atol=1e-9, err_msg=box)
+        np.testing.assert_allclose(boxes[box][1], centre + half, atol=1e-9, err_msg=box)
+    cell, b = CellConfig(), BinGeometry()
+    np.testing.assert_allclose(b.T_base_bin, invert(cell.T_world_base) @ cell.T_world_bin)
+    assert b.inner_size_m == cell.bin_inner_size_m and b.wall_thickness_m == cell.bin_wall_thickness_m
+    np.testing.assert_allclose(PlannerConfig().T_base_place[:2, 3], cell.T_world_tray[:2, 3])
+
+
+# ---------------------------------------------------------------------------------------------- the planner
+
+
+def test_a_flat_nut_in_the_middle_gets_a_top_down_grasp_across_its_flats(planner):
+    T_base_nut = _flat("hex_nut", -0.5, 0.0, yaw_rad=0.3)
+    plan = planner.plan_parts([PartEstimate(1, T_base_nut, 0.9)])
+    assert not plan.nothing_safe, plan.summary()
+    g = plan.best
+    assert g.part_index == 0 and g.obj_id == 1
+    assert g.approach_angle_deg < 1.0
+    np.testing.assert_allclose(g.T_base_grasp[:3, 2], [0.0, 0.0, -1.0], atol=1e-6)
+    assert g.grasp_width_m == pytest.approx(18.0 * MM, abs=0.05 * MM)  # ISO 4032 M12: 18 mm across flats
+    assert g.opening_width_m == pytest.approx(18.0 * MM + 2 * PARAMS.open_clearance_m, abs=0.05 * MM)
+    # the pads close across a pair of flats: the pad axis is a flat normal (at 30 + 60 k degrees from the nut's x)
+    angle = math.degrees(math.atan2(g.T_base_grasp[1, 0], g.T_base_grasp[0, 0])) - math.degrees(0.3)
+    assert min((angle - 30.0) % 60.0, 60.0 - (angle - 30.0) % 60.0) < 1.0
+    # centred between the flats; anywhere along them that the pads still cover (a flat is 10.4 mm long)
+    offset = g.T_base_grasp[:3, 3] - T_base_nut[:3, 3]
+    assert abs(offset @ g.T_base_grasp[:3, 0]) < 0.1 * MM
+    assert abs(offset @ g.T_base_grasp[:3, 1]) < PARAMS.dedup_position_m
+    # the pads stay clear of the floor and hold the nut over most of its 10.8 mm height
+    pad_tips_z = g.T_base_grasp[2, 3] - GripperGeometry().pad_length_m / 2
+    assert pad_tips_z >= FLOOR_Z + planner.config.floor_clearance_m - 1e-9
+    assert 5.0 * MM < g.engagement_m <= 10.8 * MM
+    assert plan.parts[0].status == "planned" and plan.parts[0].rejections["approach_angle"] > 0
+
+
+def test_waypoints_are_ordered_and_reached_by_their_joint_solutions(planner):
+    plan = planner.plan_parts([PartEstimate(1, _flat("hex_nut", -0.45, 0.03, yaw_rad=1.0), 0.9)])
+    g = plan.best
+    cfg = planner.config
+    assert [name for name, _ in g.waypoints] == ["pre_grasp", "grasp", "lift", "place"]
+    approach = g.T_base_grasp[:3, 2]
+    # pre-grasp: back along the approach, above the grasp; lift: back out the same way, above the grasp
+    np.testing.assert_allclose(g.T_base_pregrasp[:3, 3], g.T_base_grasp[:3, 3] - cfg.pre_grasp_distance_m * approach)
+    np.testing.assert_allclose(g.T_base_lift[:3, 3], g.T_base_grasp[:3, 3] - cfg.lift_height_m * approach)
+    assert g.T_base_pregrasp[2, 3] > g.T_base_grasp[2, 3] + 0.05
+    assert g.T_base_lift[2, 3] >= g.T_base_grasp[2, 3] + math.cos(math.radians(cfg.approach_cone_deg)) * 0.15
+    for T in (g.T_base_pregrasp, g.T_base_lift):
+        np.testing.assert_allclose(T[:3, :3], g.T_base_grasp[:3, :3])
+    np.testing.assert_allclose(g.T_base_place[:3, 3], cfg.T_base_place[:3, 3])
+    np.testing.assert_allclose(g.T_base_place[:3, 2], [0.0, 0.0, -1.0], atol=1e-9)
+    for (name, T), (_, q) in zip(g.waypoints, g.joint_waypoints, strict=True):
+        np.testing.assert_allclose(forward_kinematics(q, cfg.gripper.T_flange_tcp), T, atol=1e-9, err_msg=name)
+    # straight-line moves without a branch switch, and joints off their limits by the margin
+    assert np.abs(g.q_pregrasp - g.q_grasp).max() < cfg.max_joint_step_rad
+    assert np.abs(g.q_lift - g.q_grasp).max() < cfg.max_joint_step_rad
+    assert np.all(np.abs(g.q_grasp[[0, 1, 3, 4, 5]]) <= 2 * np.pi - cfg.joint_limit_margin_rad)
+    assert abs(g.q_grasp[2]) <= np.pi - cfg.joint_limit_margin_rad
+
+
+def test_a_pipe_against_a_wall_keeps_only_the_grasps_without_a_finger_at_the_wall(planner):
+    config = PlannerConfig(grasp_params=PARAMS, max_grasps_per_part=200)
+    wide = GraspPlanner([builtin_part("pipe")], config, cache_dir=planner.cache_dir)
+    wall_x = -0.5 + 0.15  # the +x wall's inner face
+    # the pipe's axis along x, one end touching the wall; and the same pipe in the middle of the bin
+    against = wide.plan_parts([PartEstimate(5, _lying_pipe(wall_x - 0.025, 0.0, (1.0, 0.0)), 0.9)])
+    middle = wide.plan_parts([PartEstimate(5, _lying_pipe(-0.5, 0.0, (1.0, 0.0)), 0.9)])
+    assert not against.nothing_safe and not middle.nothing_safe
+
+    def end_to_end(plan):  # the 50 mm grasps: one pad on each end of the pipe
+        return [g for g in plan.grasps if g.grasp_width_m > 40 * MM]
+
+    # in the middle, the pads can close along the pipe, across its ends; at the wall that puts a finger between
+    # the pipe's end and the wall: all such grasps are rejected, and so are the ones whose housing would hit it
+    assert end_to_end(middle)
+    assert not end_to_end(against)
+    assert against.rejections["collision_bin"] > middle.rejections["collision_bin"]
+    assert len(against.grasps) < len(middle.grasps)
+    for g in against.grasps:
+        assert abs(g.T_base_grasp[0, 0]) < 0.2  # pads close across the pipe, not towards the wall
+        assert wall_x - g.T_base_grasp[0, 3] > 0.03  # the housing (62 mm wide) stays off the wall
+        assert g.clearance_m >= wide.config.bin_clearance_m
+
+
+def test_a_part_beneath_another_comes_after_it_and_is_refused_when_covered(planner):
+    # a washer lying across one end of a pipe: both can be picked, the washer (on top) first
+    pipe = _lying_pipe(-0.5, 0.0, (1.0, 0.0))
+    washer = _flat("washer", -0.5 + 0.026, 0.0, on_z=FLOOR_Z + 21.3 * MM)
+    config = PlannerConfig(grasp_params=PARAMS, max_grasps_per_part=100)
+    several = GraspPlanner([builtin_part("pipe"), builtin_part("washer")], config, cache_dir=planner.cache_dir)
+    plan = several.plan_parts([PartEstimate(5, pipe, 0.95), PartEstimate(3, washer, 0.9)])
+    order = [g.part_index for g in plan.grasps]
+    assert set(order) == {0, 1} and order == sorted(order, reverse=True), plan.summary()
+    assert 0.02 < plan.parts[0].covered_fraction < 0.3 and plan.parts[1].covered_fraction == 0.0
+    # the washer keeps the fingers off the pipe's end it lies on: alone, the pipe is also taken there
+    alone = several.plan_parts([PartEstimate(5, pipe, 0.95)])
+    under_x = [g.T_base_grasp[0, 3] for g in plan.grasps if g.part_index == 0]
+    alone_x = [g.T_base_grasp[0, 3] for g in alone.grasps]
+    assert len(under_x) < len(alone_x)
+    assert max(under_x) < washer[0, 3] - 0.02 < max(alone_x)
+
+    nut = _flat("hex_nut", -0.5, 0.0)
+    # the pipe right on top of the nut: the nut is covered, not picked; the pipe still is
+    pipe_on_nut = _lying_pipe(-0.5, 0.0, (1.0, 0.0), on_z=FLOOR_Z + 10.8 * MM)
+    parts = [PartEstimate(1, nut, 0.95), PartEstimate(5, pipe_on_nut, 0.9)]
+    covered = planner.plan_parts(parts)
+    assert covered.parts[0].status == "covered" and covered.parts[0].covered_fraction > 0.9
+    assert covered.rejections["covered"] == covered.parts[0].n_candidates
+    assert {g.part_index for g in covered.grasps} == {1}
+    # the same from the camera: poses in the camera frame and a depth frame in which the pipe hides the nut
+    T_base_camera = make_T(np.diag([1.0, -1.0, -1.0]), (-0.5, 0.0, 0.52))
+    K = CameraIntrinsics.from_fov(96, 72, 30.0)
+    depth = _render_depth([(builtin_part("hex_nut"), nut), (builtin_part("pipe"), pipe_on_nut)], K, T_base_camera)
+    poses = [_pose(1, invert(T_base_camera) @ nut), _pose(5, invert(T_base_camera) @ pipe_on_nut)]
+    from_camera = planner.plan(poses, T_base_camera, depth, K)
+    assert from_camera.parts[0].status == "covered"
+    assert {g.part_index for g in from_camera.grasps} == {1}
+    assert from_camera.timings_s["depth_cloud"] >= 0.0
+
+
+def test_an_unseen_neighbour_in_the_depth_frame_blocks_the_fingers(planner):
+    """A part the detector missed is only in the depth frame: the gripper must still keep off it."""
+    nut = _flat("hex_nut", -0.5, 0.0)
+    T_base_camera = make_T(np.diag([1.0, -1.0, -1.0]), (-0.5, 0.0, 0.52))
+    K = CameraIntrinsics.from_fov(96, 72, 30.0)
+    alone = planner.plan([_pose(1, invert(T_base_camera) @ nut)], T_base_camera, None, None)
+    # four gears around the nut, 28 mm off (1 mm from its corners; every finger path crosses one), seen only by depth
+    gears = [_flat("spur_gear", -0.5 + dx, dy) for dx, dy in ((0.028, 0), (-0.028, 0), (0, 0.028), (0, -0.028))]
+    scene = [(builtin_part("hex_nut"), nut)] + [(builtin_part("spur_gear"), T) for T in gears]
+    depth = _render_depth(scene, K, T_base_camera)
+    crowded = planner.plan([_pose(1, invert(T_base_camera) @ nut)], T_base_camera, depth, K)
+    assert not alone.nothing_safe
+    assert crowded.nothing_safe and crowded.parts[0].status == "collision_parts", crowded.summary()
+
+
+def test_an_unreachable_part_gives_nothing_safe_with_the_reason(planner):
+    far = make_T(t=(1.4, 0.2, FLOOR_Z + 5.4 * MM))  # beyond the UR5e's 0.85 m reach
+    plan = planner.plan_parts([PartEstimate(1, far, 0.9)])
+    assert plan.nothing_safe and plan.best is None
+    assert plan.parts[0].status == "unreachable"
+    assert plan.rejections["unreachable"] > 0
+    assert set(plan.rejections) == set(REJECTION_CAUSES)
+    summary = plan.summary()
+    assert summary.startswith("nothing safe to pick") and "unreachable" in summary
+
+
+def test_part_level_refusals_are_results_not_errors(planner):
+    nut = _flat("hex_nut", -0.5, 0.0)
+    strict = GraspPlanner([builtin_part("hex_nut")], PlannerConfig(grasp_params=PARAMS, min_pose_score=0.5),
+                          cache_dir=planner.cache_dir)  # fmt: skip
+    plan = strict.plan_parts([PartEstimate(1, nut, 0.2), PartEstimate(42, nut, 0.9)])
+    assert plan.nothing_safe
+    assert [p.status for p in plan.parts] == ["low_confidence", "no_model"]
+    assert plan.rejections["low_confidence"] == plan.parts[0].n_candidates and plan.rejections["no_model"] == 1
+    assert strict.plan_parts([]).nothing_safe
+
+
+def test_bad_settings_and_inputs_are_refused_with_the_field_name(planner):
+    with pytest.raises(ValueError, match="approach_cone_deg"):
+        PlannerConfig(approach_cone_deg=0.0)
+    with pytest.raises(ValueError, match="T_base_place"):
+        PlannerConfig(T_base_place=np.eye(3))
+    with pytest.raises(ValueError, match="friction_coefficient"):
+        GraspSetParams(friction_coefficient=0.0)
+    with pytest.raises(ValueError, match="without its intrinsics"):
+        planner.plan([], np.eye(4), np.zeros((4, 4), dtype=np.float32), None)
+    with pytest.raises(ValueError, match="intrinsics are for"):
+        planner.plan([], np.eye(4), np.zeros((4, 4), dtype=np.float32), CameraIntrinsics.from_fov(8, 6, 40.0))
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def _pose(obj_id: int, T_camera_object: np.ndarray, score: float = 0.9) -> ObjectPose:
+    return ObjectPose(Detection(0, obj_id, 0.99, np.zeros(4)), T_camera_object, score, "test")
+
+
+def _render_depth(parts, K: CameraIntrinsics, T_base_camera: np.ndarray) -> np.ndarray:
+    """A depth frame (metres along the camera z) of parts on the bin floor, by ray casting the meshes."""
+    meshes = [model.mesh.copy().apply_transform(T) for model, T in parts]
+    floor = trimesh.creation.box((0.3, 0.2, 0.02), make_T(t=(-0.5, 0.0, FLOOR_Z - 0.01)))
+    scene = trimesh.util.concatenate([*meshes, floor])
+    u, v = np.meshgrid(np.arange(K.width), np.arange(K.height))
+    rays_cam = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, dtype=float)], axis=-1).reshape(-1, 3)
+    origins = np.repeat(T_base_camera[None, :3, 3], len(rays_cam), axis=0)
+    directions = rays_cam @ T_base_camera[:3, :3].T
+    hits, index, _ = scene.ray.intersects_location(origins, directions, multiple_hits=False)
+    depth = np.zeros(len(rays_cam), dtype=np.float32)
+    depth[index] = (hits - origins[index]) @ T_base_camera[:3, 2]  # distance along the camera z axis
+    return depth.reshape(K.height, K.width)
