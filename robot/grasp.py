@@ -163,7 +163,7 @@ class PlannerConfig:
     max_covered_fraction: float = 0.3
     cover_tolerance_m: float = 0.005
     duplicate_distance_ratio: float = 0.25
-    clearance_saturation_m: float = 0.02
+    clearance_saturation_m: float = 0.01
     engagement_saturation_m: float = 0.008
     height_spread_m: float = 0.02
     weights: ScoreWeights = field(default_factory=ScoreWeights)

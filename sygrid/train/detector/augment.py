@@ -1,0 +1,320 @@
+"""Letterboxing, augmentation and training targets for the detector (numpy + OpenCV).
+
+Augmentation warps an image and its instance-id map (``sygrid.train.detector.data.load_instances``) with the same
+affine (nearest neighbour for the ids), so masks and boxes stay consistent through scaling, rotation, flips,
+translation and mosaic without clipping polygons; boxes and stride-4 mask targets are then read off the warped id
+map. Mask targets are the fraction of each stride-4 cell the instance covers (soft targets: small parts are only a
+few cells wide).
+
+Scale: images are scaled as the runtime letterbox into the model's input side (``imgsz``) scales them, times a
+random zoom; the training canvas may be smaller than ``imgsz``, which makes it a crop at the runtime's object
+scale, centred on the labelled parts (a bin of parts fills a small part of a frame, the rest is floor).
+
+Randomness: each example draws from ``np.random.default_rng([seed, epoch, index])``, so an epoch is the same
+whatever order or process it is built in, and a resumed run sees the same data as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from sygrid.train.detector.data import DetectionDataset, load_instances
+
+PAD_VALUE = 114  # letterbox grey, as ultralytics and perception.detector use
+MASK_STRIDE = 4  # prototype resolution: 1/4 of the network input
+
+
+# --------------------------------------------------------------------------------------------------- geometry
+@dataclass(frozen=True)
+class LetterboxGeometry:
+    """An image of ``image_hw`` resized to ``resized_hw`` and put at ``(pad_left, pad_top)`` in ``input_hw``."""
+
+    image_hw: tuple[int, int]
+    input_hw: tuple[int, int]
+    resized_hw: tuple[int, int]
+    pad_left: int
+    pad_top: int
+
+
+def letterbox_geometry(image_hw: tuple[int, int], size: int, stride: int | None) -> LetterboxGeometry:
+    """Where an image goes in a network input of at most ``size`` x ``size``: the same rule as the runtime
+    (``perception.detector.letterbox_geometry``): keep the aspect ratio, centre, and with a ``stride`` (a model with
+    a dynamic input) pad only up to the next multiple of the stride."""
+    h, w = image_hw
+    r = min(size / h, size / w)
+    new_h, new_w = max(1, round(h * r)), max(1, round(w * r))
+    pad_h, pad_w = size - new_h, size - new_w
+    if stride is not None:
+        pad_h, pad_w = pad_h % stride, pad_w % stride
+    top, left = round(pad_h / 2 - 0.1), round(pad_w / 2 - 0.1)
+    return LetterboxGeometry((h, w), (new_h + pad_h, new_w + pad_w), (new_h, new_w), int(left), int(top))
+
+
+def letterbox(image: np.ndarray, geometry: LetterboxGeometry, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    """Resize + pad an (h, w[, c]) image to ``geometry.input_hw`` (grey 114 for images, 0 for id maps)."""
+    new_h, new_w = geometry.resized_hw
+    resized = (
+        image if image.shape[:2] == (new_h, new_w) else cv2.resize(image, (new_w, new_h), interpolation=interpolation)
+    )
+    in_h, in_w = geometry.input_hw
+    top, left = geometry.pad_top, geometry.pad_left
+    value = (PAD_VALUE,) * 3 if image.ndim == 3 else 0
+    return cv2.copyMakeBorder(
+        resized, top, in_h - new_h - top, left, in_w - new_w - left, cv2.BORDER_CONSTANT, value=value
+    )
+
+
+def _cv_affine(A: np.ndarray) -> np.ndarray:
+    """3x3 affine in continuous pixel coordinates (pixel i spans [i, i+1)) -> OpenCV's 2x3 (pixel i at i), so that
+    a pure scaling matches ``cv2.resize``'s sampling grid."""
+    half = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    return (np.linalg.inv(half) @ A @ half)[:2]
+
+
+def _translation(tx: float, ty: float) -> np.ndarray:
+    return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])
+
+
+# ------------------------------------------------------------------------------------------------ augmentation
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Training augmentation. Colour: ``hsv_*`` gains (fractions, as ultralytics), ``brightness`` (fraction of 255)
+    and ``contrast`` (fraction) ranges, Gaussian ``blur_p`` / ``noise_p`` probabilities with sigma up to
+    ``blur_sigma_px`` / ``noise_sigma`` (grey levels). Geometry: ``scale`` (zoom in [1 - scale, 1 + scale] of the
+    letterboxed size), ``translate`` (fraction of the input side), ``degrees`` (uniform rotation jitter),
+    ``rot90_p`` (probability of a random quarter turn), ``flip_lr`` / ``flip_ud`` probabilities, ``mosaic``
+    (probability of a 2x2 mosaic of four images), ``focus`` (probability of centring a crop on the labelled parts
+    instead of the image centre)."""
+
+    hsv_h: float = 0.015
+    hsv_s: float = 0.5
+    hsv_v: float = 0.4
+    brightness: float = 0.1
+    contrast: float = 0.2
+    blur_p: float = 0.1
+    blur_sigma_px: float = 1.2
+    noise_p: float = 0.25
+    noise_sigma: float = 6.0
+    scale: float = 0.25
+    translate: float = 0.1
+    degrees: float = 10.0
+    rot90_p: float = 0.5
+    flip_lr: float = 0.5
+    flip_ud: float = 0.5
+    mosaic: float = 0.5
+    focus: float = 0.8
+
+    def __post_init__(self) -> None:
+        for name in ("blur_p", "noise_p", "rot90_p", "flip_lr", "flip_ud", "mosaic", "focus"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"AugmentConfig.{name} must be a probability in [0, 1], got {getattr(self, name)}")
+        if not 0.0 <= self.scale < 1.0:
+            raise ValueError(f"AugmentConfig.scale must be in [0, 1), got {self.scale}")
+        for name in ("hsv_h", "hsv_s", "hsv_v", "brightness", "contrast", "blur_sigma_px", "noise_sigma"):
+            if getattr(self, name) < 0.0:
+                raise ValueError(f"AugmentConfig.{name} must be >= 0, got {getattr(self, name)}")
+
+    @classmethod
+    def none(cls) -> AugmentConfig:
+        """No augmentation at all (a plain letterbox)."""
+        return cls(**{f.name: 0.0 for f in fields(cls)})
+
+
+def _random_geometry(
+    rng: np.random.Generator, cfg: AugmentConfig, size: int, center: tuple[float, float]
+) -> np.ndarray:
+    """3x3 map (continuous pixels) that puts ``center`` (of an already scaled source) at the middle of a ``size``
+    output, with flips, a rotation and a zoom about it, and a random shift."""
+    cx, cy = center
+    angle = math.radians(rng.uniform(-cfg.degrees, cfg.degrees))
+    if rng.random() < cfg.rot90_p:
+        angle += math.pi / 2 * int(rng.integers(1, 4))
+    zoom = rng.uniform(1.0 - cfg.scale, 1.0 + cfg.scale)
+    fx = -1.0 if rng.random() < cfg.flip_lr else 1.0
+    fy = -1.0 if rng.random() < cfg.flip_ud else 1.0
+    c, s = math.cos(angle) * zoom, math.sin(angle) * zoom
+    linear = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([fx, fy, 1.0])
+    shift = rng.uniform(-cfg.translate, cfg.translate, size=2) * size
+    return _translation(size / 2 + shift[0], size / 2 + shift[1]) @ linear @ _translation(-cx, -cy)
+
+
+def _focus_point(ids: np.ndarray, cfg: AugmentConfig, rng: np.random.Generator) -> tuple[float, float]:
+    """Source pixel to centre a training crop on: with probability ``cfg.focus`` a random point of the box around
+    all labelled instances (the parts sit in a bin that fills a small part of the frame), else the image centre."""
+    h, w = ids.shape
+    if cfg.focus > 0 and rng.random() < cfg.focus:
+        ys, xs = np.nonzero(ids[::4, ::4])  # a coarse look is enough to find the pile
+        if len(xs):
+            x0, x1 = xs.min() * 4.0, xs.max() * 4.0 + 4.0
+            y0, y1 = ys.min() * 4.0, ys.max() * 4.0 + 4.0
+            return float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1))
+    return w / 2.0, h / 2.0
+
+
+def _warp(image: np.ndarray, ids: np.ndarray, A: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    M = _cv_affine(A)
+    out = cv2.warpAffine(image, M, (size, size), flags=cv2.INTER_LINEAR, borderValue=(PAD_VALUE,) * 3)
+    out_ids = cv2.warpAffine(ids, M, (size, size), flags=cv2.INTER_NEAREST, borderValue=0)
+    return out, out_ids
+
+
+def _colour(image: np.ndarray, cfg: AugmentConfig, rng: np.random.Generator) -> np.ndarray:
+    """HSV gains (lookup tables on OpenCV's 8-bit HSV), brightness/contrast, blur and sensor noise."""
+    gains = rng.uniform(-1.0, 1.0, 3) * np.array([cfg.hsv_h, cfg.hsv_s, cfg.hsv_v]) + 1.0
+    if np.any(gains != 1.0):
+        hue, sat, val = cv2.split(cv2.cvtColor(image, cv2.COLOR_RGB2HSV))
+        x = np.arange(256, dtype=np.float32)
+        lut_h = ((x * gains[0]) % 180).astype(np.uint8)
+        lut_s = np.clip(x * gains[1], 0, 255).astype(np.uint8)
+        lut_v = np.clip(x * gains[2], 0, 255).astype(np.uint8)
+        hsv = cv2.merge((cv2.LUT(hue, lut_h), cv2.LUT(sat, lut_s), cv2.LUT(val, lut_v)))
+        image = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    alpha = rng.uniform(1.0 - cfg.contrast, 1.0 + cfg.contrast)
+    beta = rng.uniform(-cfg.brightness, cfg.brightness) * 255.0
+    if alpha != 1.0 or beta != 0.0:
+        mean = float(image.mean())  # contrast about the mean grey: brightness stays put
+        image = cv2.convertScaleAbs(image, alpha=alpha, beta=beta + (1.0 - alpha) * mean)
+    if rng.random() < cfg.blur_p:
+        image = cv2.GaussianBlur(image, (0, 0), sigmaX=rng.uniform(0.3, max(cfg.blur_sigma_px, 0.3)))
+    if rng.random() < cfg.noise_p:
+        sigma = rng.uniform(0.0, cfg.noise_sigma)
+        noise = rng.normal(0.0, sigma, image.shape).astype(np.float32)
+        image = np.clip(image.astype(np.float32) + noise, 0, 255).astype(np.uint8)
+    return image
+
+
+@dataclass(frozen=True)
+class Example:
+    """One network input with its targets. ``image``: (S, S, 3) uint8 RGB (or the letterboxed shape in
+    validation); ``classes`` (n,) int64; ``boxes_xyxy`` (n, 4) float32 input pixels; ``masks`` (n, H/4, W/4)
+    float32 coverage in [0, 1]."""
+
+    image: np.ndarray
+    classes: np.ndarray
+    boxes_xyxy: np.ndarray
+    masks: np.ndarray
+
+
+def targets_from_ids(
+    ids: np.ndarray, classes: np.ndarray, min_area_px: int = 4, min_side_px: float = 2.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boxes and stride-4 mask coverage of every instance left in an id map (dropping slivers below
+    ``min_area_px`` pixels or ``min_side_px`` box side). Returns ``(classes, boxes_xyxy, masks)`` as in ``Example``."""
+    h, w = ids.shape
+    if h % MASK_STRIDE or w % MASK_STRIDE:
+        raise ValueError(f"id map {h}x{w}: both sides must be multiples of {MASK_STRIDE}")
+    mh, mw = h // MASK_STRIDE, w // MASK_STRIDE
+    areas = np.bincount(ids.ravel(), minlength=len(classes) + 1)
+    slices = ndimage.find_objects(ids, max_label=len(classes))
+    keep_cls, boxes, masks = [], [], []
+    for k, sl in enumerate(slices):
+        if sl is None or areas[k + 1] < min_area_px:
+            continue
+        y0, y1, x0, x1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
+        if min(x1 - x0, y1 - y0) < min_side_px:
+            continue
+        # Coverage of each stride-4 cell, computed on the box expanded to whole cells.
+        cy0, cx0 = y0 // MASK_STRIDE, x0 // MASK_STRIDE
+        cy1, cx1 = -(-y1 // MASK_STRIDE), -(-x1 // MASK_STRIDE)
+        region = ids[cy0 * MASK_STRIDE : cy1 * MASK_STRIDE, cx0 * MASK_STRIDE : cx1 * MASK_STRIDE] == k + 1
+        cover = region.reshape(cy1 - cy0, MASK_STRIDE, cx1 - cx0, MASK_STRIDE).mean(axis=(1, 3), dtype=np.float32)
+        mask = np.zeros((mh, mw), dtype=np.float32)
+        mask[cy0:cy1, cx0:cx1] = cover
+        keep_cls.append(int(classes[k]))
+        boxes.append((x0, y0, x1, y1))
+        masks.append(mask)
+    if not keep_cls:
+        return np.zeros(0, np.int64), np.zeros((0, 4), np.float32), np.zeros((0, mh, mw), np.float32)
+    return np.asarray(keep_cls, np.int64), np.asarray(boxes, np.float32), np.stack(masks)
+
+
+def train_example(
+    dataset: DetectionDataset,
+    index: int,
+    size: int,
+    cfg: AugmentConfig,
+    rng: np.random.Generator,
+    mosaic: bool = True,
+    imgsz: int | None = None,
+) -> Example:
+    """Training example ``index`` of the train split on a ``size`` x ``size`` canvas (a multiple of 32), augmented by
+    ``cfg`` with ``rng``; a mosaic of four images with probability ``cfg.mosaic`` (when ``mosaic``).
+
+    ``imgsz``: the input side the model will run at (default ``size``). Images are scaled as the runtime letterbox
+    into ``imgsz`` scales them (times the random zoom), so a canvas smaller than ``imgsz`` is a crop at the
+    runtime's object scale: with ``cfg.focus``, centred on the labelled parts rather than the empty floor.
+    """
+    imgsz = imgsz or size
+    n = len(dataset.images["train"])
+    if mosaic and cfg.mosaic > 0 and rng.random() < cfg.mosaic:
+        picks = [index, *(int(i) for i in rng.integers(0, n, size=3))]
+        image, ids, classes = _mosaic(dataset, picks, size, imgsz, cfg, rng)
+    else:
+        src, src_ids, classes = load_instances(dataset, "train", index)
+        r = imgsz / max(src.shape[:2])
+        fx, fy = _focus_point(src_ids, cfg, rng)
+        A = _random_geometry(rng, cfg, size, (fx * r, fy * r)) @ np.diag([r, r, 1.0])
+        image, ids = _warp(src, src_ids, A, size)
+    image = _colour(image, cfg, rng)
+    classes, boxes, masks = targets_from_ids(ids, classes)
+    return Example(np.ascontiguousarray(image), classes, boxes, masks)
+
+
+def _mosaic(
+    dataset: DetectionDataset, picks: list[int], size: int, imgsz: int, cfg: AugmentConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Four images around a random junction of a 2S x 2S canvas, each cropped to its quadrant with its focus point
+    in the middle of the quadrant's part of the central S x S window; then the random geometry from the canvas to
+    the S x S output. Each image is warped straight to the output (one interpolation); an output pixel takes the
+    image of the quadrant its canvas pre-image lies in."""
+    xc, yc = rng.uniform(0.5 * size, 1.5 * size, size=2)
+    A_out = _random_geometry(rng, cfg, size, (size, size))
+    inv = np.linalg.inv(A_out)
+    grid = np.arange(size, dtype=np.float64) + 0.5
+    canvas_x = inv[0, 0] * grid[None, :] + inv[0, 1] * grid[:, None] + inv[0, 2]
+    canvas_y = inv[1, 0] * grid[None, :] + inv[1, 1] * grid[:, None] + inv[1, 2]
+    quadrant = (canvas_x >= xc).astype(np.int8) + 2 * (canvas_y >= yc).astype(np.int8)
+    inside = (canvas_x >= 0) & (canvas_x < 2 * size) & (canvas_y >= 0) & (canvas_y < 2 * size)
+    image = np.full((size, size, 3), PAD_VALUE, dtype=np.uint8)
+    ids = np.zeros((size, size), dtype=np.int32)
+    all_classes = []
+    lo, hi = 0.5 * size, 1.5 * size  # the central window of the canvas
+    for q, idx in enumerate(picks):
+        src, src_ids, classes = load_instances(dataset, "train", idx)
+        r = imgsz / max(src.shape[:2])
+        fx, fy = _focus_point(src_ids, cfg, rng)
+        tx = (lo + xc) / 2 if q in (0, 2) else (xc + hi) / 2
+        ty = (lo + yc) / 2 if q in (0, 1) else (yc + hi) / 2
+        A_tile = A_out @ _translation(tx - fx * r, ty - fy * r) @ np.diag([r, r, 1.0])
+        tile_image, tile_ids = _warp(src, src_ids, A_tile, size)
+        sel = (quadrant == q) & inside
+        image[sel] = tile_image[sel]
+        offset = sum(len(c) for c in all_classes)
+        ids[sel] = np.where(tile_ids[sel] > 0, tile_ids[sel] + offset, 0)
+        all_classes.append(classes)
+    return image, ids, np.concatenate(all_classes)
+
+
+def val_example(dataset: DetectionDataset, index: int, size: int, stride: int) -> tuple[Example, LetterboxGeometry]:
+    """Validation example ``index``: letterboxed as the runtime does for a dynamic-input model (no augmentation)."""
+    src, src_ids, classes = load_instances(dataset, "val", index)
+    geometry = letterbox_geometry(src.shape[:2], size, stride)
+    image = letterbox(src, geometry)
+    ids = letterbox(src_ids, geometry, cv2.INTER_NEAREST)
+    classes, boxes, masks = targets_from_ids(ids, classes)
+    return Example(image, classes, boxes, masks), geometry
+
+
+def epoch_order(n: int, seed: int, epoch: int) -> np.ndarray:
+    """The shuffled order of ``n`` training images in ``epoch`` (depends only on seed and epoch)."""
+    return np.random.default_rng([seed, epoch, 0x5EED]).permutation(n)
+
+
+def example_rng(seed: int, epoch: int, index: int) -> np.random.Generator:
+    """The random stream of one training example."""
+    return np.random.default_rng([seed, epoch, index])

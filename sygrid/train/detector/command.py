@@ -1,0 +1,101 @@
+"""``sygrid train detector --data DIR --out DIR``: train the YOLOv8-style segmenter and export it to ONNX.
+
+Argument parsing only imports the standard library; torch is imported when the command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+
+log = logging.getLogger(__name__)
+
+DEFAULTS = {"epochs": 40, "imgsz": 416, "batch": 8, "width": "n", "seed": 0, "threads": 2}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, help="dataset folder (sygrid generate output, or a YOLO data.yaml)")
+    parser.add_argument("--out", required=True, help="output folder: last.pt, best.pt, detector.onnx, train_log.json")
+    parser.add_argument("--epochs", type=int, default=DEFAULTS["epochs"], help="total epochs (default %(default)s)")
+    parser.add_argument(
+        "--imgsz",
+        type=int,
+        default=DEFAULTS["imgsz"],
+        help="model input side, multiple of 32: frames are letterboxed into it (%(default)s)",
+    )
+    parser.add_argument(
+        "--train-size",
+        type=int,
+        default=None,
+        help="side of the training crops, multiple of 32 (default: imgsz); objects keep the imgsz scale",
+    )
+    parser.add_argument("--batch", type=int, default=DEFAULTS["batch"], help="images per iteration (%(default)s)")
+    parser.add_argument(
+        "--width",
+        default=DEFAULTS["width"],
+        choices=("p", "n", "s"),
+        help="network size: p (pico, 1.0 M parameters), n (YOLOv8n scale, 3.3 M), s (11 M) (default %(default)s)",
+    )
+    parser.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="initialisation, data order, augmentation")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    parser.add_argument("--threads", type=int, default=DEFAULTS["threads"], help="torch threads (%(default)s)")
+    parser.add_argument("--max-iters", type=int, default=None, help="at most this many iterations per epoch")
+    parser.add_argument("--lr", type=float, default=None, help="peak AdamW learning rate (default 2e-3)")
+    parser.add_argument("--labels", default="auto", choices=("auto", "coco", "yolo"), help="where masks come from")
+    parser.add_argument("--val-every", type=int, default=1, help="validate every N epochs (always after the last)")
+    parser.add_argument(
+        "--augment", default=None, help='JSON object of augmentation overrides, e.g. \'{"mosaic": 0.0, "degrees": 0}\''
+    )
+    parser.add_argument(
+        "--half-weights", action="store_true", help="store the ONNX weights as float16 (half the file size)"
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars (one log line per epoch)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from sygrid.train.detector.trainer import TrainConfig, TrainError, train  # torch from here on
+
+    try:
+        augment = json.loads(args.augment) if args.augment else {}
+        if not isinstance(augment, dict):
+            raise ValueError(f"expected a JSON object, got {args.augment!r}")
+    except (json.JSONDecodeError, ValueError) as err:
+        raise TrainError(f"--augment: {err}") from err
+    options = {"lr": args.lr} if args.lr is not None else {}
+    try:
+        cfg = TrainConfig(
+            data=args.data,
+            out=args.out,
+            epochs=args.epochs,
+            imgsz=args.imgsz,
+            train_size=args.train_size,
+            batch=args.batch,
+            size=args.width,
+            seed=args.seed,
+            threads=args.threads,
+            max_iters=args.max_iters,
+            labels=args.labels,
+            val_every=args.val_every,
+            augment=augment,
+            resume=args.resume,
+            half_weights=args.half_weights,
+            progress=not args.no_progress,
+            **options,
+        )
+    except (ValueError, TypeError) as err:
+        raise TrainError(f"sygrid train detector: {err}") from err
+    result = train(cfg)
+    best = next((r for r in reversed(result.history) if "val" in r), None)
+    print(
+        f"wrote {result.last}, {result.best}, {result.export.path} ({result.export.size_bytes / 1e6:.1f} MB), "
+        f"{result.log}"
+    )
+    if best is not None:
+        v = best["val"]
+        print(
+            f"last validation (epoch {best['epoch']}): "
+            f"box mAP50 {v['box_map50']:.3f} mAP50-95 {v['box_map50_95']:.3f}, "
+            f"mask mAP50 {v['mask_map50']:.3f} mAP50-95 {v['mask_map50_95']:.3f}"
+        )
+    return 0

@@ -1,0 +1,543 @@
+"""The detector's training loop: AdamW with warmup and cosine decay, an EMA of the weights, per-epoch validation
+(COCO mAP on the val split), checkpoints to resume from, and the ONNX export of the best weights.
+
+Files under ``OUT``: ``last.pt`` (everything needed to resume: model, EMA, optimiser, epoch, history, torch RNG;
+written atomically after every epoch), ``best.pt`` (the EMA weights with the best validation mask mAP50-95, for
+export and evaluation), ``detector.onnx`` and ``train_log.json`` (configuration, per-epoch losses, metrics and
+seconds, the export check).
+
+Determinism: the weights are initialised from ``seed``; the order of an epoch and every augmentation come from
+``(seed, epoch, index)`` (``sygrid.train.detector.data``), so a run resumed from ``last.pt`` sees the data an
+uninterrupted run would.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import logging
+import math
+import time
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from sygrid.errors import SygridError
+from sygrid.fileio import write_bytes_atomic, write_json_atomic
+from sygrid.train.detector.augment import (
+    AugmentConfig,
+    Example,
+    epoch_order,
+    example_rng,
+    train_example,
+    val_example,
+)
+from sygrid.train.detector.data import DetectionDataset, open_dataset
+from sygrid.train.detector.evaluate import ValMetrics, coco_evaluate, postprocess
+from sygrid.train.detector.export import ExportReport, export_onnx
+from sygrid.train.detector.loss import LOSS_NAMES, SegmentationLoss, Targets
+from sygrid.train.detector.model import SIZES, ModelConfig, YoloSeg, build_model, count_parameters
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "sygrid-detector-checkpoint/1"
+LOG_FORMAT = "sygrid-detector-train-log/1"
+GRAD_CLIP_NORM = 10.0  # as YOLOv8: guards the first iterations against a bad batch
+
+
+class TrainError(SygridError, RuntimeError):
+    """Training cannot start or go on (bad configuration, a checkpoint that does not fit the run)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run.
+
+    Args:
+        data: dataset folder (``sygrid generate`` output, or a YOLO folder / ``data.yaml``).
+        out: output folder.
+        epochs: total epochs (a resumed run goes on up to this many).
+        imgsz: the model's input side in pixels (a multiple of 32): the runtime letterboxes a frame into it, and
+            training scales images the same way.
+        train_size: side of the square training crops (a multiple of 32; None: ``imgsz``). Smaller than ``imgsz``,
+            training sees crops at the runtime's object scale, centred on the parts (see ``augment``).
+        batch: images per iteration.
+        size: network size, a key of ``model.SIZES`` (``"p"``, ``"n"``, ``"s"``).
+        seed: weights initialisation, data order and augmentation.
+        threads: torch intra-op threads.
+        max_iters: at most this many iterations per epoch (smoke runs, quick looks); None for whole epochs.
+        lr: peak AdamW learning rate; ``lr_final``: the cosine's end as a fraction of it.
+        weight_decay: AdamW decoupled weight decay on convolution weights (not on BatchNorm or biases).
+        warmup_epochs: linear warmup length (at least ``warmup_min_iters`` iterations).
+        ema_decay, ema_tau: EMA of the weights, decay ``ema_decay * (1 - exp(-updates / ema_tau))``.
+        close_mosaic: no mosaic in the last this many epochs (None: 15% of the epochs).
+        labels: ``"auto"``, ``"coco"`` or ``"yolo"`` (see ``data.open_dataset``).
+        obj_ids: BOP obj_id per class (None: from the dataset).
+        val_every: validate every this many epochs (and always after the last).
+        channels_last: NHWC tensors (oneDNN's preferred CPU layout).
+        augment: overrides of ``data.AugmentConfig`` fields.
+        resume: continue from ``out/last.pt``.
+        export: write ``detector.onnx`` from ``best.pt`` at the end.
+        half_weights: store the ONNX weights as float16 (half the file; computed in float32, see ``export``).
+        progress: tqdm progress bars.
+    """
+
+    data: str
+    out: str
+    epochs: int = 40
+    imgsz: int = 416
+    train_size: int | None = None
+    batch: int = 8
+    size: str = "n"
+    seed: int = 0
+    threads: int = 2
+    max_iters: int | None = None
+    lr: float = 2e-3
+    lr_final: float = 0.02
+    weight_decay: float = 5e-4
+    warmup_epochs: float = 1.0
+    warmup_min_iters: int = 20
+    ema_decay: float = 0.999
+    ema_tau: float = 200.0
+    close_mosaic: int | None = None
+    labels: str = "auto"
+    obj_ids: tuple[int, ...] | None = None
+    val_every: int = 1
+    channels_last: bool = True
+    augment: dict = field(default_factory=dict)
+    resume: bool = False
+    export: bool = True
+    half_weights: bool = False
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.epochs < 1 or self.batch < 1 or self.threads < 1 or self.val_every < 1:
+            raise ValueError("epochs, batch, threads and val_every must be >= 1")
+        if self.imgsz < 32 or self.imgsz % 32:
+            raise ValueError(f"imgsz must be a positive multiple of 32, got {self.imgsz}")
+        if self.train_size is not None and (self.train_size < 32 or self.train_size % 32):
+            raise ValueError(f"train_size must be a positive multiple of 32, got {self.train_size}")
+        if self.size not in SIZES:
+            raise ValueError(f"size: expected one of {sorted(SIZES)}, got {self.size!r}")
+        if self.max_iters is not None and self.max_iters < 1:
+            raise ValueError(f"max_iters must be >= 1 or None, got {self.max_iters}")
+        unknown = set(self.augment) - {f.name for f in fields(AugmentConfig)}
+        if unknown:
+            raise ValueError(
+                f"augment: unknown fields {sorted(unknown)}; valid: {[f.name for f in fields(AugmentConfig)]}"
+            )
+
+    @property
+    def augment_config(self) -> AugmentConfig:
+        return AugmentConfig(**self.augment)
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["obj_ids"] = list(self.obj_ids) if self.obj_ids is not None else None
+        return d
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """What a run wrote. ``export`` is None when the run did not export (``TrainConfig.export`` False)."""
+
+    out: Path
+    last: Path
+    best: Path
+    log: Path
+    history: list[dict]
+    export: ExportReport | None
+
+
+class ModelEMA:
+    """Exponential moving average of a model's parameters and buffers (decay ramps up over ``tau`` updates so that
+    the first, fast-changing weights do not linger)."""
+
+    def __init__(self, model: YoloSeg, decay: float, tau: float, updates: int = 0) -> None:
+        self.model = copy.deepcopy(model).eval()
+        for p in self.model.parameters():
+            p.requires_grad_(False)
+        self.decay, self.tau, self.updates = decay, tau, updates
+
+    @torch.no_grad()
+    def update(self, model: YoloSeg) -> None:
+        self.updates += 1
+        d = self.decay * (1.0 - math.exp(-self.updates / self.tau))
+        current = model.state_dict()
+        for name, value in self.model.state_dict().items():
+            if value.dtype.is_floating_point:
+                value.mul_(d).add_(current[name].detach(), alpha=1.0 - d)
+            else:
+                value.copy_(current[name])
+
+
+def collate(examples: Sequence[Example], channels_last: bool) -> tuple[torch.Tensor, Targets]:
+    """Examples of one input size -> images (B, 3, H, W) float in [0, 1] and padded targets."""
+    images = torch.from_numpy(np.stack([e.image for e in examples])).permute(0, 3, 1, 2).float().div_(255.0)
+    images = images.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+    b, m = len(examples), max([len(e.classes) for e in examples] + [0])
+    mh, mw = (
+        examples[0].masks.shape[1:] if examples[0].masks.ndim == 3 else (images.shape[2] // 4, images.shape[3] // 4)
+    )
+    labels = torch.zeros((b, m), dtype=torch.long)
+    boxes = torch.zeros((b, m, 4), dtype=torch.float32)
+    valid = torch.zeros((b, m), dtype=torch.bool)
+    masks = torch.zeros((b, m, mh, mw), dtype=torch.float32)
+    for i, e in enumerate(examples):
+        n = len(e.classes)
+        labels[i, :n] = torch.from_numpy(e.classes)
+        boxes[i, :n] = torch.from_numpy(e.boxes_xyxy)
+        valid[i, :n] = True
+        masks[i, :n] = torch.from_numpy(e.masks)
+    return images, Targets(labels, boxes, valid, masks)
+
+
+def _param_groups(model: YoloSeg, weight_decay: float) -> list[dict]:
+    decay, no_decay = [], []
+    for module in model.modules():
+        for name, p in module.named_parameters(recurse=False):
+            (decay if name == "weight" and p.ndim > 1 else no_decay).append(p)
+    return [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+
+
+def learning_rate(cfg: TrainConfig, iteration: int, iters_per_epoch: int) -> float:
+    """Linear warmup from 0, then cosine from ``lr`` down to ``lr * lr_final`` at the last iteration."""
+    total = cfg.epochs * iters_per_epoch
+    warmup = min(max(round(cfg.warmup_epochs * iters_per_epoch), cfg.warmup_min_iters), max(total - 1, 1))
+    if iteration < warmup:
+        return cfg.lr * (iteration + 1) / warmup
+    progress = (iteration - warmup) / max(total - warmup, 1)
+    return cfg.lr * (cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0))))
+
+
+def _save(obj: dict, path: Path) -> Path:
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    return write_bytes_atomic(path, buffer.getvalue())
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """A ``last.pt`` or ``best.pt`` of this trainer (tensors and plain data only: loaded with ``weights_only``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise TrainError(f"{path}: checkpoint not found")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, OSError, ValueError, EOFError) as err:
+        raise TrainError(f"{path}: not a readable checkpoint ({err})") from err
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise TrainError(f"{path}: not a detector checkpoint (expected format {CHECKPOINT_FORMAT!r})")
+    return ckpt
+
+
+def model_from_checkpoint(path: str | Path, weights: str = "ema") -> tuple[YoloSeg, dict]:
+    """The network of a checkpoint (``weights`` ``"ema"`` or ``"model"``) in eval mode, and the checkpoint."""
+    ckpt = load_checkpoint(path)
+    model = build_model(ModelConfig(**ckpt["model_config"]))
+    model.load_state_dict(ckpt[weights])
+    return model.eval(), ckpt
+
+
+class _Trainer:
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg = cfg
+        self.out = Path(cfg.out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.dataset: DetectionDataset = open_dataset(cfg.data, labels=cfg.labels, obj_ids=cfg.obj_ids)
+        self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz)
+        torch.manual_seed(cfg.seed)
+        self.model = build_model(self.model_cfg)
+        self.memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
+        self.model.to(memory_format=self.memory_format)
+        self.ema = ModelEMA(self.model, cfg.ema_decay, cfg.ema_tau)
+        self.optimizer = torch.optim.AdamW(_param_groups(self.model, cfg.weight_decay), lr=cfg.lr, betas=(0.9, 0.999))
+        self.loss = SegmentationLoss(self.dataset.num_classes, self.model_cfg.reg_max, self.model.strides)
+        n = len(self.dataset.images["train"])
+        self.iters_per_epoch = math.ceil(n / cfg.batch)
+        if cfg.max_iters is not None:
+            self.iters_per_epoch = min(self.iters_per_epoch, cfg.max_iters)
+        self.close_mosaic = cfg.close_mosaic if cfg.close_mosaic is not None else round(0.15 * cfg.epochs)
+        self.epoch = 0
+        self.iteration = 0
+        self.history: list[dict] = []
+        self.best_fitness = -math.inf
+        self.best_epoch = None
+        if cfg.resume:
+            self._resume()
+
+    # ------------------------------------------------------------------------------------------ checkpoints
+    def _resume(self) -> None:
+        path = self.out / "last.pt"
+        ckpt = load_checkpoint(path)
+        if ckpt["model_config"] != self.model_cfg.as_dict():
+            raise TrainError(
+                f"{path}: the checkpoint's network {ckpt['model_config']} differs from this run's "
+                f"{self.model_cfg.as_dict()} (resuming needs the same --width, --imgsz and dataset classes)"
+            )
+        if ckpt["names"] != self.dataset.names:
+            raise TrainError(f"{path}: trained on classes {ckpt['names']}, the dataset has {self.dataset.names}")
+        self.model.load_state_dict(ckpt["model"])
+        self.ema.model.load_state_dict(ckpt["ema"])
+        self.ema.updates = int(ckpt["ema_updates"])
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        torch.set_rng_state(ckpt["torch_rng"])
+        self.epoch = int(ckpt["epoch"])
+        self.iteration = int(ckpt["iteration"])
+        self.history = list(ckpt["history"])
+        self.best_fitness = float(ckpt["best_fitness"])
+        self.best_epoch = ckpt["best_epoch"]
+        log.info("resumed from %s after epoch %d (%d iterations)", path, self.epoch, self.iteration)
+
+    def _common(self) -> dict:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "model_config": self.model_cfg.as_dict(),
+            "names": list(self.dataset.names),
+            "obj_ids": list(self.dataset.obj_ids),
+            "imgsz": self.cfg.imgsz,
+            "epoch": self.epoch,
+        }
+
+    def _save_last(self) -> Path:
+        return _save(
+            {
+                **self._common(),
+                "train_config": self.cfg.as_dict(),
+                "model": self.model.state_dict(),
+                "ema": self.ema.model.state_dict(),
+                "ema_updates": self.ema.updates,
+                "optimizer": self.optimizer.state_dict(),
+                "iteration": self.iteration,
+                "history": self.history,
+                "best_fitness": self.best_fitness,
+                "best_epoch": self.best_epoch,
+                "torch_rng": torch.get_rng_state(),
+            },
+            self.out / "last.pt",
+        )
+
+    def _save_best(self, metrics: dict | None) -> Path:
+        return _save({**self._common(), "ema": self.ema.model.state_dict(), "metrics": metrics}, self.out / "best.pt")
+
+    # ------------------------------------------------------------------------------------------------ data
+    def _train_batches(self, epoch: int) -> Iterator[tuple[torch.Tensor, Targets]]:
+        cfg, aug = self.cfg, self.cfg.augment_config
+        order = epoch_order(len(self.dataset.images["train"]), cfg.seed, epoch)
+        mosaic = epoch < cfg.epochs - self.close_mosaic
+        chunks = [order[k * cfg.batch : (k + 1) * cfg.batch] for k in range(self.iters_per_epoch)]
+
+        def build(indices: np.ndarray) -> tuple[torch.Tensor, Targets]:
+            examples = [
+                train_example(
+                    self.dataset,
+                    int(i),
+                    cfg.train_size or cfg.imgsz,
+                    aug,
+                    example_rng(cfg.seed, epoch, int(i)),
+                    mosaic,
+                    imgsz=cfg.imgsz,
+                )
+                for i in indices
+            ]
+            return collate(examples, cfg.channels_last)
+
+        # One batch is prepared in a thread while the network trains on the previous one (OpenCV and numpy
+        # release the GIL for the heavy parts).
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            pending = pool.submit(build, chunks[0]) if chunks else None
+            for k in range(len(chunks)):
+                batch = pending.result()
+                pending = pool.submit(build, chunks[k + 1]) if k + 1 < len(chunks) else None
+                yield batch
+
+    # ------------------------------------------------------------------------------------------- training
+    def _train_epoch(self, epoch: int) -> dict:
+        self.model.train()
+        sums = dict.fromkeys(LOSS_NAMES, 0.0)
+        bar = tqdm(
+            self._train_batches(epoch),
+            total=self.iters_per_epoch,
+            desc=f"epoch {epoch + 1}/{self.cfg.epochs}",
+            disable=not self.cfg.progress,
+            leave=True,
+            dynamic_ncols=True,
+        )
+        start = time.perf_counter()
+        lr = self.cfg.lr
+        n = 0
+        for images, targets in bar:
+            lr = learning_rate(self.cfg, self.iteration, self.iters_per_epoch)
+            for group in self.optimizer.param_groups:
+                group["lr"] = lr
+            total, terms = self.loss(self.model(images), targets)
+            if not math.isfinite(float(total.detach())):
+                raise TrainError(
+                    f"epoch {epoch + 1}, iteration {self.iteration}: the loss is {float(total.detach())} ({terms})"
+                )
+            self.optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), GRAD_CLIP_NORM)
+            self.optimizer.step()
+            self.ema.update(self.model)
+            self.iteration += 1
+            n += 1
+            for k in LOSS_NAMES:
+                sums[k] += terms[k]
+            bar.set_postfix({k: f"{sums[k] / n:.3f}" for k in LOSS_NAMES} | {"lr": f"{lr:.2e}"}, refresh=False)
+        seconds = time.perf_counter() - start
+        losses = {k: sums[k] / max(n, 1) for k in LOSS_NAMES}
+        losses["total"] = sum(losses.values())
+        return {
+            "iterations": n,
+            "train_seconds": seconds,
+            "seconds_per_iter": seconds / max(n, 1),
+            "lr": lr,
+            "loss": losses,
+        }
+
+    @torch.no_grad()
+    def validate(self, model: YoloSeg) -> ValMetrics:
+        """COCO mAP of ``model`` on the val split, images letterboxed as the runtime does."""
+        model.eval()
+        stride = max(model.strides)
+        n = len(self.dataset.images["val"])
+        detections = []
+        for start in range(0, n, self.cfg.batch):
+            items = [
+                val_example(self.dataset, i, self.cfg.imgsz, stride)
+                for i in range(start, min(start + self.cfg.batch, n))
+            ]
+            by_shape: dict[tuple, list[int]] = {}
+            for j, (example, _) in enumerate(items):
+                by_shape.setdefault(example.image.shape, []).append(j)
+            results: dict[int, object] = {}
+            for idx in by_shape.values():
+                images, _ = collate([items[j][0] for j in idx], self.cfg.channels_last)
+                output0, protos = model(images)
+                for row, j in enumerate(idx):
+                    results[j] = postprocess(
+                        output0[row].numpy(), protos[row].numpy(), items[j][1], self.dataset.num_classes
+                    )
+            detections += [results[j] for j in range(len(items))]
+        return coco_evaluate(self.dataset.coco_gt["val"], detections, self.dataset.obj_ids)
+
+    def run(self) -> TrainResult:
+        torch_threads, cv2_threads = torch.get_num_threads(), cv2.getNumThreads()
+        torch.set_num_threads(self.cfg.threads)
+        cv2.setNumThreads(1)  # the data thread must not compete with torch's threads
+        try:
+            return self._run()
+        finally:
+            torch.set_num_threads(torch_threads)
+            cv2.setNumThreads(cv2_threads)
+
+    def _run(self) -> TrainResult:
+        cfg = self.cfg
+        run_start = time.perf_counter()
+        if self.epoch >= cfg.epochs:
+            log.info("%s: already trained %d of %d epochs; exporting only", self.out, self.epoch, cfg.epochs)
+        for epoch in range(self.epoch, cfg.epochs):
+            record = {"epoch": epoch + 1, **self._train_epoch(epoch)}
+            self.epoch = epoch + 1
+            metrics = None
+            if self.epoch % cfg.val_every == 0 or self.epoch == cfg.epochs:
+                t0 = time.perf_counter()
+                metrics = self.validate(self.ema.model).as_dict()
+                record["val"] = metrics
+                record["val_seconds"] = time.perf_counter() - t0
+                fitness = _fitness(metrics)
+                if fitness > self.best_fitness or not (self.out / "best.pt").is_file():
+                    self.best_fitness, self.best_epoch = fitness, self.epoch
+                    self._save_best(metrics)
+            self.history.append(record)
+            self._save_last()
+            self._write_log(None, time.perf_counter() - run_start)
+            log.info("%s", _epoch_line(record))
+            if cfg.progress:
+                tqdm.write(_epoch_line(record))
+        best_path = self.out / "best.pt"
+        if not best_path.is_file():  # a resumed run that had finished, with best.pt deleted since
+            self._save_best(None)
+        report = None
+        if cfg.export:
+            model, _ = model_from_checkpoint(best_path)
+            report = export_onnx(
+                model,
+                self.out / "detector.onnx",
+                self.dataset.names,
+                self.dataset.obj_ids,
+                cfg.imgsz,
+                half_weights=cfg.half_weights,
+            )
+        self._write_log(report, time.perf_counter() - run_start)
+        return TrainResult(self.out, self.out / "last.pt", best_path, self.out / "train_log.json", self.history, report)
+
+    def _write_log(self, report: ExportReport | None, seconds: float) -> None:
+        write_json_atomic(
+            self.out / "train_log.json",
+            {
+                "format": LOG_FORMAT,
+                "config": self.cfg.as_dict(),
+                "augment": asdict(self.cfg.augment_config),
+                "dataset": {
+                    "root": str(self.dataset.yolo_root),
+                    "names": self.dataset.names,
+                    "obj_ids": self.dataset.obj_ids,
+                    "label_source": self.dataset.label_source,
+                    "train_images": len(self.dataset.images["train"]),
+                    "val_images": len(self.dataset.images["val"]),
+                },
+                "model": {**self.model_cfg.as_dict(), "parameters": count_parameters(self.model)},
+                "iters_per_epoch": self.iters_per_epoch,
+                "epochs": _json_safe(self.history),
+                "best_epoch": self.best_epoch,
+                "best_fitness": None if not math.isfinite(self.best_fitness) else self.best_fitness,
+                "seconds_this_run": seconds,
+                "export": report.as_dict() if report else None,
+            },
+        )
+
+
+def _fitness(metrics: dict) -> float:
+    """Mask mAP50-95 (box mAP50-95 breaks ties); NaN (nothing to measure) counts as -1."""
+    mask, box = metrics["mask_map50_95"], metrics["box_map50_95"]
+    mask = mask if math.isfinite(mask) else -1.0
+    box = box if math.isfinite(box) else -1.0
+    return mask + 1e-3 * box
+
+
+def _epoch_line(record: dict) -> str:
+    loss = record["loss"]
+    text = (
+        f"epoch {record['epoch']}: {record['iterations']} it, {record['seconds_per_iter']:.2f} s/it, loss "
+        + " ".join(f"{k} {loss[k]:.3f}" for k in (*LOSS_NAMES, "total"))
+    )
+    if "val" in record:
+        v = record["val"]
+        text += (
+            f" | val box mAP50 {v['box_map50']:.3f} mAP50-95 {v['box_map50_95']:.3f}, "
+            f"mask mAP50 {v['mask_map50']:.3f} mAP50-95 {v['mask_map50_95']:.3f}"
+        )
+    return text
+
+
+def _json_safe(value: object) -> object:
+    """NaN -> None, recursively (JSON has no NaN)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def train(cfg: TrainConfig) -> TrainResult:
+    """Runs (or resumes) a training run and exports the best weights; see the module docstring for the files."""
+    return _Trainer(cfg).run()
