@@ -1,0 +1,94 @@
+"""The perception pipeline from a model folder, and `sygrid eval`, with smoke-trained models of the tiny dataset."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perception.camera import Frame
+from perception.evaluation import EvalSettings, bop_items, evaluate, format_table
+from perception.pipeline import PerceptionPipeline, PipelineOverrides
+from sygrid.errors import ConfigError
+from sygrid.writers import load_bop_item
+
+pytestmark = [pytest.mark.slow, pytest.mark.filterwarnings("ignore:__array__ implementation:DeprecationWarning")]
+
+MANIFEST = {
+    "format": "sygrid-models/1",
+    "objects": [{"builtin": "hex_nut"}, {"builtin": "washer"}, {"builtin": "l_bracket"}],
+    "detector": {"onnx": "detector.onnx", "conf_threshold": 0.01},
+    "pose": {"onnx": "pose.onnx", "method": "direct"},
+    "refine": {"enabled": True},
+}
+
+
+@pytest.fixture(scope="module")
+def model_dir(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A model folder with a detector and a pose model trained for a few iterations (untrained in effect: the
+    tests check the plumbing and the error handling, not accuracy)."""
+    pytest.importorskip("torch")
+    from sygrid.train.detector.config import TrainConfig as DetectorConfig
+    from sygrid.train.detector.trainer import train as train_detector
+    from sygrid.train.pose.train import TrainConfig as PoseConfig
+    from sygrid.train.pose.train import train as train_pose
+
+    runs = tmp_path_factory.mktemp("runs")
+    det = train_detector(
+        DetectorConfig(data=str(tiny_dataset), out=str(runs / "det"), imgsz=128, batch=2, size="p", seed=0,
+                       threads=1, epochs=1, max_iters=1, progress=False)
+    )  # fmt: skip
+    train_pose(
+        PoseConfig(data_dir=tiny_dataset, out_dir=runs / "pose", epochs=1, batch_size=4, input_size=32,
+                   output_stride=4, width=8, num_regions=8, max_iters=1, threads=1, progress=False, val_max=4)
+    )  # fmt: skip
+    folder = tmp_path_factory.mktemp("models")
+    shutil.copy(det.export.path, folder / "detector.onnx")
+    shutil.copy(runs / "pose" / "pose.onnx", folder / "pose.onnx")
+    (folder / "manifest.json").write_text(json.dumps(MANIFEST))
+    return folder
+
+
+def test_pipeline_turns_a_frame_into_poses(model_dir: Path, tiny_dataset: Path):
+    pipeline = PerceptionPipeline.from_folder(model_dir)
+    assert sorted(pipeline.models) == [1, 3, 4] and pipeline.refiner is not None
+    scene_id, image_id = bop_items(tiny_dataset / "bop", "val_pbr")[0]
+    ann, rgb, depth = load_bop_item(tiny_dataset / "bop", scene_id, image_id, split="val_pbr")
+    result = pipeline.run(Frame(rgb, depth, ann.intrinsics, timestamp_s=0.0))
+    assert set(result.timings_ms) == {"detect", "pose", "refine", "total"}
+    assert [p.score for p in result.poses] == sorted((p.score for p in result.poses), reverse=True)
+    for pose in result.poses:
+        assert pose.T_camera_object.shape == (4, 4) and np.all(np.isfinite(pose.T_camera_object))
+        assert pose.obj_id in (1, 3, 4)
+    empty = Frame(np.zeros_like(rgb), np.zeros_like(depth), ann.intrinsics, timestamp_s=0.0)
+    assert isinstance(pipeline.run(empty).poses, list)
+
+
+def test_eval_reports_detection_and_pose_metrics(model_dir: Path, tiny_dataset: Path):
+    pipeline = PerceptionPipeline.from_folder(model_dir, PipelineOverrides(pose_method="pnp", refine=False))
+    report = evaluate(pipeline, tiny_dataset, EvalSettings(max_images=2), progress=False)
+    assert report["split"] == "val_pbr" and report["n_images"] == 2 and report["pose_method"] == "pnp"
+    assert 0.0 <= report["detection"]["box_map50"] <= 1.0 or np.isnan(report["detection"]["box_map50"])
+    assert report["pose"]["all"]["n"] >= 1  # every visible instance is counted, found or missed
+    assert 0.0 <= report["pose"]["all"]["add_recall"] <= 1.0
+    assert "ADD(-S)<0.1d" in format_table(report)
+
+
+def test_bad_model_folders_name_the_file_and_field(model_dir: Path, tmp_path: Path):
+    with pytest.raises(ConfigError, match=r"not a model folder \(no manifest.json\)"):
+        PerceptionPipeline.from_folder(tmp_path)
+    broken = tmp_path / "broken"
+    shutil.copytree(model_dir, broken)
+    (broken / "pose.onnx").unlink()
+    with pytest.raises(ConfigError, match=r"manifest.json: pose.onnx: no file .*pose.onnx"):
+        PerceptionPipeline.from_folder(broken)
+    (broken / "manifest.json").write_text(
+        json.dumps({**MANIFEST, "detector": {"onnx": "detector.onnx", "conf_threshold": 2}})
+    )
+    with pytest.raises(ConfigError, match=r"manifest.json: detector.conf_threshold: must be < 1"):
+        PerceptionPipeline.from_folder(broken)
+    with pytest.raises(ConfigError, match=r"no bop/ folder"):
+        evaluate(PerceptionPipeline.from_folder(model_dir), tmp_path, progress=False)
