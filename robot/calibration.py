@@ -53,6 +53,8 @@ from robot.charuco import (
     BoardDetector,
     BoardObservation,
     CharucoBoard,
+    _as_float,
+    _as_int,
     detect_board,
 )
 from sygrid.camera import CameraIntrinsics, project_points
@@ -615,20 +617,6 @@ def _as_transform(data: dict, key: str, where: str) -> np.ndarray:
     if not is_rigid(T, atol=1e-5):
         raise ConfigError(f"{where}: {key} must be a 4x4 rigid transform, got {T.tolist()}")
     return T
-
-
-def _as_float(data: dict, key: str, where: str) -> float:
-    value = data.get(key)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ConfigError(f"{where}: {key} must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _as_int(data: dict, key: str, where: str) -> int:
-    value = data.get(key)
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"{where}: {key} must be an integer, got {value!r}")
-    return value
 
 
 def _as_float_list(data: dict, key: str, where: str) -> list[float]:
