@@ -11,6 +11,7 @@ import math
 import shutil
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 import pytest
 
@@ -20,7 +21,6 @@ from pycocotools import mask as mask_utils  # noqa: E402
 
 from sygrid.train.detector.assigner import TaskAlignedAssigner  # noqa: E402
 from sygrid.train.detector.augment import (  # noqa: E402
-    AugmentConfig,
     LetterboxGeometry,
     example_rng,
     letterbox_geometry,
@@ -35,11 +35,13 @@ from sygrid.train.detector.boxes import (  # noqa: E402
     dist_to_box,
     make_anchors,
 )
+from sygrid.train.detector.config import MODEL_SIZES, AugmentConfig, TrainConfig  # noqa: E402
 from sygrid.train.detector.data import DetectorDataError, open_dataset, parse_data_yaml  # noqa: E402
 from sygrid.train.detector.evaluate import ImageDetections, coco_evaluate, postprocess  # noqa: E402
+from sygrid.train.detector.export import _store_weights_as_half  # noqa: E402
 from sygrid.train.detector.loss import SegmentationLoss, Targets  # noqa: E402
-from sygrid.train.detector.model import ModelConfig, build_model  # noqa: E402
-from sygrid.train.detector.trainer import TrainConfig, TrainError, learning_rate, train  # noqa: E402
+from sygrid.train.detector.model import SIZES, ModelConfig, build_model  # noqa: E402
+from sygrid.train.detector.trainer import TrainError, learning_rate, train  # noqa: E402
 
 REG_MAX = 16
 
@@ -186,6 +188,10 @@ def test_loss_backpropagates_through_the_network():
     assert all(g is not None for g in grads) and sum(float(g.abs().sum()) for g in grads) > 0
 
 
+def test_config_sizes_match_the_model():
+    assert tuple(SIZES) == MODEL_SIZES
+
+
 def test_eval_output_layout():
     model = build_model(ModelConfig(num_classes=3, size="p")).eval()
     with torch.no_grad():
@@ -319,6 +325,7 @@ def test_learning_rate_warms_up_then_decays():
     assert all(a >= b for a, b in itertools.pairwise(lrs[9:])) and lrs[-1] == pytest.approx(1e-4, rel=0.05)
 
 
+@pytest.mark.slow  # two short training runs with validation and an ONNX export: about 5 s idle, 15 s on a busy machine
 def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     out = tmp_path / "run"
     common = {
@@ -347,6 +354,21 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     assert output0.shape == (1, 4 + 3 + 32, 12 * 16 + 6 * 8 + 3 * 4) and output1.shape == (1, 32, 24, 32)
     assert max(result.export.max_abs_diff[k] for k in ("scores", "coefficients", "protos")) <= 1e-4
     assert result.export.size_bytes < 6_000_000
+
+    # Float16 weight storage (--half-weights) halves the file and moves the outputs only a little.
+    proto = onnx.load(result.export.path)
+    _store_weights_as_half(proto)
+    onnx.checker.check_model(proto)
+    half = proto.SerializeToString()
+    assert 0.45 < len(half) / result.export.size_bytes < 0.55
+    image = np.random.default_rng(0).random((1, 3, 96, 128), dtype=np.float32)
+    full_out, half_out = (
+        ort.InferenceSession(m, providers=["CPUExecutionProvider"]).run(None, {"images": image})
+        for m in (str(result.export.path), half)
+    )
+    assert np.abs(full_out[0][0, :4] - half_out[0][0, :4]).max() < 0.5  # boxes, pixels
+    assert np.abs(full_out[0][0, 4:] - half_out[0][0, 4:]).max() < 1e-2  # scores and coefficients
+    assert np.abs(full_out[1] - half_out[1]).max() < 1e-2  # prototypes
 
     # The runtime loads it and runs a frame (an untrained model: any number of detections, valid ones).
     detector_module = pytest.importorskip("perception.detector")
@@ -382,27 +404,3 @@ def test_training_on_yolo_polygons_only(tiny_dataset, tmp_path):
     assert ds.label_source == "yolo" and len(ds.coco_gt["val"]["annotations"]) > 0
     example = train_example(ds, 0, 64, AugmentConfig(), example_rng(0, 0, 0), imgsz=128)
     assert example.masks.shape[1:] == (16, 16) and len(example.classes) == len(example.boxes_xyxy)
-
-
-def test_half_weight_storage_halves_the_file(tmp_path):
-    import onnx
-
-    from sygrid.train.detector.export import _store_weights_as_half, export_onnx
-
-    torch.manual_seed(0)
-    model = build_model(ModelConfig(num_classes=2, size="p"))
-    full = export_onnx(model, tmp_path / "full.onnx", ["a", "b"], [4, 9], 64, check_shapes=[(64, 64)])
-    assert max(full.max_abs_diff[k] for k in ("scores", "coefficients", "protos")) <= 1e-4
-    proto = onnx.load(full.path)
-    _store_weights_as_half(proto)
-    onnx.checker.check_model(proto)
-    payload = proto.SerializeToString()
-    assert 0.45 < len(payload) / full.size_bytes < 0.55
-    image = np.random.default_rng(0).random((1, 3, 64, 64), dtype=np.float32)
-    runs = [
-        ort.InferenceSession(m, providers=["CPUExecutionProvider"]).run(None, {"images": image})
-        for m in (str(full.path), payload)
-    ]
-    assert np.abs(runs[0][0][0, :4] - runs[1][0][0, :4]).max() < 0.5  # boxes, pixels
-    assert np.abs(runs[0][0][0, 4:] - runs[1][0][0, 4:]).max() < 1e-2  # scores and coefficients
-    assert np.abs(runs[0][1] - runs[1][1]).max() < 1e-2  # prototypes

@@ -17,12 +17,13 @@ whatever order or process it is built in, and a resumed run sees the same data a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy import ndimage
 
+from sygrid.train.detector.config import AugmentConfig
 from sygrid.train.detector.data import DetectionDataset, load_instances
 
 PAD_VALUE = 114  # letterbox grey, as ultralytics and perception.detector use
@@ -81,50 +82,6 @@ def _translation(tx: float, ty: float) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------------ augmentation
-@dataclass(frozen=True)
-class AugmentConfig:
-    """Training augmentation. Colour: ``hsv_*`` gains (fractions, as ultralytics), ``brightness`` (fraction of 255)
-    and ``contrast`` (fraction) ranges, Gaussian ``blur_p`` / ``noise_p`` probabilities with sigma up to
-    ``blur_sigma_px`` / ``noise_sigma`` (grey levels). Geometry: ``scale`` (zoom in [1 - scale, 1 + scale] of the
-    letterboxed size), ``translate`` (fraction of the input side), ``degrees`` (uniform rotation jitter),
-    ``rot90_p`` (probability of a random quarter turn), ``flip_lr`` / ``flip_ud`` probabilities, ``mosaic``
-    (probability of a 2x2 mosaic of four images), ``focus`` (probability of centring a crop on the labelled parts
-    instead of the image centre)."""
-
-    hsv_h: float = 0.015
-    hsv_s: float = 0.5
-    hsv_v: float = 0.4
-    brightness: float = 0.1
-    contrast: float = 0.2
-    blur_p: float = 0.1
-    blur_sigma_px: float = 1.2
-    noise_p: float = 0.25
-    noise_sigma: float = 6.0
-    scale: float = 0.25
-    translate: float = 0.1
-    degrees: float = 10.0
-    rot90_p: float = 0.5
-    flip_lr: float = 0.5
-    flip_ud: float = 0.5
-    mosaic: float = 0.5
-    focus: float = 0.8
-
-    def __post_init__(self) -> None:
-        for name in ("blur_p", "noise_p", "rot90_p", "flip_lr", "flip_ud", "mosaic", "focus"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"AugmentConfig.{name} must be a probability in [0, 1], got {getattr(self, name)}")
-        if not 0.0 <= self.scale < 1.0:
-            raise ValueError(f"AugmentConfig.scale must be in [0, 1), got {self.scale}")
-        for name in ("hsv_h", "hsv_s", "hsv_v", "brightness", "contrast", "blur_sigma_px", "noise_sigma"):
-            if getattr(self, name) < 0.0:
-                raise ValueError(f"AugmentConfig.{name} must be >= 0, got {getattr(self, name)}")
-
-    @classmethod
-    def none(cls) -> AugmentConfig:
-        """No augmentation at all (a plain letterbox)."""
-        return cls(**{f.name: 0.0 for f in fields(cls)})
-
-
 def _random_geometry(
     rng: np.random.Generator, cfg: AugmentConfig, size: int, center: tuple[float, float]
 ) -> np.ndarray:

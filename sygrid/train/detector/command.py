@@ -1,23 +1,24 @@
 """``sygrid train detector --data DIR --out DIR``: train the YOLOv8-style segmenter and export it to ONNX.
 
-Argument parsing only imports the standard library; torch is imported when the command runs.
+Argument parsing only imports the standard library (the defaults come from ``config.TrainConfig``); torch is
+imported when the command runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import logging
+from dataclasses import fields
 
-log = logging.getLogger(__name__)
+from sygrid.train.detector.config import MODEL_SIZES, TrainConfig
 
-DEFAULTS = {"epochs": 40, "imgsz": 416, "batch": 8, "width": "n", "seed": 0, "threads": 2}
+DEFAULTS = {f.name: f.default for f in fields(TrainConfig)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset folder (sygrid generate output, or a YOLO data.yaml)")
     parser.add_argument("--out", required=True, help="output folder: last.pt, best.pt, detector.onnx, train_log.json")
-    parser.add_argument("--epochs", type=int, default=DEFAULTS["epochs"], help="total epochs (default %(default)s)")
+    parser.add_argument("--epochs", type=int, default=DEFAULTS["epochs"], help="total epochs (%(default)s)")
     parser.add_argument(
         "--imgsz",
         type=int,
@@ -27,23 +28,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--train-size",
         type=int,
-        default=None,
-        help="side of the training crops, multiple of 32 (default: imgsz); objects keep the imgsz scale",
+        default=DEFAULTS["train_size"],
+        help="side of the square training crops, multiple of 32, at most imgsz (%(default)s); objects keep the "
+        "imgsz scale",
     )
     parser.add_argument("--batch", type=int, default=DEFAULTS["batch"], help="images per iteration (%(default)s)")
     parser.add_argument(
         "--width",
-        default=DEFAULTS["width"],
-        choices=("p", "n", "s"),
-        help="network size: p (pico, 1.0 M parameters), n (YOLOv8n scale, 3.3 M), s (11 M) (default %(default)s)",
+        default=DEFAULTS["size"],
+        choices=MODEL_SIZES,
+        help="network size: p (pico, 1.0 M parameters), n (YOLOv8n's scale, 3.3 M), s (11.8 M) (%(default)s)",
     )
     parser.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="initialisation, data order, augmentation")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    parser.add_argument("--threads", type=int, default=DEFAULTS["threads"], help="torch threads (%(default)s)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=DEFAULTS["threads"],
+        help="torch threads (%(default)s: on a shared 2-core machine a second thread mostly waits)",
+    )
     parser.add_argument("--max-iters", type=int, default=None, help="at most this many iterations per epoch")
-    parser.add_argument("--lr", type=float, default=None, help="peak AdamW learning rate (default 2e-3)")
-    parser.add_argument("--labels", default="auto", choices=("auto", "coco", "yolo"), help="where masks come from")
-    parser.add_argument("--val-every", type=int, default=1, help="validate every N epochs (always after the last)")
+    parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="peak AdamW learning rate (%(default)s)")
+    parser.add_argument(
+        "--labels", default=DEFAULTS["labels"], choices=("auto", "coco", "yolo"), help="where masks come from"
+    )
+    parser.add_argument(
+        "--val-every", type=int, default=DEFAULTS["val_every"], help="validate every N epochs (and after the last)"
+    )
     parser.add_argument(
         "--augment", default=None, help='JSON object of augmentation overrides, e.g. \'{"mosaic": 0.0, "degrees": 0}\''
     )
@@ -62,7 +73,6 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"expected a JSON object, got {args.augment!r}")
     except (json.JSONDecodeError, ValueError) as err:
         raise TrainError(f"--augment: {err}") from err
-    options = {"lr": args.lr} if args.lr is not None else {}
     try:
         cfg = TrainConfig(
             data=args.data,
@@ -81,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
             resume=args.resume,
             half_weights=args.half_weights,
             progress=not args.no_progress,
-            **options,
+            lr=args.lr,
         )
     except (ValueError, TypeError) as err:
         raise TrainError(f"sygrid train detector: {err}") from err
