@@ -27,7 +27,6 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -37,10 +36,11 @@ from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
 
 from perception.results import Detection
 from sygrid.errors import SygridError
+from sygrid.letterbox import Letterbox, letterbox_geometry
+from sygrid.letterbox import letterbox as letterbox
 
 log = logging.getLogger(__name__)
 
-PAD_VALUE = 114  # letterbox grey, as ultralytics trains and exports with it
 DEFAULT_INPUT_SIZE = 640  # for a model with a dynamic input and no ``imgsz`` metadata
 DEFAULT_STRIDE = 32
 MAX_NMS_CANDIDATES = 30000  # boxes entering NMS at most (highest scores first): bounds the cost of a noisy frame
@@ -62,71 +62,6 @@ _ORT_ERRORS = (
 
 class ModelError(SygridError, ValueError):
     """An ONNX model cannot be used: missing, unreadable, or with inputs/outputs of an unsupported layout."""
-
-
-# ------------------------------------------------------------------------------------------------- letterbox
-@dataclass(frozen=True)
-class Letterbox:
-    """How an image of ``image_hw`` was placed in a network input of ``input_hw``.
-
-    The image was resized to ``resized_hw`` and its top-left corner put at ``(pad_left, pad_top)`` input pixels;
-    an image pixel coordinate ``x`` (continuous, 0 at the left edge) sits at input ``x * scale_x + pad_left``.
-    """
-
-    image_hw: tuple[int, int]
-    input_hw: tuple[int, int]
-    resized_hw: tuple[int, int]
-    pad_left: int
-    pad_top: int
-
-    @property
-    def scale_x(self) -> float:
-        return self.resized_hw[1] / self.image_hw[1]
-
-    @property
-    def scale_y(self) -> float:
-        return self.resized_hw[0] / self.image_hw[0]
-
-    def boxes_to_image(self, boxes_xyxy: np.ndarray) -> np.ndarray:
-        """(n, 4) ``[x0, y0, x1, y1]`` input pixels -> image pixels, clipped to the image."""
-        out = np.asarray(boxes_xyxy, dtype=np.float64).copy()
-        out[:, 0::2] = (out[:, 0::2] - self.pad_left) / self.scale_x
-        out[:, 1::2] = (out[:, 1::2] - self.pad_top) / self.scale_y
-        h, w = self.image_hw
-        out[:, 0::2] = out[:, 0::2].clip(0.0, w)
-        out[:, 1::2] = out[:, 1::2].clip(0.0, h)
-        return out
-
-
-def letterbox_geometry(image_hw: tuple[int, int], input_hw: tuple[int, int], stride: int | None) -> Letterbox:
-    """Where an ``image_hw`` image goes in a network input of (at most) ``input_hw``.
-
-    ``stride`` None: the input is exactly ``input_hw``. With a stride (a model with a dynamic input), the padding is
-    reduced to what makes each side a multiple of the stride.
-    """
-    h, w = image_hw
-    in_h, in_w = input_hw
-    r = min(in_h / h, in_w / w)
-    new_h, new_w = max(1, round(h * r)), max(1, round(w * r))
-    pad_h, pad_w = in_h - new_h, in_w - new_w
-    if stride is not None:
-        pad_h, pad_w = pad_h % stride, pad_w % stride
-    # Centre the image; the 0.1 breaks ties so that an odd padding puts the extra pixel at the bottom/right.
-    top, left = round(pad_h / 2 - 0.1), round(pad_w / 2 - 0.1)
-    return Letterbox((h, w), (new_h + pad_h, new_w + pad_w), (new_h, new_w), int(left), int(top))
-
-
-def letterbox(rgb: np.ndarray, geometry: Letterbox) -> np.ndarray:
-    """(h, w, 3) uint8 -> the (in_h, in_w, 3) uint8 network image of ``geometry``."""
-    new_h, new_w = geometry.resized_hw
-    resized = (
-        rgb if rgb.shape[:2] == (new_h, new_w) else cv2.resize(rgb, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
-    )
-    in_h, in_w = geometry.input_hw
-    top, left = geometry.pad_top, geometry.pad_left
-    return cv2.copyMakeBorder(
-        resized, top, in_h - new_h - top, left, in_w - new_w - left, cv2.BORDER_CONSTANT, value=(PAD_VALUE,) * 3
-    )
 
 
 def to_blob(image: np.ndarray, dtype: type = np.float32) -> np.ndarray:

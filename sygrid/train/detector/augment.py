@@ -23,51 +23,19 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from sygrid.letterbox import PAD_VALUE, letterbox
+from sygrid.letterbox import Letterbox as LetterboxGeometry
+from sygrid.letterbox import letterbox_geometry as _letterbox_geometry
 from sygrid.train.detector.config import AugmentConfig
 from sygrid.train.detector.data import DetectionDataset, load_instances
 
-PAD_VALUE = 114  # letterbox grey, as ultralytics and perception.detector use
 MASK_STRIDE = 4  # prototype resolution: 1/4 of the network input
 
 
 # --------------------------------------------------------------------------------------------------- geometry
-@dataclass(frozen=True)
-class LetterboxGeometry:
-    """An image of ``image_hw`` resized to ``resized_hw`` and put at ``(pad_left, pad_top)`` in ``input_hw``."""
-
-    image_hw: tuple[int, int]
-    input_hw: tuple[int, int]
-    resized_hw: tuple[int, int]
-    pad_left: int
-    pad_top: int
-
-
 def letterbox_geometry(image_hw: tuple[int, int], size: int, stride: int | None) -> LetterboxGeometry:
-    """Where an image goes in a network input of at most ``size`` x ``size``: the same rule as the runtime
-    (``perception.detector.letterbox_geometry``): keep the aspect ratio, centre, and with a ``stride`` (a model with
-    a dynamic input) pad only up to the next multiple of the stride."""
-    h, w = image_hw
-    r = min(size / h, size / w)
-    new_h, new_w = max(1, round(h * r)), max(1, round(w * r))
-    pad_h, pad_w = size - new_h, size - new_w
-    if stride is not None:
-        pad_h, pad_w = pad_h % stride, pad_w % stride
-    top, left = round(pad_h / 2 - 0.1), round(pad_w / 2 - 0.1)
-    return LetterboxGeometry((h, w), (new_h + pad_h, new_w + pad_w), (new_h, new_w), int(left), int(top))
-
-
-def letterbox(image: np.ndarray, geometry: LetterboxGeometry, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
-    """Resize + pad an (h, w[, c]) image to ``geometry.input_hw`` (grey 114 for images, 0 for id maps)."""
-    new_h, new_w = geometry.resized_hw
-    resized = (
-        image if image.shape[:2] == (new_h, new_w) else cv2.resize(image, (new_w, new_h), interpolation=interpolation)
-    )
-    in_h, in_w = geometry.input_hw
-    top, left = geometry.pad_top, geometry.pad_left
-    value = (PAD_VALUE,) * 3 if image.ndim == 3 else 0
-    return cv2.copyMakeBorder(
-        resized, top, in_h - new_h - top, left, in_w - new_w - left, cv2.BORDER_CONSTANT, value=value
-    )
+    """Where an image goes in a square network input of at most ``size`` x ``size`` (the runtime's rule)."""
+    return _letterbox_geometry(image_hw, (size, size), stride)
 
 
 def _cv_affine(A: np.ndarray) -> np.ndarray:

@@ -74,21 +74,13 @@ def postprocess(
         kept = kept[np.argsort(-scores[kept], kind="stable")][:max_detections]
     else:
         kept = np.zeros(0, np.int64)
-    boxes_image = _boxes_to_image(boxes[kept], geometry)
+    boxes_image = geometry.boxes_to_image(boxes[kept])
     rles = []
     if protos is not None:
         coefficients = output0[4 + num_classes :, keep[kept]].T  # (n, nm)
         for k in range(len(kept)):
             rles.append(_mask_rle(coefficients[k], protos, boxes_image[k], geometry))
     return ImageDetections(boxes_image, scores[kept].astype(np.float64), classes[kept].astype(np.int64), rles)
-
-
-def _boxes_to_image(boxes: np.ndarray, g: LetterboxGeometry) -> np.ndarray:
-    out = boxes.copy()
-    sx, sy = g.resized_hw[1] / g.image_hw[1], g.resized_hw[0] / g.image_hw[0]
-    out[:, 0::2] = ((out[:, 0::2] - g.pad_left) / sx).clip(0, g.image_hw[1])
-    out[:, 1::2] = ((out[:, 1::2] - g.pad_top) / sy).clip(0, g.image_hw[0])
-    return out
 
 
 def _mask_rle(coefficients: np.ndarray, protos: np.ndarray, box: np.ndarray, g: LetterboxGeometry) -> dict:
