@@ -57,6 +57,7 @@ from robot.charuco import (
     _as_int,
     detect_board,
 )
+from robot.ur_config import WorkspaceBox
 from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.errors import ConfigError, SygridError
 from sygrid.fileio import read_json, write_json_atomic
@@ -98,21 +99,6 @@ class CalibrationError(SygridError, RuntimeError):
 
 
 # ---------------------------------------------------------------------------------------------- pose set
-
-
-@dataclass(frozen=True, eq=False)
-class WorkspaceBox:
-    """An axis-aligned box in the robot base frame (metres) that the flange origin must stay inside."""
-
-    lo_m: tuple[float, float, float]
-    hi_m: tuple[float, float, float]
-
-    def __post_init__(self) -> None:
-        if len(self.lo_m) != 3 or len(self.hi_m) != 3 or any(a >= b for a, b in zip(self.lo_m, self.hi_m, strict=True)):
-            raise ConfigError(f"WorkspaceBox needs lo_m < hi_m on every axis, got {self.lo_m}, {self.hi_m}")
-
-    def contains(self, p_m: np.ndarray) -> bool:
-        return bool(np.all(np.asarray(p_m) >= self.lo_m) and np.all(np.asarray(p_m) <= self.hi_m))
 
 
 def generate_pose_set(

@@ -37,7 +37,8 @@ __all__ = [
 
 @dataclass(frozen=True, eq=False)
 class WorkspaceBox:
-    """An axis-aligned box in the robot base frame (m) that the TCP origin must stay inside."""
+    """An axis-aligned box in the robot base frame (m) that a frame's origin must stay inside: the TCP for motion
+    (``URConfig.workspace``), the flange for calibration pose sets (``robot.calibration``)."""
 
     lo_m: tuple[float, float, float]
     hi_m: tuple[float, float, float]
