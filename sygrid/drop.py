@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from sygrid.errors import ConfigError
-from sygrid.fileio import write_json_atomic
+from sygrid.fileio import read_json, write_json_atomic
 from sygrid.objects import ContinuousSymmetry, ObjectModel, builtin_part, load_cad
 from sygrid.objects.collision import (
     CollisionModel,
@@ -137,12 +137,7 @@ def save_poses(path: str | Path, result: DropResult, scene: SceneSpec, seed: int
 
 def load_poses(path: str | Path) -> PosesFile:
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the poses file ({exc.strerror})") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{path}: not valid JSON at line {exc.lineno}: {exc.msg}") from None
+    data = read_json(path, "poses file")
     if not isinstance(data, dict) or data.get("format") != POSES_FORMAT:
         found = data.get("format") if isinstance(data, dict) else type(data).__name__
         raise ConfigError(f"{path}: format: expected '{POSES_FORMAT}', got {found!r}")

@@ -15,7 +15,6 @@ of a file.
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np
 from sygrid.annotations import ImageAnnotation, InstanceAnnotation, check_item
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
-from sygrid.fileio import write_bytes_atomic, write_json_atomic
+from sygrid.fileio import read_json, write_bytes_atomic, write_json_atomic
 from sygrid.objects.model import ObjectModel
 
 log = logging.getLogger(__name__)
@@ -103,10 +102,7 @@ def _read_png(path: Path) -> np.ndarray:
 def _load_json(path: Path) -> dict:
     if not path.exists():
         return {}
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"{path}: not valid JSON ({err})") from err
+    data = read_json(path, "BOP scene file")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a JSON object keyed by image id, got {type(data).__name__}")
     return data

@@ -15,7 +15,6 @@ nearest-neighbour sampling, as GDR-Net does, would give blocky targets.
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ import open3d as o3d
 from tqdm import tqdm
 
 from sygrid.errors import ConfigError
+from sygrid.fileio import read_json
 from sygrid.objects.model import ObjectModel
 from sygrid.pose_geometry import (
     bop_bbox_to_xyxy,
@@ -104,10 +104,7 @@ class InstanceCrop:
 def _read_json(path: Path) -> dict:
     if not path.is_file():
         raise ConfigError(f"{path}: missing (a BOP scene needs scene_gt.json, scene_gt_info.json, scene_camera.json)")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"{path}: not valid JSON ({err})") from err
+    return read_json(path, "BOP scene file")
 
 
 def _read_image(path: Path, flags: int) -> np.ndarray:

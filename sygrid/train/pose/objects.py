@@ -6,7 +6,6 @@ Class index = position of the obj_id in the sorted list of trained obj_ids (the 
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -16,6 +15,7 @@ import numpy as np
 import open3d as o3d
 
 from sygrid.errors import ConfigError
+from sygrid.fileio import read_json
 from sygrid.objects.cad import load_cad
 from sygrid.objects.model import ContinuousSymmetry, ObjectModel
 from sygrid.objects.symmetry import sample_surface
@@ -33,10 +33,7 @@ def load_bop_models(models_dir: str | Path, obj_ids: Sequence[int] | None = None
     info_path = models_dir / "models_info.json"
     if not info_path.is_file():
         raise ConfigError(f"{info_path}: missing; expected the BOP models folder written by 'sygrid generate'")
-    try:
-        info = json.loads(info_path.read_text())
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"{info_path}: not valid JSON ({err})") from err
+    info = read_json(info_path, "BOP models info")
     available = sorted(int(k) for k in info)
     wanted = available if obj_ids is None else sorted({int(i) for i in obj_ids})
     missing = sorted(set(wanted) - set(available))
