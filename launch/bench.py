@@ -7,7 +7,12 @@ import importlib
 from pathlib import Path
 
 # name -> module providing add_arguments(parser) and run(args, out_dir)
-BENCHMARKS = {"physics": "sygrid.bench.physics", "sim": "sim.bench", "render": "sygrid.bench.render"}
+BENCHMARKS = {
+    "physics": "sygrid.bench.physics",
+    "sim": "sim.bench",
+    "render": "sygrid.bench.render",
+    "perception": "perception.bench",
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -173,7 +173,7 @@ def _coco_eval(gt_dataset: dict, results: list[dict], iou_type: str) -> tuple[fl
     per_class = {}
     for k, cat in enumerate(evaluator.params.catIds):
         p_all, p_50 = precision[:, :, k], precision[iou50, :, k]
-        per_class[cat] = (
+        per_class[int(cat)] = (
             float(np.mean(p_all[p_all > -1])) if np.any(p_all > -1) else math.nan,
             float(np.mean(p_50[p_50 > -1])) if np.any(p_50 > -1) else math.nan,
         )

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from launch.cli import build_parser
+from perception.bench import chart, format_results, run_benchmark
 from perception.camera import Frame
 from perception.evaluation import EvalSettings, bop_items, evaluate, format_table
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
@@ -45,11 +47,37 @@ def model_dir(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> P
         PoseConfig(data_dir=tiny_dataset, out_dir=runs / "pose", epochs=1, batch_size=4, input_size=32,
                    output_stride=4, width=8, num_regions=8, max_iters=1, threads=1, progress=False, val_max=4)
     )  # fmt: skip
-    folder = tmp_path_factory.mktemp("models")
-    shutil.copy(det.export.path, folder / "detector.onnx")
-    shutil.copy(runs / "pose" / "pose.onnx", folder / "pose.onnx")
-    (folder / "manifest.json").write_text(json.dumps(MANIFEST))
+    folder = tmp_path_factory.mktemp("models") / "tiny"
+    pack = build_parser("models").parse_args(
+        ["models", "pack", "--detector", str(det.out), "--pose", str(runs / "pose"), "--out", str(folder),
+         "--conf-threshold", "0.01", "--test-data", str(tiny_dataset), "--max-images", "2"]
+    )  # fmt: skip
+    assert pack._run(pack) == 0
     return folder
+
+
+def test_pack_writes_the_manifest_and_model_cards_from_the_runs(model_dir: Path, tiny_dataset: Path):
+    manifest = json.loads((model_dir / "manifest.json").read_text())
+    assert manifest == {**MANIFEST, "detector": {"onnx": "detector.onnx", "conf_threshold": 0.01}}
+    card = (model_dir / "detector.card.md").read_text()
+    assert "--imgsz 128 --batch 2 --width p" in card and "3 classes: hex_nut, washer, l_bracket" in card
+    assert "recipe `tiny` (sha256" in card and "seed 7, 8 items (0 failed)" in card  # the dataset's ledger
+    pose_card = (model_dir / "pose.card.md").read_text()
+    assert "--input-size 32 --output-stride 4 --width 8" in pose_card and "| all | " in pose_card
+    for label in ("direct", "refined"):
+        report = json.loads((model_dir / f"eval_{label}.json").read_text())
+        assert report["n_images"] == 2 and report["refine"] == (label == "refined")
+
+
+def test_perception_benchmark_runs_every_variant_on_the_same_images(model_dir: Path, tiny_dataset: Path):
+    results = run_benchmark(model_dir, tiny_dataset, sizes=(96, 128), max_images=2, progress=False)
+    assert [r["name"] for r in results["detector"]] == ["detector.onnx @ 96", "detector.onnx @ 128"]
+    assert all(r["ms_median"] > 0 for r in results["detector"])
+    assert [(r["method"], r["refine"]) for r in results["pose"]] == [
+        ("direct", False), ("direct", True), ("pnp", False), ("pnp", True)
+    ]  # fmt: skip
+    assert "detector.onnx @ 128" in format_results(results)
+    chart(results)  # draws without data-dependent failures
 
 
 def test_pipeline_turns_a_frame_into_poses(model_dir: Path, tiny_dataset: Path):

@@ -1,0 +1,209 @@
+"""``sygrid models pack``: turn a detector run and a pose run into a model folder the pipeline loads, with a model
+card per model (data, command, seed, training time, size, metrics on a held-out test set).
+
+    sygrid models pack --detector runs/detector --pose runs/pose --out models/builtin --test-data datasets/test
+
+writes ``OUT/manifest.json``, ``OUT/detector.onnx``, ``OUT/pose.onnx``, ``OUT/eval_direct.json`` and
+``OUT/eval_refined.json`` (``sygrid eval`` of the direct estimate, and with depth refinement), and
+``OUT/detector.card.md`` / ``OUT/pose.card.md``. Everything in the cards is read from the runs' ``train_log.json``,
+the datasets' ledgers (``dataset.json``: recipe, seed, items) and the evaluations, so the cards cannot drift from
+the files they describe.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import shutil
+from pathlib import Path
+
+from sygrid.errors import ConfigError
+from sygrid.fileio import read_json, write_json_atomic
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    pack = sub.add_parser("pack", help="model folder + model cards from a detector run and a pose run")
+    pack.add_argument("--detector", type=Path, required=True, help="'sygrid train detector' output folder")
+    pack.add_argument("--pose", type=Path, required=True, help="'sygrid train pose' output folder")
+    pack.add_argument("--out", type=Path, required=True, help="model folder to write (e.g. models/builtin)")
+    pack.add_argument("--test-data", type=Path, default=None, help="held-out dataset for the cards' metrics")
+    pack.add_argument("--max-images", type=int, default=None, help="evaluate on the first N test images")
+    pack.add_argument("--conf-threshold", type=float, default=0.4, help="the manifest's detector threshold")
+    pack.add_argument("--method", choices=["direct", "pnp"], default="direct", help="the manifest's pose method")
+
+
+def run(args: argparse.Namespace) -> int:
+    det_log = _train_log(args.detector, "detector.onnx")
+    pose_log = _train_log(args.pose, "pose.onnx")
+    args.out.mkdir(parents=True, exist_ok=True)
+    for run_dir, name in ((args.detector, "detector.onnx"), (args.pose, "pose.onnx")):
+        tmp = args.out / f".{name}.tmp"
+        shutil.copyfile(run_dir / name, tmp)
+        tmp.replace(args.out / name)
+    names = det_log["dataset"]["names"]
+    manifest = {
+        "format": "sygrid-models/1",
+        "objects": [{"builtin": n} for n in names],
+        "detector": {"onnx": "detector.onnx", "conf_threshold": args.conf_threshold},
+        "pose": {"onnx": "pose.onnx", "method": args.method},
+        "refine": {"enabled": True},
+    }
+    write_json_atomic(args.out / "manifest.json", manifest)
+    evals = _evaluate(args) if args.test_data else {}
+    (args.out / "detector.card.md").write_text(detector_card(det_log, args, evals))
+    (args.out / "pose.card.md").write_text(pose_card(pose_log, args, evals))
+    print(
+        f"wrote {args.out}: manifest.json, detector.onnx, pose.onnx, model cards" + (", evaluations" if evals else "")
+    )
+    return 0
+
+
+def _train_log(run_dir: Path, onnx_name: str) -> dict:
+    if not (run_dir / onnx_name).is_file():
+        raise ConfigError(f"{run_dir}: no {onnx_name} (has the training run finished and exported?)")
+    return read_json(run_dir / "train_log.json", "training log")
+
+
+def _evaluate(args: argparse.Namespace) -> dict[str, dict]:
+    from perception.evaluation import EvalSettings, evaluate, format_table
+    from perception.pipeline import PerceptionPipeline, PipelineOverrides
+
+    evals = {}
+    for label, refine in (("direct", False), ("refined", True)):
+        pipeline = PerceptionPipeline.from_folder(args.out, PipelineOverrides(refine=refine))
+        report = evaluate(pipeline, args.test_data, EvalSettings(max_images=args.max_images))
+        report["data"] = str(args.test_data)
+        print(format_table(report))
+        write_json_atomic(args.out / f"eval_{label}.json", report)
+        evals[label] = report
+    return evals
+
+
+def _dataset_line(folder: Path) -> str:
+    """Where a dataset came from, from its ledger: recipe name and hash, seed, items."""
+    ledger_path = Path(folder) / "dataset.json"
+    if not ledger_path.is_file():
+        return f"`{folder}` (no ledger: not made by `sygrid generate`)"
+    ledger = read_json(ledger_path, "dataset ledger")
+    items = sum(b - a + 1 for a, b in ledger["done"])
+    return (
+        f"`{folder}`: recipe `{ledger['recipe']['name']}` (sha256 {ledger['recipe_sha256'][:12]}), seed "
+        f"{ledger['seed']}, {items} items ({len(ledger['failed'])} failed)"
+    )
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _file_line(path: Path) -> str:
+    return f"`{path.name}`: {path.stat().st_size / 1e6:.2f} MB, sha256 {_sha256(path)[:16]}"
+
+
+def detector_card(log: dict, args: argparse.Namespace, evals: dict[str, dict]) -> str:
+    cfg, epochs = log["config"], log["epochs"]
+    seconds = sum(e.get("train_seconds", 0.0) + e.get("val_seconds", 0.0) for e in epochs)
+    last_val = next((e["val"] for e in reversed(epochs) if e.get("val")), None)
+    command = (
+        f"sygrid train detector --data {cfg['data']} --out {cfg['out']} --epochs {cfg['epochs']} "
+        f"--imgsz {cfg['imgsz']} --batch {cfg['batch']} --width {cfg['size']} --lr {cfg['lr']} --seed {cfg['seed']} "
+        f"--threads {cfg['threads']}"
+    )
+    lines = [
+        "# Model card: detector (YOLOv8-style instance segmentation)",
+        "",
+        f"- file: {_file_line(args.out / 'detector.onnx')}; ultralytics YOLOv8-seg output layout, dynamic input",
+        f"- network: size `{cfg['size']}`, {log['model']['parameters'] / 1e6:.2f} M parameters, "
+        f"{log['model']['num_classes']} classes: {', '.join(log['dataset']['names'])}",
+        f"- data: {_dataset_line(Path(cfg['data']))}; {log['dataset']['train_images']} training / "
+        f"{log['dataset']['val_images']} validation images",
+        f"- command: `{command}`",
+        f"- seed: {cfg['seed']}; training time {seconds / 3600:.2f} h on this project's 2-core CPU machine "
+        f"({len(epochs)} epochs x {log['iters_per_epoch']} iterations), best epoch {log['best_epoch']}",
+    ]
+    if last_val:
+        lines.append(
+            f"- validation (last epoch): box mAP50 {last_val['box_map50']:.3f}, box mAP50-95 "
+            f"{last_val['box_map50_95']:.3f}, mask mAP50-95 {last_val['mask_map50_95']:.3f}"
+        )
+    if evals:
+        lines += ["", *_detection_section(evals["direct"])]
+    return "\n".join(lines) + "\n"
+
+
+def pose_card(log: dict, args: argparse.Namespace, evals: dict[str, dict]) -> str:
+    cfg, arch = log["config"], log["architecture"]
+    entries = log.get("entries", [])
+    seconds = entries[-1]["seconds"] if entries else float("nan")
+    command = (
+        f"sygrid train pose --data {cfg['data_dir']} --out {cfg['out_dir']} --epochs {cfg['epochs']} "
+        f"--batch {cfg['batch_size']} --input-size {cfg['input_size']} --output-stride {cfg['output_stride']} "
+        f"--width {cfg['width']} --lr {cfg['lr']} --seed {cfg['seed']}"
+        + (f" --threads {cfg['threads']}" if cfg.get("threads") else "")
+    )
+    lines = [
+        "# Model card: 6D pose (GDR-Net-style: XYZ map, mask, regions -> Patch-PnP -> allocentric R6d + SITE)",
+        "",
+        f"- file: {_file_line(args.out / 'pose.onnx')}",
+        f"- network: RoI {arch['input_size']} px, dense output {arch['output_size']} px, width {arch['width']}, "
+        f"{arch['num_regions']} surface regions, one model for the obj_ids {log['obj_ids']}",
+        f"- data: {_dataset_line(Path(cfg['data_dir']))}; {log['train_instances']} training instances, "
+        f"{log['val_instances']} validation instances",
+        f"- command: `{command}`",
+        f"- seed: {cfg['seed']}; training time {seconds / 3600:.2f} h on this project's 2-core CPU machine",
+    ]
+    if evals:
+        lines += ["", *_pose_section(evals)]
+    return "\n".join(lines) + "\n"
+
+
+def _detection_section(report: dict) -> list[str]:
+    det = report["detection"]
+    lines = [
+        f"## Held-out test set: {_dataset_line(Path(report['data']))}, {report['n_images']} images",
+        "",
+        f"box mAP50 **{det['box_map50']:.3f}**, box mAP50-95 {det['box_map50_95']:.3f}, mask mAP50 "
+        f"{det['mask_map50']:.3f}, mask mAP50-95 **{det['mask_map50_95']:.3f}** (pycocotools; instances less than "
+        "10 % visible ignored). Median detector time per frame "
+        f"{report['timings_ms_median']['detect']:.1f} ms (onnxruntime CPU, 2 threads).",
+        "",
+        "| obj_id | box AP50 | box AP50-95 | mask AP50-95 | instances |",
+        "|---|---|---|---|---|",
+    ]
+    for obj_id, row in det["per_class"].items():
+        lines.append(
+            f"| {obj_id} | {row['box_ap50']:.3f} | {row['box_ap50_95']:.3f} | {row['mask_ap50_95']:.3f} "
+            f"| {row.get('n_gt', '')} |"
+        )
+    return lines
+
+
+def _pose_section(evals: dict[str, dict]) -> list[str]:
+    direct, refined = evals["direct"], evals["refined"]
+    lines = [
+        f"## Held-out test set: {_dataset_line(Path(direct['data']))}, {direct['n_images']} images",
+        "",
+        "ADD(-S) < 0.1 d recall over every instance at least 10 % visible (a missed detection counts as a failure); "
+        "re and te are medians over the estimated instances. Direct = the network's own pose; refined = + "
+        "point-to-plane ICP on depth.",
+        "",
+        "| part | metric | n | ADD(-S) direct | ADD(-S) refined | re direct [deg] | te direct [mm] | re refined "
+        "[deg] | te refined [mm] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    rows_d = {**direct["pose"]["per_object"], "all": direct["pose"]["all"]}
+    rows_r = {**refined["pose"]["per_object"], "all": refined["pose"]["all"]}
+    for name, d in rows_d.items():
+        r = rows_r[name]
+        lines.append(
+            f"| {name} | {d['metric']} | {d['n']} | {100 * d['add_recall']:.1f} % | {100 * r['add_recall']:.1f} % | "
+            f"{d['median_re_deg']:.2f} | {d['median_te_mm']:.2f} | {r['median_re_deg']:.2f} | {r['median_te_mm']:.2f} |"
+        )
+    t_d, t_r = direct["timings_ms_median"], refined["timings_ms_median"]
+    lines += [
+        "",
+        f"Median milliseconds per frame (about {direct['detections_per_image_median']:.0f} detections): pose "
+        f"{t_d['pose']:.1f}, refinement {t_r['refine']:.1f}.",
+    ]
+    return lines
