@@ -4,7 +4,7 @@ VENV := .venv
 export MUJOCO_GL ?= egl
 export RAY_AUTH_MODE ?= disabled
 
-.PHONY: setup demo test lint bench
+.PHONY: setup demo test lint bench models
 
 setup:
 	@bash scripts/setup.sh
@@ -18,3 +18,12 @@ test: setup
 
 bench: setup
 	$(VENV)/bin/sygrid bench physics
+
+# Retrain the shipped models (models/builtin) from scratch: the datasets, both networks, the model cards.
+# Hours on a 2-core CPU; every step resumes where it stopped when run again.
+models: setup
+	$(VENV)/bin/sygrid generate launch/recipes/builtin_train.json --out datasets/builtin_train --count 580 --seed 0 --workers 2
+	$(VENV)/bin/sygrid generate launch/recipes/builtin_test.json --out datasets/builtin_test --count 200 --seed 1000 --workers 2
+	$(VENV)/bin/sygrid train detector --data datasets/builtin_train --out runs/detector --epochs 35 --threads 1 --seed 0 $(if $(wildcard runs/detector/last.pt),--resume)
+	$(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 12 --threads 1 --seed 0 $(if $(wildcard runs/pose/last.pt),--resume)
+	$(VENV)/bin/sygrid models pack --detector runs/detector --pose runs/pose --out models/builtin --test-data datasets/builtin_test

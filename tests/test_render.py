@@ -199,3 +199,31 @@ def test_stereo_noise_grows_with_depth_and_drops_edges():
     assert 0.05 < (holes[:, 10:90] == 0).mean() < 0.6
     dark = np.zeros((100, 200, 3), np.uint8)
     assert (apply_stereo_noise(depth, dark, K, np.random.default_rng(0)) == 0).all()
+
+
+def test_environment_map_from_file_lights_the_scene(tmp_path):
+    """An equirectangular map written here (red sky above the horizon, black below) is the only light: the render
+    is red, twice as bright at strength 2, and a missing file names the field and the path."""
+    import mitsuba as mi
+
+    choose_variant()
+    sky = np.zeros((16, 32, 3), dtype=np.float32)
+    sky[:8] = [0.5, 0.02, 0.02]  # the upper half (Mitsuba's envmap: +y up, turned to +z up by the renderer)
+    path = tmp_path / "red_sky.exr"
+    mi.Bitmap(sky).write(str(path))
+    models, instances, T = _pile()
+    K = CameraIntrinsics.from_fov(W, H, 45.0)
+    means = []
+    for strength in (1.0, 2.0):
+        scene = parse_scene(
+            {"objects": [{"builtin": "hex_nut"}], "render": {"spp": 4, "max_depth": 4},
+             "environment": {"map_file": str(path), "strength": strength}}
+        )  # fmt: skip
+        res = render_item(scene, models, instances, T, _top_down(), K, np.random.default_rng(7), full_masks=False)
+        means.append(res.rgb.reshape(-1, 3).mean(axis=0))
+    red, green, blue = means[0]
+    assert red > 3 * max(green, blue) and red > 20
+    assert means[1][0] > 1.15 * red  # sRGB-encoded, so less than twice
+    scene = parse_scene({"objects": [{"builtin": "hex_nut"}], "environment": {"map_file": "no/such.exr"}})
+    with pytest.raises(FileNotFoundError, match=r"environment.map_file: no such file .*no/such.exr"):
+        render_item(scene, models, instances, T, _top_down(), K, np.random.default_rng(7), base_dir=tmp_path)
