@@ -35,7 +35,7 @@ import onnxruntime as ort
 from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
 
 from perception.results import Detection
-from sygrid.errors import SygridError
+from sygrid.errors import ModelError
 from sygrid.letterbox import Letterbox, letterbox_geometry
 from sygrid.letterbox import letterbox as letterbox
 
@@ -58,10 +58,6 @@ _ORT_ERRORS = (
     ort_state.EPFail,
     RuntimeError,
 )
-
-
-class ModelError(SygridError, ValueError):
-    """An ONNX model cannot be used: missing, unreadable, or with inputs/outputs of an unsupported layout."""
 
 
 def to_blob(image: np.ndarray, dtype: type = np.float32) -> np.ndarray:

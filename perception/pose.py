@@ -30,7 +30,7 @@ import onnxruntime as ort
 
 from perception.results import Detection, ObjectPose
 from sygrid.camera import CameraIntrinsics
-from sygrid.errors import SygridError
+from sygrid.errors import ModelError
 from sygrid.objects.model import ObjectModel
 from sygrid.pose_geometry import (
     POSE_INPUTS,
@@ -50,10 +50,6 @@ METHODS = ("direct", "pnp")
 BOUNDS_TOLERANCE_M = 1e-4  # a given ObjectModel must match the bounds the network was trained with
 
 
-class PoseModelError(SygridError, ValueError):
-    """A pose model file is missing, unreadable, or does not follow the pose network contract."""
-
-
 def _dims(shape: Sequence) -> list:
     """onnxruntime shape -> list with None for symbolic dimensions."""
     return [d if isinstance(d, int) else None for d in shape]
@@ -70,7 +66,7 @@ class PoseEstimator:
         mask_threshold: probability above which an output cell counts as visible.
 
     Raises:
-        PoseModelError: the file is missing or not a valid ONNX model, lacks the pose metadata, its inputs or
+        ModelError: the file is missing or not a valid ONNX model, lacks the pose metadata, its inputs or
             outputs differ from the contract, or a given ObjectModel does not match.
     """
 
@@ -84,7 +80,7 @@ class PoseEstimator:
         path = Path(onnx_path)
         self.path = path
         if not path.is_file():
-            raise PoseModelError(f"{path}: pose model not found")
+            raise ModelError(f"{path}: pose model not found")
         options = ort.SessionOptions()
         options.intra_op_num_threads = int(num_threads)
         options.inter_op_num_threads = 1
@@ -95,7 +91,7 @@ class PoseEstimator:
         try:
             self._session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own pybind error types for unreadable graphs
-            raise PoseModelError(f"{path}: not a loadable ONNX model ({type(exc).__name__}: {exc})") from exc
+            raise ModelError(f"{path}: not a loadable ONNX model ({type(exc).__name__}: {exc})") from exc
         self._read_metadata()
         self._check_io()
         self.mask_threshold = float(mask_threshold)
@@ -106,7 +102,7 @@ class PoseEstimator:
     def _read_metadata(self) -> None:
         meta = self._session.get_modelmeta().custom_metadata_map
         if POSE_METADATA_KEY not in meta:
-            raise PoseModelError(
+            raise ModelError(
                 f"{self.path}: no '{POSE_METADATA_KEY}' metadata; expected a model exported by 'sygrid train pose'"
             )
         try:
@@ -122,10 +118,10 @@ class PoseEstimator:
             self.bounds_m = {i: np.asarray(info["objects"][str(i)]["bounds_m"], dtype=np.float64) for i in self.obj_ids}
             self.diameter_m = {i: float(info["objects"][str(i)]["diameter_m"]) for i in self.obj_ids}
         except (ValueError, KeyError, TypeError) as exc:
-            raise PoseModelError(f"{self.path}: invalid '{POSE_METADATA_KEY}' metadata: {exc}") from exc
+            raise ModelError(f"{self.path}: invalid '{POSE_METADATA_KEY}' metadata: {exc}") from exc
         for obj_id, b in self.bounds_m.items():
             if b.shape != (2, 3) or not np.all(b[1] > b[0]):
-                raise PoseModelError(f"{self.path}: metadata bounds_m of obj_id {obj_id} must be (2, 3) with max > min")
+                raise ModelError(f"{self.path}: metadata bounds_m of obj_id {obj_id} must be (2, 3) with max > min")
 
     def _check_io(self) -> None:
         S, s, C, R = self.input_size, self.output_size, len(self.obj_ids), self.num_regions
@@ -146,7 +142,7 @@ class PoseEstimator:
                     or len(have) != len(shape)
                     or any(e is not None and h is not None and e != h for e, h in zip(shape, have, strict=True))
                 ):
-                    raise PoseModelError(
+                    raise ModelError(
                         f"{self.path}: {kind} {shapes} do not match the pose contract "
                         f"{ {k: ['B', *v[1:]] for k, v in expected.items()} } (missing or different: {name!r})"
                     )
@@ -157,7 +153,7 @@ class PoseEstimator:
             if model is None:
                 continue
             if not np.allclose(model.bounds_m, self.bounds_m[obj_id], atol=BOUNDS_TOLERANCE_M):
-                raise PoseModelError(
+                raise ModelError(
                     f"{self.path}: obj_id {obj_id} was trained with bounds {self.bounds_m[obj_id].tolist()} m, the "
                     f"given model {model.name!r} has {model.bounds_m.tolist()} m: a different mesh"
                 )

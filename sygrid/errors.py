@@ -25,5 +25,9 @@ class UnknownObjectError(SygridError, KeyError):
         return str(self.args[0]) if self.args else ""
 
 
+class ModelError(SygridError, ValueError):
+    """A model file (ONNX) cannot be used: missing, unreadable, or not following its network's contract."""
+
+
 class DropError(SygridError, RuntimeError):
     """The physics drop could not produce a valid pile (placement failed, or the simulation became unstable)."""

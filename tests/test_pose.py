@@ -11,9 +11,10 @@ import onnx
 import pytest
 from onnx import TensorProto, helper
 
-from perception.pose import PoseEstimator, PoseModelError
+from perception.pose import PoseEstimator
 from perception.results import Detection
 from sygrid.camera import CameraIntrinsics, project_points
+from sygrid.errors import ModelError
 from sygrid.objects.parts import builtin_part
 from sygrid.pose_geometry import (
     POSE_METADATA_KEY,
@@ -255,17 +256,17 @@ def test_estimator_runs_the_exported_model(trained: Path, tiny_dataset: Path):
 
 
 def test_estimator_rejects_a_model_made_for_another_mesh(trained: Path):
-    with pytest.raises(PoseModelError, match="different mesh"):
+    with pytest.raises(ModelError, match="different mesh"):
         PoseEstimator(trained / "pose.onnx", models={1: builtin_part("hex_bolt")})
 
 
 # ------------------------------------------------------------------------------------------ bad models
 def test_missing_and_corrupt_model_files(tmp_path: Path):
-    with pytest.raises(PoseModelError, match="not found"):
+    with pytest.raises(ModelError, match="not found"):
         PoseEstimator(tmp_path / "nope.onnx")
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(b"\x08\x07garbage" * 10)
-    with pytest.raises(PoseModelError, match="not a loadable ONNX model"):
+    with pytest.raises(ModelError, match="not a loadable ONNX model"):
         PoseEstimator(bad)
 
 
@@ -292,10 +293,10 @@ def _metadata() -> dict:
 
 def test_models_without_metadata_or_with_other_outputs_are_refused(tmp_path: Path):
     outputs = {"xyz": ["B", 2, 8, 8]}
-    with pytest.raises(PoseModelError, match="no 'sygrid_pose' metadata"):
+    with pytest.raises(ModelError, match="no 'sygrid_pose' metadata"):
         PoseEstimator(_identity_model(tmp_path / "a.onnx", outputs, None))
-    with pytest.raises(PoseModelError, match=r"outputs .* do not match the pose contract"):
+    with pytest.raises(ModelError, match=r"outputs .* do not match the pose contract"):
         PoseEstimator(_identity_model(tmp_path / "b.onnx", outputs, _metadata()))
     broken = {**_metadata(), "format": "something-else"}
-    with pytest.raises(PoseModelError, match="invalid 'sygrid_pose' metadata"):
+    with pytest.raises(ModelError, match="invalid 'sygrid_pose' metadata"):
         PoseEstimator(_identity_model(tmp_path / "c.onnx", outputs, broken))
