@@ -20,6 +20,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
@@ -151,7 +152,8 @@ def run_local(recipe: Recipe, seed: int, indices: list[int], workers: int) -> It
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     # spawn, not fork: the parent may hold OpenGL / LLVM / OpenMP state that a forked child must not inherit.
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, context, initializer=_exit_with_parent, initargs=(os.getpid(),)) as pool:
         yield from _windowed(
             indices,
             2 * workers,
@@ -159,6 +161,18 @@ def run_local(recipe: Recipe, seed: int, indices: list[int], workers: int) -> It
             lambda pending: wait(pending, return_when=FIRST_COMPLETED)[0],
             lambda f: f.result(),
         )
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """Pool worker initializer: a driver killed outright (SIGKILL) cannot stop its pool, and a spawned worker would
+    wait for work forever; this one exits once it has been orphaned."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
 
 
 def run_ray(recipe: Recipe, seed: int, indices: list[int], workers: int) -> Iterator[Result]:

@@ -151,9 +151,10 @@ def test_resume_after_kill_completes_the_set_exactly(tmp_path):
         "2",
         "--no-progress",
     ]
+    killed_cmd = [*cmd, "--workers", "2"]
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     proc = subprocess.Popen(
-        cmd, env=env, cwd=Path(__file__).parents[1], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        killed_cmd, env=env, cwd=Path(__file__).parents[1], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
     deadline = time.monotonic() + 120
     ledger = out / "dataset.json"
@@ -163,8 +164,11 @@ def test_resume_after_kill_completes_the_set_exactly(tmp_path):
             if done >= 3:
                 break
         time.sleep(0.02)
+    workers = _children(proc.pid)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
+    assert workers, "the killed run had no worker processes"
+    assert _all_exit(workers, timeout_s=10.0), "orphaned pool workers kept running after the driver was killed"
     partial = json.loads(ledger.read_text())
     assert 3 <= sum(b - a + 1 for a, b in partial["done"]) < 10, "the kill came too late to test anything"
 
@@ -177,6 +181,28 @@ def test_resume_after_kill_completes_the_set_exactly(tmp_path):
     assert [k for k in clean if clean[k] != resumed[k]] == []
     assert not list(out.rglob("*.tmp*")) and not list(out.rglob(".*"))
     assert json.loads(ledger.read_text())["done"] == [[0, 9]]
+
+
+def _children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(c) for c in path.read_text().split()] if path.exists() else []
+
+
+def _all_exit(pids: list[int], timeout_s: float) -> bool:
+    """True once none of ``pids`` runs (gone, or a zombie nobody reaped)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        states = []
+        for pid in pids:
+            try:
+                status = Path(f"/proc/{pid}/status").read_text()
+            except FileNotFoundError:
+                continue
+            states.append(next(line for line in status.splitlines() if line.startswith("State:")))
+        if all("zombie" in s for s in states):
+            return True
+        time.sleep(0.1)
+    return False
 
 
 # ----------------------------------------------------------------------------------------------- failures
