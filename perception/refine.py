@@ -1,8 +1,9 @@
 """Optional pose refinement with depth: point-to-plane ICP of the object model against the masked depth cloud.
 
 The depth pixels inside the detection mask are unprojected with the intrinsics (the scene cloud). The model is
-represented by points sampled from its surface with their face normals, moved to the initial pose; only the side the
-camera can see is kept (points whose normal faces away from the camera are culled), because matching the hidden
+represented by points sampled from its surface with their face normals, at the initial rotation and moved so that
+their visible part shares its centroid with the depth cloud (the depth fixes where the part is far better than an
+RGB estimate of its distance); only the side the camera can see is kept (points whose normal faces away from the camera are culled), because matching the hidden
 back of a part against the visible front pulls it towards the camera. open3d's point-to-plane ICP then aligns the
 scene cloud to these model points (the model side carries exact normals, the plane side of point-to-plane), in
 stages of shrinking correspondence distance tied to the object diameter. The result is kept only when it is
@@ -217,16 +218,28 @@ class DepthRefiner:
         if n_masked < cfg.min_scene_points:
             info.update(scene_points=n_masked, time_ms=(time.perf_counter() - t_start) * 1e3)
             return _keep(pose, f"{n_masked} depth points in the mask, fewer than {cfg.min_scene_points}", info)
-        # Depth of other things seen through or around the mask cannot be the object: drop what lies farther from
-        # the initial centre than the object's radius plus the first (widest) correspondence distance.
-        reach = diameter * (0.5 + max(cfg.correspondence_fractions))
-        scene = scene[np.linalg.norm(scene - T_init[:3, 3], axis=1) < reach]
-        # ICP runs in a frame centred on the initial object centre: open3d linearises rotations about the origin, and
+        # Depth of other things seen through or around the mask (edge pixels, the bin floor behind a thin part)
+        # cannot be the object: drop what lies farther than the diameter from the cloud's median point.
+        scene = scene[np.linalg.norm(scene - np.median(scene, axis=0), axis=1) < diameter]
+        points, normals = model_surface(model, cfg.model_points, self.seed)
+        p_cam, _ = visible_model_points(T_init, points, normals)
+        if len(scene) < cfg.min_scene_points or len(p_cam) < 3:
+            info.update(scene_points=len(scene), time_ms=(time.perf_counter() - t_start) * 1e3)
+            reason = (f"{len(scene)} of the {n_masked} depth points in the mask lie within one diameter of their "
+                      f"median, fewer than {cfg.min_scene_points}" if len(p_cam) >= 3
+                      else "no model surface faces the camera at the initial pose")  # fmt: skip
+            return _keep(pose, reason, info)
+        # Start where the depth says the part is: the initial rotation, moved so that the visible model surface and
+        # the depth cloud share their centroid. The estimator's translation is its weakest output (a relative depth
+        # error of a few per cent is centimetres at the bin), and ICP's basin is a fraction of the diameter.
+        T_start = T_init.copy()
+        T_start[:3, 3] += scene.mean(axis=0) - p_cam.mean(axis=0)
+        centre = T_start[:3, 3].copy()
+        # ICP runs in a frame centred on the start's object centre: open3d linearises rotations about the origin, and
         # about the camera origin a rotation about a part's symmetry axis (a direction the data cannot fix) becomes
         # a coupled rotation + translation whose ill-conditioned solve threw small symmetric parts off by centimetres.
-        centre = T_init[:3, 3].copy()
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene - centre))
-        if cfg.voxel_fraction > 0 and len(scene):
+        if cfg.voxel_fraction > 0:
             cloud = cloud.voxel_down_sample(diameter * cfg.voxel_fraction)
         if len(cloud.points) > cfg.max_scene_points:
             rng = np.random.default_rng(self.seed)
@@ -235,20 +248,11 @@ class DepthRefiner:
         info["scene_points"] = len(cloud.points)
         if len(cloud.points) < cfg.min_scene_points:
             info["time_ms"] = (time.perf_counter() - t_start) * 1e3
-            return _keep(
-                pose,
-                f"{len(scene)} of the {n_masked} depth points in the mask lie within {reach * 1e3:.1f} mm of the "
-                f"initial centre ({len(cloud.points)} after thinning), fewer than {cfg.min_scene_points}: "
-                "the initial pose is too far off",
-                info,
-            )
+            return _keep(pose, f"{len(cloud.points)} depth points after thinning, fewer than {cfg.min_scene_points}",
+                         info)  # fmt: skip
 
-        points, normals = model_surface(model, cfg.model_points, self.seed)
-        p_cam, n_cam = visible_model_points(T_init, points, normals)
+        p_cam, n_cam = visible_model_points(T_start, points, normals)
         info["model_points"] = len(p_cam)
-        if len(p_cam) < 3:
-            info["time_ms"] = (time.perf_counter() - t_start) * 1e3
-            return _keep(pose, "no model surface faces the camera at the initial pose", info)
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_cam - centre))
         target.normals = o3d.utility.Vector3dVector(n_cam)
 
@@ -256,13 +260,15 @@ class DepthRefiner:
         T_scene_to_model, iterations, result = self._icp(cloud, target, diameter, T_init[:3, :3], axes)
         # ICP moved the (centred) scene onto the model; move the model onto the scene instead.
         T_centre = make_T(t=centre)
-        T_refined = T_centre @ invert(T_scene_to_model) @ invert(T_centre) @ T_init
+        T_refined = T_centre @ invert(T_scene_to_model) @ invert(T_centre) @ T_start
         info.update(
             fitness=float(result.fitness),
             inlier_rmse_m=float(result.inlier_rmse),
             iterations=iterations,
-            correction_m=float(np.linalg.norm(T_refined[:3, 3] - T_init[:3, 3])),
-            correction_deg=symmetric_pose_errors(T_refined, T_init, _symmetries(model))[0],
+            start_shift_m=float(np.linalg.norm(T_start[:3, 3] - T_init[:3, 3])),
+            # ICP's own correction, from the depth-centred start (what tells a diverged run)
+            correction_m=float(np.linalg.norm(T_refined[:3, 3] - T_start[:3, 3])),
+            correction_deg=symmetric_pose_errors(T_refined, T_start, _symmetries(model))[0],
         )
         info["time_ms"] = (time.perf_counter() - t_start) * 1e3
         if not np.all(np.isfinite(T_refined)):
