@@ -1,15 +1,16 @@
 """Optional pose refinement with depth: point-to-plane ICP of the object model against the masked depth cloud.
 
 The depth pixels inside the detection mask are unprojected with the intrinsics (the scene cloud). The model is
-represented by points sampled from its surface with their face normals, at the initial rotation and moved so that
-their visible part shares its centroid with the depth cloud (the depth fixes where the part is far better than an
-RGB estimate of its distance); only the side the camera can see is kept (points whose normal faces away from the camera are culled), because matching the hidden
-back of a part against the visible front pulls it towards the camera. open3d's point-to-plane ICP then aligns the
-scene cloud to these model points (the model side carries exact normals, the plane side of point-to-plane), in
-stages of shrinking correspondence distance tied to the object diameter. The result is kept only when it is
-plausible: enough scene points, enough of them explained by the model (fitness), and a correction no larger than a
-fraction of the diameter and a few tens of degrees; otherwise the initial pose comes back, with the reason in
-``details["icp"]``.
+represented by points sampled from its surface with their face normals; only the side the camera can see is kept
+(points whose normal faces away from the camera are culled), because matching the hidden back of a part against the
+visible front pulls it towards the camera. ICP starts from the initial rotation and, optionally, from the four
+rotations that put the model's principal axes on the cloud's; each start is moved so that the visible model surface
+shares the cloud's centroid (the depth says where the part is far better than an RGB estimate of its distance).
+open3d's point-to-plane ICP aligns the scene cloud to the model points (the model side carries exact normals), in
+stages of shrinking correspondence distance tied to the object diameter, and the best fit wins. The result is kept
+only when it is plausible: enough scene points, enough of them explained by the model (fitness), and a correction
+from its start no larger than a fraction of the diameter and a few tens of degrees; otherwise the initial pose comes
+back, with the reason in ``details["icp"]``.
 """
 
 from __future__ import annotations
@@ -40,6 +41,10 @@ class RefineConfig:
 
     Attributes:
         model_points: surface samples (with normals) per model, before visibility culling.
+        pca_hypotheses: besides the initial rotation, start ICP from the four rotations that put the model's
+            principal axes on the depth cloud's, and keep the best fit (a pose network's rotation can be tens of
+            degrees off, beyond ICP's basin; for the axisymmetric parts the cloud's principal axes give the axis).
+        icp_starts: of those starts, how many (the best fits before any ICP) ICP is run from.
         correspondence_fractions: ICP stages: the max correspondence distance of each, x diameter (coarse to fine).
         max_iterations: ICP iterations per stage at most.
         voxel_fraction: voxel size for thinning the scene cloud, x diameter (0: no thinning).
@@ -55,6 +60,8 @@ class RefineConfig:
     """
 
     model_points: int = 3000
+    pca_hypotheses: bool = True
+    icp_starts: int = 2
     correspondence_fractions: tuple[float, ...] = (0.2, 0.05)
     max_iterations: int = 30
     voxel_fraction: float = 1.0 / 60.0
@@ -155,6 +162,29 @@ def _rotation_step_deg(R_a: np.ndarray, R_b: np.ndarray, R_frame_object: np.ndar
     return float(np.degrees(np.arccos(cos)).max())
 
 
+def _principal_axes(points: np.ndarray) -> np.ndarray:
+    """(3, 3) right-handed frame whose columns are the point set's principal directions, least variance first."""
+    _, vectors = np.linalg.eigh(np.cov(np.asarray(points, dtype=np.float64).T))
+    if np.linalg.det(vectors) < 0:
+        vectors[:, 2] *= -1.0
+    return vectors
+
+
+def pca_rotations(model_points: np.ndarray, scene_points: np.ndarray) -> list[np.ndarray]:
+    """The four rotations (object -> camera) that map the model's principal axes onto the depth cloud's, one per
+    choice of signs. The cloud is one visible side, so its axes are only a start for ICP, not a pose."""
+    E_model, E_scene = _principal_axes(model_points), _principal_axes(scene_points)
+    signs = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))
+    return [E_scene @ np.diag(s) @ E_model.T for s in signs]
+
+
+def _better(a: dict, b: dict) -> bool:
+    """Is ICP result ``a`` a better fit than ``b``: more of the depth explained, then the smaller residual."""
+    if abs(a["fitness"] - b["fitness"]) > 0.02:
+        return a["fitness"] > b["fitness"]
+    return a["inlier_rmse_m"] < b["inlier_rmse_m"]
+
+
 def _keep(pose: ObjectPose, reason: str, info: dict) -> ObjectPose:
     log.debug("ICP kept the initial pose of obj_id %d: %s", pose.obj_id, reason)
     icp = {**info, "status": "kept_initial", "reason": reason}
@@ -221,60 +251,43 @@ class DepthRefiner:
         # Depth of other things seen through or around the mask (edge pixels, the bin floor behind a thin part)
         # cannot be the object: drop what lies farther than the diameter from the cloud's median point.
         scene = scene[np.linalg.norm(scene - np.median(scene, axis=0), axis=1) < diameter]
-        points, normals = model_surface(model, cfg.model_points, self.seed)
-        p_cam, _ = visible_model_points(T_init, points, normals)
-        if len(scene) < cfg.min_scene_points or len(p_cam) < 3:
+        if len(scene) < cfg.min_scene_points:
             info.update(scene_points=len(scene), time_ms=(time.perf_counter() - t_start) * 1e3)
             reason = (f"{len(scene)} of the {n_masked} depth points in the mask lie within one diameter of their "
-                      f"median, fewer than {cfg.min_scene_points}" if len(p_cam) >= 3
-                      else "no model surface faces the camera at the initial pose")  # fmt: skip
+                      f"median, fewer than {cfg.min_scene_points}")  # fmt: skip
             return _keep(pose, reason, info)
-        # Start where the depth says the part is: the initial rotation, moved so that the visible model surface and
-        # the depth cloud share their centroid. The estimator's translation is its weakest output (a relative depth
-        # error of a few per cent is centimetres at the bin), and ICP's basin is a fraction of the diameter.
-        T_start = T_init.copy()
-        T_start[:3, 3] += scene.mean(axis=0) - p_cam.mean(axis=0)
-        centre = T_start[:3, 3].copy()
-        # ICP runs in a frame centred on the start's object centre: open3d linearises rotations about the origin, and
-        # about the camera origin a rotation about a part's symmetry axis (a direction the data cannot fix) becomes
-        # a coupled rotation + translation whose ill-conditioned solve threw small symmetric parts off by centimetres.
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene - centre))
-        if cfg.voxel_fraction > 0:
-            cloud = cloud.voxel_down_sample(diameter * cfg.voxel_fraction)
-        if len(cloud.points) > cfg.max_scene_points:
-            rng = np.random.default_rng(self.seed)
-            keep = np.sort(rng.choice(len(cloud.points), cfg.max_scene_points, replace=False))
-            cloud = cloud.select_by_index(keep.tolist())
-        info["scene_points"] = len(cloud.points)
-        if len(cloud.points) < cfg.min_scene_points:
+        points, normals = model_surface(model, cfg.model_points, self.seed)
+        if len(scene) > cfg.max_scene_points * 4:  # bound the cost of a close-up part before thinning
+            scene = scene[np.random.default_rng(self.seed).choice(len(scene), cfg.max_scene_points * 4, replace=False)]
+        starts = [T_init[:3, :3]]
+        if cfg.pca_hypotheses:
+            starts += pca_rotations(points, scene)
+        n_starts = len(starts)
+        if len(starts) > cfg.icp_starts:  # rank the starts by how well they fit before any ICP; refine the best
+            ranked = [(R, self._refine_from(R, T_init, scene, model, points, normals, run_icp=False)) for R in starts]
+            ranked = [(R, c) for R, c in ranked if c is not None]
+            ranked.sort(key=lambda rc: (-round(rc[1][2]["fitness"], 2), rc[1][2]["inlier_rmse_m"]))
+            starts = [R for R, _ in ranked[: cfg.icp_starts]]
+        best = None
+        for R_start in starts:
+            candidate = self._refine_from(R_start, T_init, scene, model, points, normals)
+            if candidate is not None and (best is None or _better(candidate[2], best[2])):
+                best = candidate
+        if best is None:
             info["time_ms"] = (time.perf_counter() - t_start) * 1e3
-            return _keep(pose, f"{len(cloud.points)} depth points after thinning, fewer than {cfg.min_scene_points}",
-                         info)  # fmt: skip
-
-        p_cam, n_cam = visible_model_points(T_start, points, normals)
-        info["model_points"] = len(p_cam)
-        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_cam - centre))
-        target.normals = o3d.utility.Vector3dVector(n_cam)
-
-        axes = np.array([s.axis for s in model.symmetries_continuous], dtype=np.float64).reshape(-1, 3)
-        T_scene_to_model, iterations, result = self._icp(cloud, target, diameter, T_init[:3, :3], axes)
-        # ICP moved the (centred) scene onto the model; move the model onto the scene instead.
-        T_centre = make_T(t=centre)
-        T_refined = T_centre @ invert(T_scene_to_model) @ invert(T_centre) @ T_start
-        info.update(
-            fitness=float(result.fitness),
-            inlier_rmse_m=float(result.inlier_rmse),
-            iterations=iterations,
-            start_shift_m=float(np.linalg.norm(T_start[:3, 3] - T_init[:3, 3])),
-            # ICP's own correction, from the depth-centred start (what tells a diverged run)
-            correction_m=float(np.linalg.norm(T_refined[:3, 3] - T_start[:3, 3])),
-            correction_deg=symmetric_pose_errors(T_refined, T_start, _symmetries(model))[0],
-        )
+            return _keep(pose, "no model surface faces the camera from any start", info)
+        T_start, T_refined, result_info = best
+        info.update(result_info, hypotheses=n_starts)
+        info["start_shift_m"] = float(np.linalg.norm(T_start[:3, 3] - T_init[:3, 3]))
+        info["start_turn_deg"] = symmetric_pose_errors(T_start, T_init, _symmetries(model))[0]
         info["time_ms"] = (time.perf_counter() - t_start) * 1e3
+        if info["scene_points"] < cfg.min_scene_points:
+            return _keep(pose, f"{info['scene_points']} depth points after thinning, fewer than {cfg.min_scene_points}",
+                         info)  # fmt: skip
         if not np.all(np.isfinite(T_refined)):
             return _keep(pose, "ICP diverged (non-finite transform)", info)
-        if result.fitness < cfg.min_fitness:
-            return _keep(pose, f"ICP fitness {result.fitness:.2f} below {cfg.min_fitness}", info)
+        if info["fitness"] < cfg.min_fitness:
+            return _keep(pose, f"ICP fitness {info['fitness']:.2f} below {cfg.min_fitness}", info)
         if info["correction_m"] > cfg.max_correction_fraction * diameter:
             return _keep(
                 pose,
@@ -295,6 +308,64 @@ class DepthRefiner:
             f"{pose.method}+icp",
             {**pose.details, "icp": {**info, "status": "refined"}},
         )
+
+    def _refine_from(
+        self,
+        R_start: np.ndarray,
+        T_init: np.ndarray,
+        scene: np.ndarray,
+        model: ObjectModel,
+        points: np.ndarray,
+        normals: np.ndarray,
+        run_icp: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray, dict] | None:
+        """ICP from one start rotation; (T_start, T_refined, figures), or None when no model surface faces the
+        camera. The start is where the depth says the part is: the visible model surface at ``R_start`` moved to
+        share the depth cloud's centroid (the estimator's translation is its weakest output, a relative depth error
+        of a few per cent is centimetres at the bin, and ICP's basin is a fraction of the diameter)."""
+        cfg = self.config
+        diameter = float(model.diameter_m)
+        T_start = make_T(R_start, T_init[:3, 3])
+        p_cam, _ = visible_model_points(T_start, points, normals)
+        if len(p_cam) < 3:
+            return None
+        T_start[:3, 3] += scene.mean(axis=0) - p_cam.mean(axis=0)
+        centre = T_start[:3, 3].copy()
+        # ICP runs in a frame centred on the start's object centre: open3d linearises rotations about the origin, and
+        # about the camera origin a rotation about a part's symmetry axis (a direction the data cannot fix) becomes
+        # a coupled rotation + translation whose ill-conditioned solve threw small symmetric parts off by centimetres.
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene - centre))
+        if cfg.voxel_fraction > 0:
+            cloud = cloud.voxel_down_sample(diameter * cfg.voxel_fraction)
+        if len(cloud.points) > cfg.max_scene_points:
+            keep = np.random.default_rng(self.seed).choice(len(cloud.points), cfg.max_scene_points, replace=False)
+            cloud = cloud.select_by_index(np.sort(keep).tolist())
+        p_cam, n_cam = visible_model_points(T_start, points, normals)
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_cam - centre))
+        target.normals = o3d.utility.Vector3dVector(n_cam)
+        figures: dict = {"scene_points": len(cloud.points), "model_points": len(p_cam)}
+        if len(cloud.points) < cfg.min_scene_points:
+            return T_start, T_start.copy(), {**figures, "fitness": 0.0, "inlier_rmse_m": math.nan, "iterations": 0,
+                                             "correction_m": 0.0, "correction_deg": 0.0}  # fmt: skip
+        if not run_icp:  # the start's own fit at the widest correspondence distance
+            fit = o3d.pipelines.registration.evaluate_registration(
+                cloud, target, max(cfg.correspondence_fractions) * diameter
+            )
+            return T_start, T_start.copy(), {**figures, "fitness": fit.fitness, "inlier_rmse_m": fit.inlier_rmse}
+        axes = np.array([s.axis for s in model.symmetries_continuous], dtype=np.float64).reshape(-1, 3)
+        T_scene_to_model, iterations, result = self._icp(cloud, target, diameter, R_start, axes)
+        # ICP moved the (centred) scene onto the model; move the model onto the scene instead.
+        T_centre = make_T(t=centre)
+        T_refined = T_centre @ invert(T_scene_to_model) @ invert(T_centre) @ T_start
+        figures.update(
+            fitness=float(result.fitness),
+            inlier_rmse_m=float(result.inlier_rmse),
+            iterations=iterations,
+            # ICP's own correction from its start (what tells a diverged run)
+            correction_m=float(np.linalg.norm(T_refined[:3, 3] - T_start[:3, 3])),
+            correction_deg=symmetric_pose_errors(T_refined, T_start, _symmetries(model))[0],
+        )
+        return T_start, T_refined, figures
 
     def _icp(
         self,

@@ -161,3 +161,21 @@ def test_bad_inputs():
         RefineConfig(correspondence_fractions=())
     with pytest.raises(ValueError, match="min_fitness"):
         RefineConfig(min_fitness=1.5)
+
+
+@pytest.mark.parametrize("name", ["hex_nut", "hex_bolt"])
+def test_a_rotation_far_outside_icps_basin_is_recovered_from_the_clouds_principal_axes(name: str):
+    model = builtin_part(name)
+    T_true = make_T(rotation_about(np.array([1.0, 0.3, 0.0]), np.radians(25)), [0.0, 0.01, 0.3])
+    depth = raycast_depth(model, T_true, CAMERA)
+    T_init = _perturbed(T_true, [1.0, 0.0, 0.0], 70.0, [4.0, -3.0, 25.0])  # axis 70 deg off, 25 mm too far
+    symmetries = model.symmetry_transforms()
+    assert symmetric_pose_errors(T_init, T_true, symmetries)[0] > 60
+    pose = _pose(model, depth > 0, T_init)
+    refined = DepthRefiner(RefineConfig(max_correction_deg=180.0)).refine(pose, depth, CAMERA, model)
+    re, te = symmetric_pose_errors(refined.T_camera_object, T_true, symmetries)
+    assert refined.details["icp"]["hypotheses"] == 5  # ICP ran from the 2 of them that fitted best at the start
+    assert re < 5.0 and te < 0.0015, (re, te)
+    alone_config = RefineConfig(max_correction_deg=180.0, pca_hypotheses=False)
+    alone = DepthRefiner(alone_config).refine(pose, depth, CAMERA, model)
+    assert symmetric_pose_errors(alone.T_camera_object, T_true, symmetries)[0] > 10  # ICP alone cannot get there
