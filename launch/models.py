@@ -136,11 +136,14 @@ def pose_card(log: dict, args: argparse.Namespace, evals: dict[str, dict]) -> st
     cfg, arch = log["config"], log["architecture"]
     entries = log.get("entries", [])
     seconds = entries[-1]["seconds"] if entries else float("nan")
-    command = (
-        f"sygrid train pose --data {cfg['data_dir']} --out {cfg['out_dir']} --epochs {cfg['epochs']} "
-        f"--batch {cfg['batch_size']} --input-size {cfg['input_size']} --output-stride {cfg['output_stride']} "
-        f"--width {cfg['width']} --lr {cfg['lr']} --seed {cfg['seed']}"
-        + (f" --threads {cfg['threads']}" if cfg.get("threads") else "")
+    base = (
+        f"sygrid train pose --data {cfg['data_dir']} --out {cfg['out_dir']} --batch {cfg['batch_size']} "
+        f"--input-size {cfg['input_size']} --output-stride {cfg['output_stride']} --width {cfg['width']} "
+        f"--lr {cfg['lr']} --seed {cfg['seed']}" + (f" --threads {cfg['threads']}" if cfg.get("threads") else "")
+    )
+    runs = log.get("runs") or [{"start_iteration": 0, "epochs": cfg["epochs"]}]
+    command = "`, then `".join(
+        f"{base} --epochs {r['epochs']}" + (" --resume" if r["start_iteration"] else "") for r in runs
     )
     lines = [
         "# Model card: 6D pose (GDR-Net-style: XYZ map, mask, regions -> Patch-PnP -> allocentric R6d + SITE)",
@@ -150,7 +153,12 @@ def pose_card(log: dict, args: argparse.Namespace, evals: dict[str, dict]) -> st
         f"{arch['num_regions']} surface regions, one model for the obj_ids {log['obj_ids']}",
         f"- data: {_dataset_line(Path(cfg['data_dir']))}; {log['train_instances']} training instances, "
         f"{log['val_instances']} validation instances",
-        f"- command: `{command}`",
+        f"- command: `{command}`"
+        + (
+            " (a resume with more epochs restarts the cosine learning-rate schedule where the new length puts it)"
+            if len(runs) > 1
+            else ""
+        ),
         f"- seed: {cfg['seed']}; training time {seconds / 3600:.2f} h on this project's 2-core CPU machine",
     ]
     if evals:

@@ -227,6 +227,7 @@ def test_training_resumes_from_last_checkpoint(trained: Path, tiny_dataset: Path
     log = json.loads((run / "train_log.json").read_text())
     assert result.iterations == 5
     assert [e["iteration"] for e in log["entries"]] == [2, 3, 4, 5]  # 2 and 3 from the resumed run's history
+    assert log["runs"] == [{"start_iteration": 0, "epochs": 1}, {"start_iteration": 3, "epochs": 1}]
 
 
 def test_estimator_runs_the_exported_model(trained: Path, tiny_dataset: Path):

@@ -238,7 +238,8 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
         optimizer, lambda it: _lr_factor(it, total, min(config.warmup_iters, max(total // 10, 1)))
     )
     train_log: dict = {"config": config.as_json(), "architecture": net_cfg.as_dict(), "obj_ids": list(tables.obj_ids),
-                       "train_instances": n, "val_instances": len(val_crops), "entries": []}  # fmt: skip
+                       "train_instances": n, "val_instances": len(val_crops), "entries": [],
+                       "runs": [{"start_iteration": 0, "epochs": config.epochs}]}  # fmt: skip
     start, best, seconds_before = 0, None, 0.0
     if resume:
         state = _load(last_path)
@@ -252,6 +253,10 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
         scheduler.load_state_dict(state["scheduler"])
         start, best, seconds_before = state["iteration"], state["best"], state["seconds"]
         train_log["entries"] = state["log_entries"]
+        # Every invocation of a resumed run (a longer --epochs on resume restarts the cosine schedule from where
+        # the new length puts it), so the model card can tell how the model was trained.
+        first = [{"start_iteration": 0, "epochs": state["train_config"]["epochs"]}]
+        train_log["runs"] = [*state.get("runs", first), {"start_iteration": start, "epochs": config.epochs}]
         log.info("resuming %s at iteration %d of %d", last_path, start, total)
 
     def checkpoint(it: int, seconds: float) -> None:
@@ -268,6 +273,7 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
             "scheduler": scheduler.state_dict(),
             "best": best,
             "log_entries": train_log["entries"],
+            "runs": train_log["runs"],
         }
         _save(last_path, state)
         write_json_atomic(out / "train_log.json", train_log)
