@@ -12,7 +12,7 @@ from sygrid.errors import SygridError
 
 # name -> (module, one-line help). The module provides add_arguments(parser) and run(args) -> int.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("launch.demo", "run the main job on built-in defaults"),
+    "demo": ("launch.demo", "the main job: the picking demo in the simulated cell (sygrid pick on its defaults)"),
     "drop": ("launch.drop", "drop the parts of a scene into its bin and write their poses"),
     "parts": ("launch.parts", "list the built-in parts, or export one as a mesh"),
     "bench": ("launch.bench", "run a benchmark and write its JSON and chart"),

@@ -1,4 +1,4 @@
-"""The `sygrid` command: the demo writes its poses and picture; drop writes a poses file; bad input exits 2."""
+"""The `sygrid` command: drop writes a poses file and a picture of the pile; bad input exits 2."""
 
 import json
 
@@ -17,8 +17,10 @@ def small_scene(tmp_path, monkeypatch):
     return path
 
 
-def test_demo_writes_poses_and_a_picture_of_the_pile(small_scene, tmp_path, capsys):
-    assert main(["demo", "--scene", str(small_scene), "--seed", "1", "--out-dir", str(tmp_path / "out")]) == 0
+def test_drop_writes_poses_and_a_picture_of_the_pile(small_scene, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["drop", str(small_scene), "--seed", "1", "--out", str(out / "small.poses.json"),
+                 "--picture", str(out / "small.png")]) == 0  # fmt: skip
     poses = load_poses(tmp_path / "out" / "small.poses.json")
     assert len(poses.instances) == 4 and poses.seed == 1
     picture = cv2.imread(str(tmp_path / "out" / "small.png"))

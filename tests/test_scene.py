@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import pytest
 
@@ -76,9 +77,7 @@ def test_load_scene_reports_file_problems(tmp_path):
 
 
 def test_shipped_scenes_are_valid():
-    from launch.demo import DEFAULT_SCENE
-
-    scene = load_scene(DEFAULT_SCENE)
+    scene = load_scene(Path(__file__).parents[1] / "launch" / "scenes" / "builtin_bin.json")
     assert len(scene.objects) >= 6
 
 
