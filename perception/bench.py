@@ -5,8 +5,8 @@ One run, one pass over the test images; for each image every variant is run on t
 - detector: the model folder's detector at several input sizes (and further detector ONNX files given with
   ``--detector NAME=PATH``, e.g. a wider model): median latency per frame against box mAP50 and mask mAP50-95;
 - pose: on the detections of the manifest's detector, the direct (GDR-Net-style) and the PnP-RANSAC estimate, each
-  with and without depth refinement (ICP), and further pose ONNX files (``--pose NAME=PATH``): median
-  milliseconds per object against ADD(-S) recall, median re and te.
+  with and without depth refinement (ICP), two more refinement settings on the direct estimate, and further pose
+  ONNX files (``--pose NAME=PATH``): median milliseconds per object against ADD(-S) recall, median re and te.
 
 Writes ``bench/results/perception.{json,png}``; the chart puts latency on the x axis and accuracy on the y axis,
 one panel per stage, so a user can pick the point they need. Medians throughout; the targets (detector <= 40 ms,
@@ -30,6 +30,7 @@ from perception.detector import YoloSegDetector
 from perception.evaluation import EvalSettings, bop_items, default_split, match_poses
 from perception.pipeline import PerceptionPipeline, PipelineOverrides, load_manifest
 from perception.pose import PoseEstimator
+from perception.refine import DepthRefiner, RefineConfig
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_results
 from sygrid.errors import ConfigError
 from sygrid.metrics import detection_metrics, pose_errors, pose_metrics_table
@@ -38,6 +39,11 @@ from sygrid.writers import load_bop_item
 TARGETS_MS = {"detector": 40.0, "pose_per_object": 10.0, "refine_per_object": 20.0}
 DEFAULT_SIZES = (320, 416, 480, 640)
 QUICK_SIZES = (320, 480)
+# Refinement settings compared on the direct estimate, besides the default (5 starts, ICP from the best one)
+REFINE_VARIANTS = {
+    "ICP, 2 best starts": RefineConfig(icp_starts=2, max_iterations=30),
+    "ICP from the estimate only": RefineConfig(pca_hypotheses=False),
+}
 
 
 @dataclass
@@ -81,7 +87,10 @@ def run_benchmark(
     poses = {manifest.pose.onnx: pipeline.pose}
     for name, path in (extra_poses or {}).items():
         poses[name] = PoseEstimator(path, models=pipeline.models, num_threads=threads)
-    pose_variants = [(p, m, r) for p in poses for m in ("direct", "pnp") for r in (False, True)]
+    # refinement variants: the pipeline's (the default RefineConfig) for every estimate; two more for the direct one
+    refiners = {"ICP": pipeline.refiner, **{k: DepthRefiner(c) for k, c in REFINE_VARIANTS.items()}}
+    pose_variants = [(p, m, r) for p in poses for m in ("direct", "pnp") for r in ("", "ICP")]
+    pose_variants[2:2] = [(manifest.pose.onnx, "direct", r) for r in REFINE_VARIANTS]
 
     root = data_dir / "bop"
     if not root.is_dir():
@@ -111,14 +120,14 @@ def run_benchmark(
                 t = time.perf_counter()
                 estimates = estimator.estimate(rgb, usable, ann.intrinsics, method=method)
                 pose_ms = 1e3 * (time.perf_counter() - t)
-                t = time.perf_counter()
-                refined = [pipeline.refiner.refine(p, depth, ann.intrinsics, pipeline.models[p.obj_id])
-                           for p in estimates]  # fmt: skip
-                refine_ms = 1e3 * (time.perf_counter() - t)
-                for refine, result in ((False, estimates), (True, refined)):
+                for refine in [r for p, m, r in pose_variants if p == pose_name and m == method]:
+                    t = time.perf_counter()
+                    result = [refiners[refine].refine(p, depth, ann.intrinsics, pipeline.models[p.obj_id])
+                              for p in estimates] if refine else estimates  # fmt: skip
+                    refine_ms = 1e3 * (time.perf_counter() - t) if refine else 0.0
                     acc = pose_acc[(pose_name, method, refine)]
                     if usable:  # per-object times of frames with objects
-                        acc.ms.append((pose_ms + (refine_ms if refine else 0.0)) / len(usable))
+                        acc.ms.append((pose_ms + refine_ms) / len(usable))
                         if refine:
                             acc.refine_ms.append(refine_ms / len(usable))
                     for inst, pose in match_poses(ann, result, settings.min_visib_fract, settings.match_iou):
@@ -162,8 +171,8 @@ def _detector(path: Path, size: int, manifest, threads: int) -> YoloSegDetector:
                            num_threads=threads)  # fmt: skip
 
 
-def _pose_label(pose_name: str, method: str, refine: bool) -> str:
-    return f"{Path(pose_name).stem} {method}{' + ICP' if refine else ''}"
+def _pose_label(pose_name: str, method: str, refine: str) -> str:
+    return f"{Path(pose_name).stem} {method}{' + ' + refine if refine else ''}"
 
 
 def chart(results: dict):

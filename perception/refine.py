@@ -61,9 +61,9 @@ class RefineConfig:
 
     model_points: int = 3000
     pca_hypotheses: bool = True
-    icp_starts: int = 2
+    icp_starts: int = 1
     correspondence_fractions: tuple[float, ...] = (0.2, 0.05)
-    max_iterations: int = 30
+    max_iterations: int = 15
     voxel_fraction: float = 1.0 / 60.0
     max_scene_points: int = 1000
     mask_erosion_px: int = 1

@@ -174,7 +174,7 @@ def test_a_rotation_far_outside_icps_basin_is_recovered_from_the_clouds_principa
     pose = _pose(model, depth > 0, T_init)
     refined = DepthRefiner(RefineConfig(max_correction_deg=180.0)).refine(pose, depth, CAMERA, model)
     re, te = symmetric_pose_errors(refined.T_camera_object, T_true, symmetries)
-    assert refined.details["icp"]["hypotheses"] == 5  # ICP ran from the 2 of them that fitted best at the start
+    assert refined.details["icp"]["hypotheses"] == 5  # ICP ran from the one that fitted best at the start
     assert re < 5.0 and te < 0.0015, (re, te)
     alone_config = RefineConfig(max_correction_deg=180.0, pca_hypotheses=False)
     alone = DepthRefiner(alone_config).refine(pose, depth, CAMERA, model)
