@@ -67,6 +67,10 @@ def test_pack_writes_the_manifest_and_model_cards_from_the_runs(model_dir: Path,
     for label in ("direct", "refined"):
         report = json.loads((model_dir / f"eval_{label}.json").read_text())
         assert report["n_images"] == 2 and report["refine"] == (label == "refined")
+        assert report["conf_threshold"] == 0.01
+    detector = json.loads((model_dir / "eval_detector.json").read_text())
+    assert detector["conf_threshold"] == 0.001 and detector["n_images"] == 2 and "box_map50" in detector
+    assert "confidence threshold 0.001" in card and "operating threshold 0.01" in card
 
 
 def test_perception_benchmark_runs_every_variant_on_the_same_images(model_dir: Path, tiny_dataset: Path):
