@@ -12,6 +12,7 @@ BENCHMARKS = {
     "sim": "sim.bench",
     "render": "sygrid.bench.render",
     "perception": "perception.bench",
+    "cell": "launch.bench_cell",
 }
 
 

@@ -106,7 +106,7 @@ def open_cell(
             perception = PerceptionPipeline.from_folder(models_dir, overrides)
             models = perception.models
         try:
-            planner_config = PlannerConfig(**setup.planner_overrides)
+            planner_config = PlannerConfig(**{"workspace": setup.robot.workspace, **setup.planner_overrides})
         except (TypeError, ConfigError) as exc:
             raise ConfigError(f"{setup.path}: [planner]: {exc}") from None
         planner = GraspPlanner(models, planner_config)

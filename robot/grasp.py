@@ -5,25 +5,41 @@ For each estimated part, in the robot base frame (``T_base_obj = T_base_camera @
 candidates (``robot.grasps``) go through these checks, cheapest first; the first one a candidate fails is its
 rejection cause (``REJECTION_CAUSES``):
 
-1. part level: a model for its id (``no_model``), a pose confidence of at least ``min_pose_score``
-   (``low_confidence``), candidates at all (``no_candidates``), nothing lying on it (``covered``: the share of its
-   upward surface with a depth point or a neighbour's surface above it);
+1. part level: a model for its id (``no_model``), inside the bin (``outside_bin``: its origin outside the bin's
+   inner footprint or below its floor; the camera may also see the place tray, whose walls the planner does not
+   know), a pose confidence of at least ``min_pose_score`` (``low_confidence``), candidates at all
+   (``no_candidates``), nothing lying on it (``covered``: the share of its upward surface with a depth point or a
+   neighbour's surface above it);
 2. the approach within ``approach_cone_deg`` of straight down (``approach_angle``);
 3. depth: the gripper comes in along the approach from the pre-grasp (fingers open) and goes back out the same
-   way to the lift (fingers closed on the part); it stays back as far as the bin floor (``collision_floor``) and
-   the neighbours (depth points and the other parts' surfaces, ``collision_parts``) demand, and must still hold
-   the part over ``min_engagement_m`` of its pads;
-4. the bin walls, against the gripper's boxes swept from the pre-grasp (``collision_bin``);
-5. the score, then inverse kinematics in score order: grasp, pre-grasp, lift and place within the joint limits
-   less ``joint_limit_margin_rad`` (``unreachable``), with no joint jumping more than ``max_joint_step_rad`` between
-   the straight-line waypoints (``singular``: a branch switch on the way).
+   way to the lift (fingers closed on the part); it stays back as far as the bin floor demands and must still
+   hold the part over ``min_engagement_m`` of its pads (``collision_floor``);
+4. the bin walls, against the gripper's boxes swept along the approach (``collision_bin``): first the stretch
+   that every backoff still allowed keeps in the way (cheap, and it spares the next check most candidates near a
+   wall), then, after step 5, the boxes where the grasp ends up;
+5. the neighbours (depth points and the other parts' surfaces): the gripper stays back as far as they demand,
+   still holding the part over ``min_engagement_m`` (``collision_parts``);
+6. the score, then inverse kinematics in score order: grasp, pre-grasp, lift and place within the joint limits
+   less ``joint_limit_margin_rad``, with the TCP inside the robot's ``workspace`` box (``unreachable``; the robot
+   would refuse the motion), with no joint jumping more than ``max_joint_step_rad`` between
+   the straight-line waypoints (``singular``: a branch switch on the way);
+7. the joint moves (from where the arm is to the lift, with the fingers open; from the lift to the place pose,
+   with the part in the fingers): the gripper (and the held part's box) sampled along the straight joint line
+   must keep ``transit_clearance_m`` from the bin walls (``collision_transit``). A joint move is not a straight
+   line of the tool: between two poses above the bin it can swing the fingers through a wall.
+
+The lift is far enough back along the approach that the gripper and the held part clear the bin's rim by
+``rim_clearance_m`` (at least ``lift_height_m``): the joint moves start and end above the rim, and the straight
+lines in and out of the bin are the checked approach. When a joint move from there is not clear, the lift is
+tried 5 and 10 cm further back before the candidate is refused.
 
 The plan ranks parts with nothing lying on them first (top parts first), then by score: the weighted mean of
 the pose confidence, the fingers' clearance, the part's height in the pile, the approach angle, the candidate's
 quality and the pad engagement (``ScoreWeights``).
 
 Geometry is boxes against points and oriented boxes (``robot.grasp_geometry``); the robot arm itself is not
-checked against the bin (only the gripper and the wrist link behind it).
+checked against the bin (only the gripper and the wrist link behind it; the sim-in-the-loop runs and
+``sygrid bench cell`` check the whole arm in MuJoCo).
 """
 
 from __future__ import annotations
@@ -49,6 +65,7 @@ from robot.grasp_geometry import (
 )
 from robot.grasp_scene import BinGeometry, depth_points
 from robot.grasps import GraspSet, GraspSetParams, grasp_candidates
+from robot.ur_config import WorkspaceBox
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
 from sygrid.objects.model import ObjectModel
@@ -61,28 +78,34 @@ log = logging.getLogger(__name__)
 #: Why a part or a grasp candidate was not planned, in the order the checks run.
 REJECTION_CAUSES = (
     "no_model",
+    "outside_bin",
     "low_confidence",
     "no_candidates",
     "covered",
     "approach_angle",
     "collision_floor",
-    "collision_parts",
     "collision_bin",
+    "collision_parts",
     "unreachable",
     "singular",
+    "collision_transit",
 )
-_PART_LEVEL = ("no_model", "low_confidence", "no_candidates", "covered")
+_PART_LEVEL = ("no_model", "outside_bin", "low_confidence", "no_candidates", "covered")
 _DOWN = np.array([0.0, 0.0, -1.0])
 _SURFACE_SAMPLES = 2000  # per model: own-point test, neighbour obstacles, covered test
 _NEIGHBOUR_SAMPLES = 400  # of those, the ones a neighbour contributes as obstacles
 _COVER_CELL_M = 0.004  # height-map cell of the covered test
 _UPWARD_COS = 0.5  # a surface point faces up when its normal is within 60 degrees of up
+_LIFT_RAISES_M = (0.05, 0.1)  # further back along the approach when the joint moves from the lift are not clear
 _UNDER_FRACTION = 0.02  # a part with more of its top than this covered is "under" another: it is ranked after
 
 
 def _default_place_pose() -> np.ndarray:
-    """Above the simulated cell's place tray (centre of its floor at (-0.2, -0.42, 0.005)), tool pointing down."""
-    return make_T(np.diag([1.0, -1.0, -1.0]), (-0.2, -0.42, 0.12))
+    """Above the simulated cell's place tray (centre of its floor at (-0.2, -0.42, 0.005)), tool pointing down.
+
+    0.22 m up: the pads' tips 0.2 m above the tray floor and 0.06 m above the bin's rim (0.14 m), so that the joint
+    moves between the tray and the bin pass over the bin's wall (at 0.12 m they swung the fingers through it)."""
+    return make_T(np.diag([1.0, -1.0, -1.0]), (-0.2, -0.42, 0.22))
 
 
 @dataclass(frozen=True)
@@ -115,11 +138,19 @@ class PlannerConfig:
 
     grasp_params: candidate generation, including the gripper's geometry (``grasp_params.gripper``).
     bin: the bin (None: no bin, nothing checked against walls or floor).
-    approach_cone_deg: largest angle between the approach and straight down (base -z).
-    pre_grasp_distance_m: the pre-grasp is this far back along the approach. lift_height_m: the lift is this far
-    back out along the approach (the way the gripper came in, so the checked path; at least
-    ``cos(approach_cone_deg) * lift_height_m`` above the grasp). T_base_place: where the part is let go (its
-    position and approach axis; the tool turns about that axis to keep the grasp's pad direction).
+    approach_cone_deg: largest angle between the approach and straight down (base -z). 45 degrees: tilting away
+    from a wall is what lets the 86 x 62 mm housing reach a part near it (a planner-only replay of 10 bins of
+    ``launch/scenes/pick_bin_10.json``, every planned pick taken as done: 35 % of the parts cleared with 30 degrees
+    and 12 approach steps, 42 % with 45 degrees and 16 steps).
+    pre_grasp_distance_m: the pre-grasp is this far back along the approach. lift_height_m: the lift is at least
+    this far back out along the approach (the way the gripper came in, so the checked path), and further when the
+    gripper or the held part would not yet clear the bin's rim by ``rim_clearance_m``. T_base_place: where the
+    part is let go (its position and approach axis; the tool turns about that axis to keep the grasp's pad
+    direction); the arm also waits there while the camera looks.
+    transit_clearance_m: the gripper (and the held part) to the bin walls along the joint moves to the lift and to
+    the place pose, sampled every ``transit_step_rad`` of the largest joint change (None: not checked, for
+    comparisons only). workspace: the robot's workspace box (``URConfig.workspace``): waypoints whose TCP lies
+    outside it are unreachable (None: not checked).
     clearance_m: gripper to neighbouring parts and depth points. bin_clearance_m: gripper to the bin walls.
     floor_clearance_m: pad tips above the bin floor. min_engagement_m: the least length of the pads over which the
     part must be held after the gripper has stayed back to clear the floor or neighbours. With the defaults a washer
@@ -139,16 +170,23 @@ class PlannerConfig:
     diameter is taken for a duplicate detection, not a neighbour.
     clearance_saturation_m / engagement_saturation_m: where those score terms reach 1. height_spread_m: height
     differences in the pile smaller than this count less (the height term divides by at least this).
-    max_grasps_per_part: planned grasps per part (alternatives for retries). max_planned_parts: stop planning
-    (IK) once this many parts have a grasp, best parts first (None: all parts).
+    max_grasps_per_part: planned grasps per part (alternatives for retries). max_planned_parts: plan this many
+    parts, best first (None: all parts); the other parts' candidates are checked only if they could still rank
+    among them, which saves most of the time in a full bin. min_grasp_width_m: candidates narrower than this are
+    not used: the gripper's object detection (fingers stopped 1.5 mm or more short of closed) cannot tell a 2 mm
+    sheet from air (in the simulated cell such grasps of the L bracket came back "gripper_empty").
     """
 
     grasp_params: GraspSetParams = field(default_factory=GraspSetParams)
     bin: BinGeometry | None = field(default_factory=BinGeometry)
-    approach_cone_deg: float = 30.0
+    approach_cone_deg: float = 45.0
     pre_grasp_distance_m: float = 0.10
     lift_height_m: float = 0.15
+    rim_clearance_m: float = 0.01
     T_base_place: np.ndarray = field(default_factory=_default_place_pose)
+    transit_clearance_m: float | None = 0.005
+    transit_step_rad: float = 0.02
+    workspace: WorkspaceBox | None = None
     clearance_m: float = 0.003
     bin_clearance_m: float = 0.003
     floor_clearance_m: float = 0.001
@@ -169,6 +207,7 @@ class PlannerConfig:
     weights: ScoreWeights = field(default_factory=ScoreWeights)
     max_grasps_per_part: int = 1
     max_planned_parts: int | None = None
+    min_grasp_width_m: float = 0.004
 
     def __post_init__(self) -> None:
         T = np.array(self.T_base_place, dtype=float)
@@ -181,12 +220,16 @@ class PlannerConfig:
         non_negative = (
             "pre_grasp_distance_m", "lift_height_m", "clearance_m", "bin_clearance_m", "floor_clearance_m",
             "min_engagement_m", "joint_limit_margin_rad", "own_points_tolerance_m", "bin_surface_tolerance_m",
-            "cover_tolerance_m", "duplicate_distance_ratio",
+            "cover_tolerance_m", "duplicate_distance_ratio", "rim_clearance_m", "transit_clearance_m",
+            "min_grasp_width_m",
         )  # fmt: skip
         for name in non_negative:
-            if getattr(self, name) < 0:
+            if getattr(self, name) is not None and getattr(self, name) < 0:
                 raise ConfigError(f"PlannerConfig.{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("max_joint_step_rad", "clearance_saturation_m", "engagement_saturation_m", "height_spread_m"):
+        for name in (
+            "max_joint_step_rad", "clearance_saturation_m", "engagement_saturation_m", "height_spread_m",
+            "transit_step_rad",
+        ):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ConfigError(f"PlannerConfig.{name} must be > 0, got {getattr(self, name)}")
         if not 0.0 <= self.max_covered_fraction <= 1.0:
@@ -312,6 +355,12 @@ class GraspPlan:
     @property
     def best(self) -> PlannedGrasp | None:
         return self.grasps[0] if self.grasps else None
+
+    @property
+    def n_in_bin(self) -> int:
+        """Parts that are in the bin (all of them without a bin): 0 means the bin is empty whatever else the camera
+        saw."""
+        return sum(p.status != "outside_bin" for p in self.parts)
 
     def summary(self) -> str:
         """One line for logs: what was planned, or that nothing is safe, with the rejection counts."""
@@ -443,35 +492,48 @@ class GraspPlanner:
         z_low = float(known.min()) if len(known) else 0.0
         spread = max(float(known.max() - z_low) if len(known) else 0.0, cfg.height_spread_m)
 
-        evaluated: list[_Evaluated] = []
         reports: dict[int, dict] = {}
-        for i, part in enumerate(parts):
-            start = time.perf_counter()
-            result = self._evaluate_part(i, part, parts, surfaces, obstacles, owner, (tops[i] - z_low) / spread)
-            timings["checks"] += time.perf_counter() - start
-            reports[i] = result.report
-            if result.ranked is not None:
-                evaluated.append(result)
-
-        # IK in score order: best parts first, each part's candidates best first
+        pending: list[_Evaluated] = []
         start = time.perf_counter()
-        # top parts first: a part with something lying on it comes after every part with nothing on it
-        under = {e.part_index: e.report["covered_fraction"] > _UNDER_FRACTION for e in evaluated}
-        evaluated.sort(key=lambda e: (under[e.part_index], -e.best_score))
+        for i, part in enumerate(parts):
+            ev = self._part_level(i, part, parts, surfaces, obstacles, owner, (tops[i] - z_low) / spread)
+            reports[i] = ev.report
+            if ev.pending is not None:
+                pending.append(ev)
+        timings["checks"] += time.perf_counter() - start
+
+        # Best parts first: a part with something lying on it comes after every part with nothing on it, then by
+        # score. Parts go through the candidate checks and IK in the order of the best score they could reach; once
+        # max_planned_parts are planned, a part that cannot beat the last of them is not checked at all.
+        under = {e.part_index: e.report["covered_fraction"] > _UNDER_FRACTION for e in pending}
+        pending.sort(key=lambda e: (under[e.part_index], -e.best_score))
         planned: list[PlannedGrasp] = []
-        parts_planned = 0
-        for ev in evaluated:
-            if cfg.max_planned_parts is not None and parts_planned >= cfg.max_planned_parts:
+        kept: list[tuple[bool, float, int]] = []  # (under, -best planned score, part index) of the planned parts
+        for ev in pending:
+            full = cfg.max_planned_parts is not None and len(kept) >= cfg.max_planned_parts
+            if full and (under[ev.part_index], -ev.best_score) >= max(kept)[:2]:
                 reports[ev.part_index]["status"] = "not_planned"
                 continue
+            start = time.perf_counter()
+            ev = self._evaluate_part(ev, surfaces)
+            timings["checks"] += time.perf_counter() - start
+            if ev.ranked is None:
+                continue
+            start = time.perf_counter()
             grasps = self._solve_ik(ev, q_seed)
+            timings["ik"] += time.perf_counter() - start
             report = reports[ev.part_index]
             report["n_planned"] = len(grasps)
-            if grasps:
-                parts_planned += 1
-                planned.extend(grasps)
             report["status"] = "planned" if grasps else _main_cause(report["rejections"])
-        timings["ik"] = time.perf_counter() - start
+            if not grasps:
+                continue
+            planned.extend(grasps)
+            kept.append((under[ev.part_index], -max(g.score for g in grasps), ev.part_index))
+            if cfg.max_planned_parts is not None and len(kept) > cfg.max_planned_parts:
+                worst = max(kept)
+                kept.remove(worst)
+                planned = [g for g in planned if g.part_index != worst[2]]
+                reports[worst[2]]["status"], reports[worst[2]]["n_planned"] = "not_planned", 0
 
         planned.sort(key=lambda g: (under[g.part_index], -g.score))
         part_reports = tuple(PartReport(**reports[i]) for i in range(len(parts)))
@@ -482,7 +544,7 @@ class GraspPlanner:
 
     # ------------------------------------------------------------------------------------------ per part
 
-    def _evaluate_part(
+    def _part_level(
         self,
         index: int,
         part: PartEstimate,
@@ -492,6 +554,9 @@ class GraspPlanner:
         owner: np.ndarray,
         height_term: float,
     ) -> _Evaluated:
+        """The part-level checks (``_PART_LEVEL``); for a part that passes them, what the candidate checks need
+        (``pending``) and an upper bound on its best candidate's score (``best_score``): the order in which parts
+        are worth checking further."""
         cfg = self.config
         report = {
             "part_index": index,
@@ -512,6 +577,8 @@ class GraspPlanner:
         data = self._models.get(part.obj_id)
         if data is None:
             return part_level("no_model", 1)
+        if cfg.bin is not None and not cfg.bin.holds(part.T_base_obj[:3, 3]):
+            return part_level("outside_bin", max(len(data.grasps), 1))
         n = len(data.grasps)
         report["n_candidates"] = n
         report["top_height_m"] = float(surfaces[index][:, 2].max())
@@ -534,6 +601,35 @@ class GraspPlanner:
         if covered > cfg.max_covered_fraction:
             return part_level("covered", n)
 
+        # the best score any candidate could reach: clearance and engagement at their best, the best approach and
+        # quality among the candidates inside the cone
+        angle = np.arccos(
+            np.clip((part.T_base_obj[:3, :3] @ data.grasps.T_obj_grasp[:, :3, 2].T).T @ self._down, -1, 1)
+        )
+        inside = angle <= math.radians(cfg.approach_cone_deg)
+        best = -np.inf
+        if inside.any():
+            w = cfg.weights
+            terms = {
+                "confidence": float(np.clip(part.score, 0.0, 1.0)),
+                "clearance": 1.0,
+                "height": float(np.clip(height_term, 0.0, 1.0)),
+                "approach": 1.0 - float(angle[inside].min()) / math.radians(cfg.approach_cone_deg),
+                "quality": float(np.clip(data.grasps.score[inside], 0.0, 1.0).max()),
+                "engagement": 1.0,
+            }
+            weights = {name: getattr(w, name) for name in terms}
+            best = sum(weights[k] * terms[k] for k in terms) / sum(weights.values())
+        pending = {"data": data, "obstacles": obstacles, "height_term": height_term}
+        return _Evaluated(index, report, part, best_score=best, pending=pending)
+
+    def _evaluate_part(self, ev: _Evaluated, surfaces: list[np.ndarray | None]) -> _Evaluated:
+        """The candidate checks (steps 2-5) of a part that passed ``_part_level``; its ranked survivors."""
+        cfg = self.config
+        index, part, report = ev.part_index, ev.part, ev.report
+        data, obstacles, height_term = ev.pending["data"], ev.pending["obstacles"], ev.pending["height_term"]
+        n = len(data.grasps)
+
         g = cfg.gripper
         sweep = max(cfg.pre_grasp_distance_m, cfg.lift_height_m)  # in along the approach, and back out the same way
         cause = np.full(n, -1)  # index into REJECTION_CAUSES, -1 = still in
@@ -551,16 +647,23 @@ class GraspPlanner:
         boxes = np.concatenate(
             [g.boxes(opening, inner_half_m=width / 2.0 + cfg.clearance_m), g.boxes(width)[:, 2:4]], axis=1
         )
+        # cheap checks first, so that the points check below (the costly one) sees fewer candidates: the floor, and
+        # the walls against the part of the swept gripper that every allowed backoff keeps in the way
+        d_floor = np.maximum(self._floor_backoff(Ti, boxes, cos_angle[idx]), 0.0)
+        floor_fail = _engagement(contact, d_floor, g) < cfg.min_engagement_m
+        wall_fail = ~floor_fail & self._walls_at_every_backoff(Ti, boxes, d_floor, contact, sweep)
+        cause[idx[floor_fail]] = _code("collision_floor")
+        cause[idx[wall_fail]] = _code("collision_bin")
+        keep = ~(floor_fail | wall_fail)
+        idx, d_floor, Ti, boxes = idx[keep], d_floor[keep], Ti[keep], boxes[keep]
+        width, opening, contact = width[keep], opening[keep], contact[keep]
         # the points near each grasp's gripper (near enough to count for its clearance), in its TCP frame
         P, valid = _local_points(obstacles, Ti, boxes, sweep, max(cfg.clearance_m, cfg.clearance_saturation_m))
         d_parts = required_backoff_m(P, boxes, cfg.clearance_m, valid=valid, sweep_length_m=sweep)
-        d_floor = np.maximum(self._floor_backoff(Ti, boxes, cos_angle[idx]), 0.0)
         d = np.maximum(d_floor, d_parts)
-        floor_fail = _engagement(contact, d_floor, g) < cfg.min_engagement_m
-        parts_fail = ~floor_fail & (_engagement(contact, d, g) < cfg.min_engagement_m)
-        cause[idx[floor_fail]] = _code("collision_floor")
+        parts_fail = _engagement(contact, d, g) < cfg.min_engagement_m
         cause[idx[parts_fail]] = _code("collision_parts")
-        keep = ~(floor_fail | parts_fail)
+        keep = ~parts_fail
         idx, d, Ti, P, valid, boxes = idx[keep], d[keep], Ti[keep], P[keep], valid[keep], boxes[keep]
         width, opening, contact = width[keep], opening[keep], contact[keep]
         back = np.tile(np.eye(4), (len(idx), 1, 1))
@@ -568,17 +671,22 @@ class GraspPlanner:
         Tg = Ti @ back  # the grasps, moved back
         P = P + np.stack([np.zeros_like(d), np.zeros_like(d), d], axis=1)[:, None, :].astype(P.dtype)
 
-        # bin walls: the boxes swept along the approach (a box moved along its own z stays a box)
+        # the lift: back out along the approach until the gripper and the part in it clear the bin's rim
+        part_box = _part_box_tcp(Tg, part.T_base_obj, data.model.bounds_m)
+        lift = self._lift_distance(Tg, g.boxes(width), surfaces[index], cos_angle[idx])
+
+        # bin walls: the boxes swept along the approach from the grasp to the lift (a box moved along its own z
+        # stays a box)
         wall_gap = np.full(len(idx), np.inf)
         if cfg.bin is not None and len(idx):
             swept = boxes.copy()
-            swept[..., 0, 2] -= sweep
+            swept[..., 0, 2] -= np.maximum(lift, cfg.pre_grasp_distance_m)[:, None]
             wall_gap = self._wall_gap(Tg, swept)
         wall_fail = wall_gap < cfg.bin_clearance_m
         cause[idx[wall_fail]] = _code("collision_bin")
         keep = ~wall_fail
         idx, d, Tg, P, valid, wall_gap = idx[keep], d[keep], Tg[keep], P[keep], valid[keep], wall_gap[keep]
-        width, opening, contact = width[keep], opening[keep], contact[keep]
+        width, opening, contact, lift, part_box = width[keep], opening[keep], contact[keep], lift[keep], part_box[keep]
 
         # score
         fingers = g.boxes(opening)[:, FINGER_BOXES]
@@ -612,6 +720,8 @@ class GraspPlanner:
             "backoff": d[order],
             "engagement": engagement[order],
             "clearance": clearance[order],
+            "lift": lift[order],
+            "part_box": part_box[order],
             "terms": {k: v[order] for k, v in terms.items()},
         }
         return _Evaluated(index, report, part, ranked, float(score[order[0]]))
@@ -630,7 +740,7 @@ class GraspPlanner:
             if T_grasp[:3, 0] @ x_seed < 0:
                 T_grasp[:3, :2] *= -1.0
             T_pre = T_grasp @ make_T(t=(0.0, 0.0, -cfg.pre_grasp_distance_m))
-            T_lift = T_grasp @ make_T(t=(0.0, 0.0, -cfg.lift_height_m))
+            T_lift = T_grasp @ make_T(t=(0.0, 0.0, -float(r["lift"][k])))
             T_place = _place_pose(cfg.T_base_place, T_grasp[:3, 0])
             q_grasp = ik_nearest(T_grasp, q_seed, T_flange_tcp, self._limits)
             q_pre = q_lift = q_place = None
@@ -639,13 +749,26 @@ class GraspPlanner:
                 q_lift = ik_nearest(T_lift, q_grasp, T_flange_tcp, self._limits)
             if q_pre is not None and q_lift is not None:
                 q_place = ik_nearest(T_place, q_lift, T_flange_tcp, self._limits)
-            if q_grasp is None or q_pre is None or q_lift is None or q_place is None:
+            outside = cfg.workspace is not None and not np.all(
+                cfg.workspace.contains(np.array([T[:3, 3] for T in (T_pre, T_grasp, T_lift, T_place)]))
+            )
+            if outside or q_grasp is None or q_pre is None or q_lift is None or q_place is None:
                 ev.report["rejections"]["unreachable"] += 1
                 continue
             step = max(np.abs(q_pre - q_grasp).max(), np.abs(q_lift - q_grasp).max())
             if step > cfg.max_joint_step_rad:
                 ev.report["rejections"]["singular"] += 1
                 continue
+            # the half-turn about z above mirrors the part's box (TCP frame) in x and y
+            part_box = r["part_box"][k]
+            if T_grasp[:3, 0] @ r["T_grasp"][k][:3, 0] < 0:
+                part_box = part_box * np.array([-1.0, -1.0, 1.0])[None, :]
+                part_box = np.stack([part_box.min(axis=0), part_box.max(axis=0)])
+            lifted = self._clear_transits(q_seed, T_grasp, q_grasp, (T_lift, q_lift, q_place), part_box, r, k)
+            if lifted is None:
+                ev.report["rejections"]["collision_transit"] += 1
+                continue
+            T_lift, q_lift, q_place = lifted
             out.append(
                 PlannedGrasp(
                     part_index=ev.part_index,
@@ -715,28 +838,132 @@ class GraspPlanner:
         above = height[top_cells[:, 0], top_cells[:, 1]] > top @ up + self.config.cover_tolerance_m
         return float(above.mean())
 
-    def _wall_gap(self, T: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-        """``(k,)`` gap between each grasp's boxes (``(k, b, 2, 3)``, TCP frame) and the bin walls (a lower bound
-        on the distance; < 0: they overlap).
+    def _wall_gap(self, T: np.ndarray, boxes: np.ndarray, threshold_m: float | None = None) -> np.ndarray:
+        """``(k,)`` the smallest of ``_wall_gap_per_box``."""
+        return self._wall_gap_per_box(T, boxes, threshold_m).min(axis=1)
 
-        Boxes whose corners all lie inside the bin's inner prism (extended upwards) cannot touch a wall: their gap
-        is the corners' distance to the walls. Only the others go through the separating-axis test."""
+    def _wall_gap_per_box(self, T: np.ndarray, boxes: np.ndarray, threshold_m: float | None = None) -> np.ndarray:
+        """``(k, b)`` gap between each grasp's boxes (``(k, b, 2, 3)``, TCP frame) and the bin walls (a lower
+        bound on the distance; < 0: they overlap).
+
+        Two cheap lower bounds per box first: a box whose corners all lie inside the bin's inner prism (extended
+        upwards) is as far from the walls as its corners are; a box whose corners all lie above the rim is at least
+        that high above it. Only boxes for which neither bound reaches ``threshold_m`` (default
+        ``bin_clearance_m``) go through the separating-axis test."""
         b = self.config.bin
-        corners = _box_corners(boxes)  # (k, b * 8, 3)
+        k, nb = boxes.shape[:2]
+        corners = _box_corners(boxes).reshape(k, nb, 8, 3)
         T_bin_tcp = invert(b.T_base_bin) @ T
-        c_bin = np.einsum("kij,kpj->kpi", T_bin_tcp[:, :3, :3], corners) + T_bin_tcp[:, None, :3, 3]
+        c_bin = _rotate(T_bin_tcp, corners.reshape(k, nb * 8, 3)).reshape(k, nb, 8, 3) + T_bin_tcp[:, None, None, :3, 3]
         half_xy = np.array(b.inner_size_m[:2]) / 2.0
-        gap = (half_xy - np.abs(c_bin[..., :2])).min(axis=(1, 2))
-        hard = np.flatnonzero(gap < self.config.bin_clearance_m)
-        if len(hard):
-            sub = boxes[hard]
-            centre_tcp, half = sub.mean(axis=-2), (sub[..., 1, :] - sub[..., 0, :]) / 2.0  # (h, b, 3)
-            R = T[hard, :3, :3]
-            centre = np.einsum("kij,kbj->kbi", R, centre_tcp) + T[hard, None, :3, 3]
+        inside = (half_xy - np.abs(c_bin[..., :2])).min(axis=(2, 3))  # (k, b)
+        above = c_bin[..., 2].min(axis=2) - b.inner_size_m[2]
+        gap = np.maximum(inside, above)
+        hard_k, hard_b = np.nonzero(gap < (self.config.bin_clearance_m if threshold_m is None else threshold_m))
+        if len(hard_k):
+            sub = boxes[hard_k, hard_b]  # (h, 2, 3)
+            centre_tcp, half = sub.mean(axis=-2), (sub[:, 1, :] - sub[:, 0, :]) / 2.0  # (h, 3)
+            R = T[hard_k, :3, :3]
+            centre = np.einsum("hij,hj->hi", R, centre_tcp) + T[hard_k, :3, 3]
             wc, wR, wh = b.wall_boxes()
-            sat = obb_gap_m(centre[:, :, None, :], R[:, None, None], half[:, :, None, :], wc, wR, wh)
-            gap[hard] = sat.reshape(len(hard), -1).min(axis=1)
+            sat = obb_gap_m(centre[:, None, :], R[:, None], half[:, None, :], wc, wR, wh)  # (h, 4)
+            gap[hard_k, hard_b] = sat.min(axis=1)
         return gap
+
+    def _clear_transits(
+        self,
+        q_seed: np.ndarray,
+        T_grasp: np.ndarray,
+        q_grasp: np.ndarray,
+        lift: tuple[np.ndarray, np.ndarray, np.ndarray],
+        part_box: np.ndarray,
+        r: dict,
+        k: int,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
+        """``(T_lift, q_lift, q_place)`` whose joint moves (in: from ``q_seed``, fingers open; out: to the place
+        pose, fingers open or closed on the part) keep ``transit_clearance_m`` from the walls: the given lift, else
+        one ``_LIFT_RAISES_M`` further back along the approach (a joint move between two higher poses swings less
+        low); None when none does."""
+        cfg = self.config
+        if cfg.transit_clearance_m is None:
+            return lift
+        # out with the fingers open or closed (a failed grasp leaves the lift open): the open boxes and the part
+        open_boxes = cfg.gripper.boxes(float(r["opening"][k]))
+        out_boxes = np.concatenate([open_boxes, part_box[None]], axis=0)
+        T_flange_tcp = cfg.gripper.T_flange_tcp
+        for raise_m in (0.0, *_LIFT_RAISES_M):
+            if raise_m:
+                T_lift = T_grasp @ make_T(t=(0.0, 0.0, -float(r["lift"][k]) - raise_m))
+                q_lift = ik_nearest(T_lift, q_grasp, T_flange_tcp, self._limits)
+                if q_lift is None or np.abs(q_lift - q_grasp).max() > cfg.max_joint_step_rad:
+                    return None
+                if cfg.workspace is not None and not cfg.workspace.contains(T_lift[:3, 3]):
+                    return None
+                q_place = ik_nearest(_place_pose(cfg.T_base_place, T_grasp[:3, 0]), q_lift, T_flange_tcp, self._limits)
+                if q_place is None:
+                    return None
+                lift = (T_lift, q_lift, q_place)
+            _, q_lift, q_place = lift
+            if (
+                self.transit_gap_m(q_seed, q_lift, open_boxes) >= cfg.transit_clearance_m
+                and self.transit_gap_m(q_lift, q_place, out_boxes) >= cfg.transit_clearance_m
+            ):
+                return lift
+        return None
+
+    def transit_gap_m(self, q_from: np.ndarray, q_to: np.ndarray, boxes_tcp: np.ndarray) -> float:
+        """The smallest gap (m; < 0: overlap; inf without a bin) between the bin walls and ``boxes_tcp``
+        (``(b, 2, 3)`` in the TCP frame, e.g. the gripper's) carried along the straight joint-space line from
+        ``q_from`` to ``q_to`` (what a joint move does), sampled every ``transit_step_rad`` of the largest joint
+        change."""
+        cfg = self.config
+        if cfg.bin is None:
+            return math.inf
+        q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
+        n = max(2, math.ceil(float(np.abs(q_to - q_from).max()) / cfg.transit_step_rad) + 1)
+        q = q_from[None] + np.linspace(0.0, 1.0, n)[:, None] * (q_to - q_from)[None]
+        T = forward_kinematics(q, cfg.gripper.T_flange_tcp)
+        boxes = np.broadcast_to(np.asarray(boxes_tcp, dtype=float), (n, *np.shape(boxes_tcp)))
+        return float(self._wall_gap(T, boxes, cfg.transit_clearance_m or 0.0).min())
+
+    def _lift_distance(
+        self, T: np.ndarray, boxes_closed: np.ndarray, surface_base: np.ndarray, cos_angle: np.ndarray
+    ) -> np.ndarray:
+        """``(k,)`` how far back along the approach each grasp's lift is: ``lift_height_m``, or more until the
+        gripper's boxes (``(k, b, 2, 3)``, TCP frame, closed on the part) and the part (its surface points in the
+        base frame, at rest) are ``rim_clearance_m`` above the bin's rim."""
+        cfg = self.config
+        lift = np.full(len(T), cfg.lift_height_m)
+        if cfg.bin is None or not len(T):
+            return lift
+        corners = _box_corners(boxes_closed)
+        points = _rotate(T, corners) + T[:, None, :3, 3]
+        low = np.minimum(
+            cfg.bin.height_above_floor_m(points).min(axis=1), float(cfg.bin.height_above_floor_m(surface_base).min())
+        )
+        # moving back by d along the approach raises everything by d * cos(angle)
+        need = (cfg.bin.inner_size_m[2] + cfg.rim_clearance_m - low) / np.maximum(cos_angle, 1e-6)
+        return np.maximum(lift, need)
+
+    def _walls_at_every_backoff(
+        self, T: np.ndarray, boxes: np.ndarray, d_min: np.ndarray, contact_z: np.ndarray, sweep_m: float
+    ) -> np.ndarray:
+        """``(k,)`` True where the gripper hits a wall at every backoff the grasp may take: from ``d_min`` (the
+        floor's) to the largest that still leaves ``min_engagement_m`` of pad on the part. Over that range, the
+        boxes swept back by ``sweep_m`` all contain the stretch from ``hi - d_max`` back to ``lo - d_min -
+        sweep_m``; if that stretch already hits a wall, no backoff helps (an exact test, done before the costly
+        points check)."""
+        cfg = self.config
+        if cfg.bin is None or not len(T):
+            return np.zeros(len(T), dtype=bool)
+        d_max = cfg.gripper.pad_length_m / 2.0 - contact_z[:, 0] - cfg.min_engagement_m  # the pads' tips that far in
+        common = boxes.copy()
+        common[..., 0, 2] -= (d_min + sweep_m)[:, None]
+        common[..., 1, 2] -= d_max[:, None]
+        empty = common[..., 1, 2] <= common[..., 0, 2]  # no stretch in common: cannot tell, keep
+        common[..., 1, 2] = np.maximum(common[..., 1, 2], common[..., 0, 2])
+        gap = self._wall_gap_per_box(T, common)
+        return np.any((gap < cfg.bin_clearance_m) & ~empty, axis=1)
 
     def _floor_backoff(self, T: np.ndarray, boxes: np.ndarray, cos_angle: np.ndarray) -> np.ndarray:
         """``(k,)`` how far each grasp must move back along its approach so that every gripper box is at least
@@ -745,7 +972,7 @@ class GraspPlanner:
         if cfg.bin is None or not len(T):
             return np.full(len(T), -np.inf)
         corners = _box_corners(boxes)  # (k, b * 8, 3), TCP frame
-        points = np.einsum("kij,kpj->kpi", T[:, :3, :3], corners) + T[:, None, :3, 3]
+        points = _rotate(T, corners) + T[:, None, :3, 3]
         height = cfg.bin.height_above_floor_m(points).min(axis=1)
         # moving back by d along the approach raises the gripper by d * cos(angle)
         return (cfg.floor_clearance_m - height) / np.maximum(cos_angle, 1e-6)
@@ -768,6 +995,7 @@ class GraspPlanner:
 
     def _prepare(self, model: ObjectModel, cache_dir: str | Path | None) -> _ModelData:
         grasps = grasp_candidates(model, self.config.grasp_params, cache_dir)
+        grasps = grasps.subset(grasps.width_m >= self.config.min_grasp_width_m)
         rng = np.random.default_rng(self.config.grasp_params.seed)
         surface, faces = trimesh.sample.sample_surface(model.mesh, _SURFACE_SAMPLES, seed=rng)
         return _ModelData(model, grasps, surface, model.mesh.face_normals[faces], cKDTree(surface))
@@ -798,6 +1026,7 @@ class _Evaluated:
     part: PartEstimate | None = None
     ranked: dict | None = None
     best_score: float = -np.inf
+    pending: dict | None = None  # what the candidate checks need (a part that passed the part-level checks)
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -828,7 +1057,7 @@ def _local_points(
     hi = hi + margin_m
     lo[:, 2] -= sweep_m
     corners = _box_corners(np.stack([lo, hi], axis=1)[:, None])  # (k, 8, 3)
-    corners_base = np.einsum("kij,kpj->kpi", T[:, :3, :3], corners) + T[:, None, :3, 3]
+    corners_base = _rotate(T, corners) + T[:, None, :3, 3]
     box_lo, box_hi = corners_base.reshape(-1, 3).min(axis=0), corners_base.reshape(-1, 3).max(axis=0)
     points = points[np.all((points >= box_lo) & (points <= box_hi), axis=1)]
     if not len(points):
@@ -855,6 +1084,11 @@ def _engagement(contact_z: np.ndarray, backoff: np.ndarray, g: GripperGeometry) 
     return np.minimum(half - backoff, contact_z[:, 1]) - np.maximum(-half - backoff, contact_z[:, 0])
 
 
+def _rotate(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(k, p, 3)`` points rotated by each ``T[k]``'s rotation (a batched matrix product: faster than einsum)."""
+    return np.matmul(points, np.swapaxes(T[:, :3, :3], 1, 2))
+
+
 def _box_corners(boxes: np.ndarray) -> np.ndarray:
     """``(..., b, 2, 3)`` boxes -> ``(..., b * 8, 3)`` corners."""
     lo, hi = boxes[..., 0, :], boxes[..., 1, :]
@@ -866,6 +1100,17 @@ def _box_corners(boxes: np.ndarray) -> np.ndarray:
     ]
     stacked = np.stack(corners, axis=-2)  # (..., b, 8, 3)
     return stacked.reshape(*stacked.shape[:-3], -1, 3)
+
+
+def _part_box_tcp(T_base_tcp: np.ndarray, T_base_obj: np.ndarray, bounds_m: np.ndarray) -> np.ndarray:
+    """``(k, 2, 3)`` the axis-aligned box, in each grasp's TCP frame, around the part's bounds (``(2, 3)``, object
+    frame): what the gripper carries out of the bin."""
+    lo, hi = np.asarray(bounds_m, dtype=float)
+    corners_obj = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners_base = transform_points(T_base_obj, corners_obj)
+    T_inv = np.linalg.inv(T_base_tcp)
+    local = np.einsum("kij,pj->kpi", T_inv[:, :3, :3], corners_base) + T_inv[:, None, :3, 3]
+    return np.stack([local.min(axis=1), local.max(axis=1)], axis=1)
 
 
 def _place_pose(T_base_place: np.ndarray, x_grasp: np.ndarray) -> np.ndarray:

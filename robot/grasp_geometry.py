@@ -209,8 +209,11 @@ def obb_gap_m(
         [np.ones((*shape, 6), dtype=bool), np.broadcast_to(norm[..., 0] > 1e-9, (*shape, 9))], axis=-1
     )
     delta = np.broadcast_to(centre_b - centre_a, (*shape, 3))
-    dist = np.abs(np.einsum("...ji,...i->...j", axes, delta))
-    r_a = np.einsum("...ji,...i->...j", np.abs(np.einsum("...ji,...ki->...jk", axes, axes_a)), half_a)
-    r_b = np.einsum("...ji,...i->...j", np.abs(np.einsum("...ji,...ki->...jk", axes, axes_b)), half_b)
+    # batched matrix products (matmul is several times faster than the equivalent einsum here)
+    dist = np.abs(np.matmul(axes, delta[..., None])[..., 0])
+    half_a = np.broadcast_to(half_a, (*shape, 3))[..., None]
+    half_b = np.broadcast_to(half_b, (*shape, 3))[..., None]
+    r_a = np.matmul(np.abs(np.matmul(axes, np.swapaxes(axes_a, -1, -2))), half_a)[..., 0]
+    r_b = np.matmul(np.abs(np.matmul(axes, np.swapaxes(axes_b, -1, -2))), half_b)[..., 0]
     gap = np.where(usable, dist - r_a - r_b, -np.inf)
     return gap.max(axis=-1)

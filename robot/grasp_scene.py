@@ -72,6 +72,12 @@ class BinGeometry:
         """(...,) signed height of points ``(..., 3)`` above the inner floor's plane."""
         return (np.asarray(points_base) - self.floor_point) @ self.floor_normal
 
+    def holds(self, point_base: np.ndarray) -> bool:
+        """Whether a point (a part's origin, base frame) is in the bin: inside its inner footprint and above its
+        floor, at any height (a part above the bin, held or falling, is still the bin's)."""
+        p = transform_points(invert(self.T_base_bin), np.asarray(point_base, dtype=float).reshape(1, 3))[0]
+        return bool(abs(p[0]) < self.inner_size_m[0] / 2 and abs(p[1]) < self.inner_size_m[1] / 2 and p[2] > 0.0)
+
     def pile_points(self, points_base: np.ndarray, surface_tolerance_m: float) -> np.ndarray:
         """The points ``(n, 3)`` that lie inside the bin, more than ``surface_tolerance_m`` from its floor and walls
         (those are the bin itself, or beyond it); parts sticking out over the rim are kept."""

@@ -62,10 +62,12 @@ class GraspSetParams:
     friction_coefficient: pad-part friction; the friction cone's half angle is ``atan`` of it.
     n_surface_samples: surface points whose inward rays seed the pairs. n_dense_samples: surface points for the
     contact and self-collision analysis (each stands for ``area / n`` of surface). n_approach: approach directions
-    around each pair's axis. contact_tolerance_m: how far from a pad's plane the surface still counts as touching
-    (rubber pads). min_contact_area_m2 / contact_area_saturation_m2: the least area each pad must touch, and the
-    area at which the score stops growing. min_engagement_m: the least length (along the approach) over which both
-    pads touch. open_clearance_m: per side, how much wider than the part the gripper opens to come in;
+    around each pair's axis (16: every 22.5 degrees, so 0, 22.5 and 45 degrees of tilt within the planner's cone).
+    contact_tolerance_m: how far from a pad's plane the surface still counts as touching (rubber pads).
+    min_contact_area_m2 / contact_area_saturation_m2: the least area each pad must touch, and the area at which the
+    score stops growing. min_engagement_m: the least length (along the approach) over which both
+    pads touch. open_clearance_m: per side, how much wider than the part the gripper opens to come in (5 mm: more
+    than a pose error of a few millimetres, and each millimetre more keeps the fingers off more neighbours);
     min_open_clearance_m: the least per-side margin a part must leave in the stroke. self_clearance_m: distance kept
     between the gripper and the part outside the contacts. dedup_position_m / dedup_angle_deg: candidates closer
     than this (position and axes) are one. continuous_steps: samples of a continuous symmetry (every 360/steps
@@ -75,13 +77,13 @@ class GraspSetParams:
     friction_coefficient: float = 0.4
     n_surface_samples: int = 400
     n_dense_samples: int = 3000
-    n_approach: int = 12
+    n_approach: int = 16
     contact_tolerance_m: float = 0.001
     min_contact_area_m2: float = 6e-6
     contact_area_saturation_m2: float = 60e-6
     min_engagement_m: float = 0.002
     min_width_m: float = 0.002
-    open_clearance_m: float = 0.008
+    open_clearance_m: float = 0.005
     min_open_clearance_m: float = 0.003
     self_clearance_m: float = 0.001
     dedup_position_m: float = 0.004

@@ -7,21 +7,29 @@ the real one (a UR5e, an OAK camera), and unit tests can swap any part for a fak
 
 One cycle (``Picker.cycle``) takes one frame, estimates the parts, plans, and tries the planned grasps best first:
 
-- ``approach``: open the gripper to the grasp's opening, joint move to the lift pose (above the pre-grasp on the
-  approach line), straight lines to the pre-grasp and the grasp;
-- ``grasp``: close; the gripper's object detection must say "held" (False: closed on air or the part slid away);
-- ``verify``: straight line back out to the lift; the gripper must still report the object and its opening must
-  not have collapsed below the planned grasp width less ``slip_width_tolerance_m`` (the part slipped out);
-- ``place``: joint move to the place pose, open, and the cycle counts the pick as done. The look after lifting is
-  the next cycle's frame (the arm is then clear of the camera): if a part of the same model is still where the
-  picked one was (``still_there_distance_m``), the pick is marked failed (``part_still_in_bin``).
+- ``approach``: open the gripper to the grasp's opening and check that the fingers got there (something stuck
+  between them: ``gripper_blocked``), joint move to the lift pose (above the bin's rim on the approach line),
+  straight lines to the pre-grasp and the grasp;
+- ``grasp``: close; the gripper's object detection must say "held" (False: closed on air or the part slid away;
+  the gripper opens and backs out along the approach to the lift);
+- ``verify``: straight line back out to the lift; the fingers must not have closed below the planned grasp width
+  less ``slip_width_tolerance_m`` (the part slipped out), and the gripper must report the object again, or its
+  fingers rest at that width, within ``slip_settle_s``;
+- ``place``: joint move to the place pose, open, and check that the fingers opened: a part that keeps them from
+  opening is still in the gripper (``not_released``; the run stops with "gripper_blocked" if re-opening does not
+  free it). The look after lifting is the next cycle's frame (the arm is then clear of the camera): if a part of
+  the same model is still where the picked one was (``still_there_distance_m``), the pick is marked failed
+  (``part_still_in_bin``).
 
 Retries: a refused motion (``MotionRefusedError``: checked, nothing sent) moves on to the next candidate; a grasp
 that fails verification, a protective stop or a dropped connection (after ``robot.recover()``) end the cycle, and
-the next cycle looks again (the pile has changed). The run stops cleanly when the camera sees no parts
-("bin_empty"), when no safe grasp is left ("nothing_safe", with the planner's reasons), after ``max_cycles``, or
-after ``max_failed_cycles`` cycles in a row without a pick. A motion error that cannot be recovered (an
-emergency stop) is raised.
+the next cycle looks again (the pile has changed). A part whose location has seen ``max_failures_per_part``
+failed attempts (within ``exclusion_distance_m``: a part that moved is a new chance) is left out of planning, so
+one stubborn part cannot make the run loop. The run stops cleanly when the camera sees no parts ("bin_empty"),
+when no safe grasp is left ("nothing_safe", with the planner's reasons), when every part left has been given up
+("gave_up"), when the fingers cannot be freed ("gripper_blocked"), after ``max_cycles``, or after
+``max_failed_cycles`` cycles in a row without a pick. A motion error that cannot be recovered (an emergency
+stop, a protective stop that cannot be released) is raised.
 
 Times: stage timings are wall seconds; ``sim_time_s`` is the camera's timestamp (simulated seconds in the
 simulated cell, the device clock on hardware), so a cycle's robot time is the difference between two captures.
@@ -39,14 +47,21 @@ import numpy as np
 
 from perception.camera import Frame
 from robot.gripper import GripperError
-from robot.ur_errors import ConnectionLostError, MotionFailedError, MotionRefusedError, ProtectiveStopError
+from robot.ur_errors import (
+    ConnectionLostError,
+    MotionFailedError,
+    MotionRefusedError,
+    ProtectiveStopError,
+    RecoveryError,
+    RobotConnectionError,
+)
 from sygrid.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
 STAGES = ("capture", "perceive", "plan", "approach", "grasp", "verify", "place")
 #: Why a run stopped.
-STOP_REASONS = ("bin_empty", "nothing_safe", "max_cycles", "too_many_failures")
+STOP_REASONS = ("bin_empty", "nothing_safe", "gave_up", "gripper_blocked", "max_cycles", "too_many_failures")
 #: The outcome of one attempt (one planned grasp tried): "picked" or a failure cause.
 FAILURE_CAUSES = (
     "motion_refused",  # checked and refused, nothing sent: next candidate
@@ -56,7 +71,14 @@ FAILURE_CAUSES = (
     "connection_lost",
     "motion_failed",  # another recoverable motion failure (program stopped, timeout)
     "part_still_in_bin",  # placed "something", but the next look shows the part where it was
+    "gripper_blocked",  # the fingers did not open to the grasp's opening before the approach: nothing sent down
+    "not_released",  # the fingers did not open at the place pose: the part (or something) is stuck in them
 )
+_WIDTH_STEADY_M = 0.0005  # fingers that move less than this ...
+_WIDTH_STEADY_S = 0.15  # ... for this long rest on what they hold
+#: Outcomes that count against a part's location (``PickerConfig.max_failures_per_part``): a dropped connection
+#: or a blocked gripper says nothing about the part.
+_PART_FAILURES = frozenset(FAILURE_CAUSES) - {"connection_lost", "gripper_blocked", "not_released"}
 
 
 # ---------------------------------------------------------------------------------------------- protocols
@@ -120,8 +142,14 @@ class PickerConfig:
     transit_speed_rad_s: joint moves (to the lift,
     to the place pose). grip_force_n: closing force (None: the gripper's default). max_attempts_per_cycle: planned
     grasps tried in one cycle before looking again. slip_width_tolerance_m: after lifting, an opening smaller than
-    the planned grasp width less this means the part slipped out. still_there_distance_m: a part of the same model
-    this close to a picked one in the next frame means the pick failed.
+    the planned grasp width less this means the part slipped out; slip_settle_s: how long the gripper may report
+    no object (its fingers settling) before the part counts as lost. still_there_distance_m: a part of the same model
+    this close to a picked one in the next frame means the pick failed. max_failures_per_part /
+    exclusion_distance_m: after this many failed attempts on parts of one model within this distance of each other,
+    parts there are no longer planned. open_tolerance_m / open_timeout_s: the fingers must reach a commanded
+    opening less this within this time (a gripper may report "stopped" while its fingers still move); release_tries:
+    how often the gripper is opened at the place pose before the part counts as stuck. reconnect_timeout_s: how long
+    recovery keeps trying to reach a controller that does not answer (a network link that is down).
     """
 
     max_cycles: int = 50
@@ -134,13 +162,29 @@ class PickerConfig:
     transit_accel_rad_s2: float | None = 3.0
     grip_force_n: float | None = None
     slip_width_tolerance_m: float = 0.004
+    slip_settle_s: float = 0.5
     still_there_distance_m: float = 0.01
+    max_failures_per_part: int = 2
+    exclusion_distance_m: float = 0.015
+    open_tolerance_m: float = 0.003
+    open_timeout_s: float = 2.0
+    release_tries: int = 2
+    reconnect_timeout_s: float = 30.0
 
     def __post_init__(self) -> None:
-        for name in ("max_cycles", "max_attempts_per_cycle", "max_failed_cycles"):
+        for name in (
+            "max_cycles",
+            "max_attempts_per_cycle",
+            "max_failed_cycles",
+            "max_failures_per_part",
+            "release_tries",
+        ):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ConfigError(f"PickerConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
-        for name in ("slip_width_tolerance_m", "still_there_distance_m"):
+        for name in (
+            "slip_width_tolerance_m", "still_there_distance_m", "exclusion_distance_m", "open_tolerance_m",
+            "open_timeout_s", "slip_settle_s", "reconnect_timeout_s",
+        ):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"PickerConfig.{name} must be >= 0, got {getattr(self, name)!r}")
 
@@ -168,6 +212,7 @@ class CycleRecord:
     n_detections: int = 0
     n_poses: int = 0
     n_planned: int = 0
+    n_excluded: int = 0  # parts left out of planning after repeated failures at their location
     perception_ms: dict[str, float] = field(default_factory=dict)
     plan_summary: str = ""
     attempts: list[Attempt] = field(default_factory=list)
@@ -261,6 +306,8 @@ class Picker:
         self.config = config or PickerConfig()
         self.on_cycle = on_cycle
         self._last_picked: Attempt | None = None
+        # [obj_id, position in the base frame (3,), failed attempts] per location where attempts failed
+        self._failed_at: list[list] = []
 
     # --- the run ---------------------------------------------------------------------------------------------
     def run(self, max_cycles: int | None = None) -> RunReport:
@@ -277,7 +324,7 @@ class Picker:
             if cycles and cycles[-1].sim_cycle_s is None:
                 cycles[-1].sim_cycle_s = record.sim_time_s - cycles[-1].sim_time_s
             cycles.append(record)
-            if record.end in ("bin_empty", "nothing_safe"):
+            if record.end in ("bin_empty", "nothing_safe", "gave_up", "gripper_blocked"):
                 return self._finish(cycles, record.end, record.plan_summary)
             failed_in_row = 0 if record.picked else failed_in_row + 1
             if failed_in_row >= self.config.max_failed_cycles:
@@ -295,7 +342,8 @@ class Picker:
     # --- one cycle -------------------------------------------------------------------------------------------
     def cycle(self, index: int = 0) -> CycleRecord:
         """capture -> perceive -> plan -> (approach -> grasp -> verify -> place) per planned grasp until one
-        picks; returns the record (``end``: "picked", "failed", "bin_empty" or "nothing_safe")."""
+        picks; returns the record (``end``: "picked", "failed", or a stop reason: "bin_empty", "nothing_safe",
+        "gave_up", "gripper_blocked")."""
         t = time.perf_counter()
         frame = self.camera.capture()
         record = CycleRecord(index=index, sim_time_s=float(frame.timestamp_s))
@@ -312,14 +360,27 @@ class Picker:
             if not result.poses:
                 record.end, record.plan_summary = "bin_empty", "the camera sees no parts (no detections)"
                 return record
+            poses = [p for p in result.poses if not self._given_up(p)]
+            record.n_excluded = len(result.poses) - len(poses)
+            if not poses:
+                record.end = "gave_up"
+                record.plan_summary = (
+                    f"every part seen ({record.n_excluded}) is where {self.config.max_failures_per_part} attempts "
+                    "failed already"
+                )
+                return record
             t = time.perf_counter()
-            plan = self.planner.plan(
-                result.poses, self.T_base_camera, frame.depth_m, frame.intrinsics, q_seed=self.robot.q()
-            )
+            plan = self.planner.plan(poses, self.T_base_camera, frame.depth_m, frame.intrinsics, q_seed=self.robot.q())
             record.stage_wall_s["plan"] = time.perf_counter() - t
             record.n_planned, record.plan_summary = len(plan.grasps), plan.summary()
+            if record.n_excluded:
+                record.plan_summary += f" ({record.n_excluded} part(s) given up after repeated failures)"
             if plan.nothing_safe:
-                record.end = "nothing_safe"
+                if getattr(plan, "n_in_bin", None) == 0:  # the camera sees parts, but none in the bin
+                    record.end = "bin_empty"
+                    record.plan_summary = f"no part in the bin ({len(poses)} seen outside it); {record.plan_summary}"
+                else:
+                    record.end = "nothing_safe"
                 return record
             record.end = "failed"
             for grasp in plan.grasps[: self.config.max_attempts_per_cycle]:
@@ -328,6 +389,10 @@ class Picker:
                 if attempt.outcome == "picked":
                     record.end = "picked"
                     self._last_picked = attempt
+                    break
+                self._count_failure(attempt)
+                if attempt.outcome in ("gripper_blocked", "not_released"):
+                    record.end, record.plan_summary = "gripper_blocked", attempt.detail
                     break
                 if attempt.outcome != "motion_refused":
                     break  # something moved or failed: look again
@@ -348,10 +413,13 @@ class Picker:
         timer = _StageTimer(record.stage_wall_s)
         try:
             with timer("approach"):
-                if self.gripper.can_set_width:
-                    self.gripper.open(width_m=min(grasp.opening_width_m, self._stroke()))
-                else:
-                    self.gripper.open()
+                opening = min(grasp.opening_width_m, self._stroke())
+                if not self._open_to(opening if self.gripper.can_set_width else None):
+                    return _fail(
+                        attempt, "gripper_blocked", stage,
+                        f"the fingers did not open to {1e3 * opening:.1f} mm (at {self._width_text()}): something "
+                        "is stuck between them",
+                    )  # fmt: skip
                 # Joint move to the lift pose (back out along the approach, above the pile and the bin's rim),
                 # then straight lines down the checked approach: a joint move straight to the pre-grasp could
                 # sweep the arm through the bin wall.
@@ -369,13 +437,19 @@ class Picker:
                 self.robot.move_l(grasp.T_base_lift, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
                 why = self._slip_reason(grasp)
             if why:
-                self.gripper.open()
+                self._open_to(None)
                 return _fail(attempt, "slipped", stage, why)
             stage = "place"
             with timer("place"):
                 self.robot.move_j(grasp.q_place, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
-                self.gripper.open()
+                released = self._release(opening if self.gripper.can_set_width else None)
             attempt.stage = "place"
+            if not released:
+                return _fail(
+                    attempt, "not_released", stage,
+                    f"the fingers did not open at the place pose after {cfg.release_tries} tries (at "
+                    f"{self._width_text()}): the part is stuck in the gripper",
+                )  # fmt: skip
             return attempt
         except MotionRefusedError as exc:
             return _fail(attempt, "motion_refused", stage, str(exc))
@@ -384,34 +458,55 @@ class Picker:
                 raise
             cause = _motion_cause(exc)
             log.warning("attempt on part %d: %s during %s (%s); recovering", grasp.part_index, cause, stage, exc)
-            self.robot.recover()
+            self._recover()
             self._after_recovery(grasp)
             return _fail(attempt, cause, stage, str(exc))
 
     # --- helpers ---------------------------------------------------------------------------------------------
     def _slip_reason(self, grasp: Any) -> str:
-        """Why the part is not in the gripper after lifting ("" when it is)."""
-        if self.gripper.object_detected() is False:
-            return "the gripper no longer reports an object after lifting"
-        width = self.gripper.width_m()
-        if width is not None and width < grasp.grasp_width_m - self.config.slip_width_tolerance_m:
-            return f"the fingers closed to {1e3 * width:.1f} mm, the part is {1e3 * grasp.grasp_width_m:.1f} mm wide"
-        return ""
+        """Why the part is not in the gripper after lifting ("" when it is).
+
+        Fingers closed well below the part's width say so at once. Otherwise the part is held when the gripper
+        reports an object, or when the fingers rest at the part's width (no change over ``_WIDTH_STEADY_S``): the
+        emulated 2F-85 reads "moving" (no object) much of the time while its stiff pads hold a part, from the
+        jitter of the finger speed. Neither within ``slip_settle_s``: the object is lost."""
+        deadline = time.monotonic() + self.config.slip_settle_s
+        steady_since, last_width = time.monotonic(), None
+        while True:
+            detected = self.gripper.object_detected()
+            width = self.gripper.width_m()
+            now = time.monotonic()
+            if width is not None and width < grasp.grasp_width_m - self.config.slip_width_tolerance_m:
+                return (
+                    f"the fingers closed to {1e3 * width:.1f} mm, the part is {1e3 * grasp.grasp_width_m:.1f} mm wide"
+                )
+            if detected is not False:
+                return ""
+            if width is not None and last_width is not None and abs(width - last_width) > _WIDTH_STEADY_M:
+                steady_since = now
+            last_width = width
+            if width is not None and now - steady_since >= _WIDTH_STEADY_S:
+                return ""
+            if now > deadline:
+                return "the gripper no longer reports an object after lifting"
+            time.sleep(0.02)
 
     def _back_out(self, grasp: Any, timer: _StageTimer) -> None:
+        """Open and go back out along the approach to the lift (above the rim: the joint move that follows starts
+        where the planner checked it)."""
         with timer("grasp"):
-            self.gripper.open()
-            self.robot.move_l(grasp.T_base_pregrasp, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
+            self._open_to(None)
+            self.robot.move_l(grasp.T_base_lift, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
 
     def _after_recovery(self, grasp: Any) -> None:
-        """After a recovered failure the arm is at rest somewhere on the way: let go, and back out along the
-        approach to the pre-grasp height before the joint move to the observe pose."""
+        """After a recovered failure the arm is at rest somewhere on the way: let go, and go straight up to the
+        lift's height (above the bin's rim) before the joint move to the observe pose."""
         try:
             self.gripper.open()
         except GripperError as exc:
             log.warning("the gripper did not open after recovery (%s)", exc)
         T = np.array(self.robot.T_base_tcp())
-        T[2, 3] = max(T[2, 3], grasp.T_base_pregrasp[2, 3])
+        T[2, 3] = max(T[2, 3], grasp.T_base_lift[2, 3])
         try:
             self.robot.move_l(T, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
         except MotionRefusedError as exc:
@@ -420,7 +515,73 @@ class Picker:
             if not exc.recoverable:
                 raise
             log.warning("backing out after recovery failed too (%s); recovering again", exc)
-            self.robot.recover()
+            self._recover()
+
+    def _recover(self) -> None:
+        """``robot.recover()``, tried again every half second while the controller cannot be reached at all (the
+        link is down), for up to ``reconnect_timeout_s``; any other failure to recover is raised at once."""
+        deadline = time.monotonic() + self.config.reconnect_timeout_s
+        while True:
+            try:
+                self.robot.recover()
+                return
+            except RecoveryError as exc:
+                if not isinstance(exc.__cause__, RobotConnectionError) or time.monotonic() > deadline:
+                    raise
+                log.warning("cannot reach the robot yet (%s); trying again", exc)
+                time.sleep(0.5)
+
+    def _open_to(self, width_m: float | None) -> bool:
+        """Opens to ``width_m`` (None: fully) and waits until the fingers are there (within ``open_tolerance_m``,
+        for up to ``open_timeout_s``): a gripper can report "stopped on something" while a squeezed part still
+        holds its fingers. False if they did not get there; True also for a gripper that cannot tell its width."""
+        cfg = self.config
+        if width_m is None:
+            self.gripper.open()
+        else:
+            self.gripper.open(width_m=width_m)
+        target = self._stroke() if width_m is None else width_m
+        deadline = time.monotonic() + cfg.open_timeout_s
+        while True:
+            width = self.gripper.width_m()
+            if width is None or not np.isfinite(target) or width >= target - cfg.open_tolerance_m:
+                return True
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+
+    def _release(self, width_m: float | None) -> bool:
+        """Lets go at the place pose: opens (up to ``release_tries`` times) until the fingers are open."""
+        for k in range(self.config.release_tries):
+            if self._open_to(width_m):
+                return True
+            log.warning("the fingers did not open at the place pose (at %s, try %d)", self._width_text(), k + 1)
+        return False
+
+    def _width_text(self) -> str:
+        width = self.gripper.width_m()
+        return "an unknown width" if width is None else f"{1e3 * width:.1f} mm"
+
+    def _count_failure(self, attempt: Attempt) -> None:
+        """Adds a failed attempt to its location's count (see ``max_failures_per_part``)."""
+        if attempt.outcome not in _PART_FAILURES or attempt.T_base_obj is None:
+            return
+        p = np.asarray(attempt.T_base_obj)[:3, 3]
+        for entry in self._failed_at:
+            if entry[0] == attempt.obj_id and np.linalg.norm(entry[1] - p) < self.config.exclusion_distance_m:
+                entry[1], entry[2] = p, entry[2] + 1
+                return
+        self._failed_at.append([attempt.obj_id, p, 1])
+
+    def _given_up(self, pose: Any) -> bool:
+        """A part where ``max_failures_per_part`` attempts failed already (same model, within the distance)."""
+        p = (self.T_base_camera @ np.asarray(pose.T_camera_object))[:3, 3]
+        return any(
+            obj_id == pose.obj_id
+            and count >= self.config.max_failures_per_part
+            and np.linalg.norm(where - p) < self.config.exclusion_distance_m
+            for obj_id, where, count in self._failed_at
+        )
 
     def _to_observe(self) -> None:
         if np.max(np.abs(np.asarray(self.robot.q()) - self.q_observe)) > 1e-3:
@@ -444,6 +605,7 @@ class Picker:
             if np.linalg.norm(p_now - p_was) < self.config.still_there_distance_m:
                 last.outcome, last.detail = "part_still_in_bin", "the next frame shows the part where it was"
                 log.warning("part %d (obj %d) is still in the bin after its pick", last.part_index, last.obj_id)
+                self._count_failure(last)
                 return
 
 

@@ -25,7 +25,8 @@ from robot.grasps import (
 from sygrid.camera import CameraIntrinsics, unproject_depth
 from sygrid.errors import ConfigError
 from sygrid.objects import GraspAnnotation, ObjectModel, builtin_part
-from sygrid.robots.kinematics import forward_kinematics
+from sygrid.robots import ur5e
+from sygrid.robots.kinematics import forward_kinematics, ik_nearest
 from sygrid.transforms import invert, make_T, rotation_about, transform_points
 
 # Fewer samples than the defaults: the same grasps, a few times faster to build.
@@ -302,7 +303,12 @@ def test_a_pipe_against_a_wall_keeps_only_the_grasps_without_a_finger_at_the_wal
     assert len(against.grasps) < len(middle.grasps)
     for g in against.grasps:
         assert abs(g.T_base_grasp[0, 0]) < 0.2  # pads close across the pipe, not towards the wall
-        assert wall_x - g.T_base_grasp[0, 3] > 0.03  # the housing (62 mm wide) stays off the wall
+        # the housing (62 mm wide) stays off the wall: the grasp is far enough from it, or leans away from it
+        lo, hi = GripperGeometry().boxes(g.opening_width_m)[4]
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        housing = transform_points(g.T_base_grasp, corners)
+        assert np.max(housing[:, 0]) <= wall_x - wide.config.bin_clearance_m + 1e-9
+        assert wall_x - g.T_base_grasp[0, 3] > 0.03 or g.T_base_grasp[0, 2] > 0.3
         assert g.clearance_m >= wide.config.bin_clearance_m
 
 
@@ -357,15 +363,163 @@ def test_an_unseen_neighbour_in_the_depth_frame_blocks_the_fingers(planner):
     assert crowded.nothing_safe and crowded.parts[0].status == "collision_parts", crowded.summary()
 
 
+def _arm_contacts_with_bin(world, qs: np.ndarray, width_m: float) -> list[tuple[str, str]]:
+    """MuJoCo's arm/gripper-vs-bin contacts (penetrating) at joint configurations ``qs`` with the fingers at
+    ``width_m``: the simulated cell's own geometry, independent of the planner's boxes."""
+    m, d = world.model, world.data
+    arm_q = [m.joint(n).qposadr[0] for n in ur5e.JOINT_NAMES]
+    fingers = [m.joint(f"gripper_finger_{k}_joint").qposadr[0] for k in "ab"]
+    bin_id = m.body("bin").id
+    hits = set()
+    for q in qs:
+        d.qpos[arm_q], d.qpos[fingers] = q, width_m / 2
+        mujoco.mj_forward(m, d)
+        for c in d.contact[: d.ncon]:
+            bodies = {m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]}
+            if bin_id in bodies and c.dist < 0:
+                hits.add((m.geom(c.geom1).name, m.geom(c.geom2).name))
+    return sorted(hits)
+
+
+def _joint_line(q0: np.ndarray, q1: np.ndarray, n: int = 60) -> np.ndarray:
+    return q0[None] + np.linspace(0.0, 1.0, n)[:, None] * (q1 - q0)[None]
+
+
+def test_joint_moves_to_and_from_the_bin_keep_the_gripper_off_its_walls(planner):
+    """A joint move is not a straight tool line: from the place pose over the tray (on the bin's -y side) to a lift
+    above the bin it can swing the fingers through the -y wall. The planner samples the moves; MuJoCo's own
+    geometry of the cell confirms that what it plans is clear, and that with the old, low place pose (pads below
+    the rim) some moves it refuses (or raises the lift for) were not."""
+    from sim.world import CellWorld
+
+    world = CellWorld()
+    nut = PartEstimate(1, _flat("hex_nut", -0.5, 0.0), 0.9)
+    low_place = make_T(np.diag([1.0, -1.0, -1.0]), (-0.2, -0.42, 0.12))  # the old place pose: pads below the rim
+    for T_place in (PlannerConfig().T_base_place, low_place):
+        config = PlannerConfig(grasp_params=PARAMS, T_base_place=T_place, max_grasps_per_part=20)
+        p = GraspPlanner([builtin_part("hex_nut")], config, cache_dir=planner.cache_dir)
+        q_place = ik_nearest(T_place, p.q_reference, config.gripper.T_flange_tcp)
+        plan = p.plan_parts([nut], q_seed=q_place)
+        for g in plan.grasps:
+            # the lift holds the gripper above the rim (0.14 m), and the moves to and from it stay clear
+            boxes = GripperGeometry().boxes(g.grasp_width_m)
+            corners = np.array(
+                [[b[i, 0], b[j, 1], b[k, 2]] for b in boxes for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+            )
+            lowest = transform_points(g.T_base_lift, corners)[:, 2]
+            assert lowest.min() >= FLOOR_Z + 0.12 + config.rim_clearance_m - 1e-9
+            assert _arm_contacts_with_bin(world, _joint_line(q_place, g.q_lift), g.opening_width_m) == []
+            assert _arm_contacts_with_bin(world, _joint_line(g.q_lift, g.q_place), g.opening_width_m) == []
+        if T_place is low_place:
+            # some moves are cleared only by a lift further back than the rim needs (0.15 m, or 0.184 m at 45 deg)
+            lifts = [np.linalg.norm(g.T_base_lift[:3, 3] - g.T_base_grasp[:3, 3]) for g in plan.grasps]
+            assert plan.rejections["collision_transit"] > 0 or max(lifts) > 0.199, plan.summary()
+            unchecked = PlannerConfig(
+                grasp_params=PARAMS, T_base_place=low_place, transit_clearance_m=None, max_grasps_per_part=20
+            )
+            refused = GraspPlanner([builtin_part("hex_nut")], unchecked, cache_dir=planner.cache_dir)
+            hits = [
+                _arm_contacts_with_bin(world, _joint_line(q_place, g.q_lift), g.opening_width_m)
+                + _arm_contacts_with_bin(world, _joint_line(g.q_lift, g.q_place), g.opening_width_m)
+                for g in refused.plan_parts([nut], q_seed=q_place).grasps
+            ]
+            assert any(hits), "without the check, some planned move should hit the wall"
+        else:
+            assert not plan.nothing_safe, plan.summary()
+
+
+def test_the_early_wall_check_only_refuses_grasps_that_hit_a_wall_at_every_backoff(planner):
+    """The cheap wall check before the points check must not refuse a grasp that some allowed backoff would clear:
+    for the candidates it refuses, every backoff in the allowed range still hits a wall (swept to the lift)."""
+    cfg = planner.config
+    g = cfg.gripper
+    sweep = max(cfg.pre_grasp_distance_m, cfg.lift_height_m)
+    refused = 0
+    for x, y, yaw in ((-0.5 + 0.13, 0.0, 0.3), (-0.5, 0.085, 1.0), (-0.5 - 0.125, -0.075, 0.0)):  # near walls
+        part = PartEstimate(1, _flat("hex_nut", x, y, yaw), 0.9)
+        grasps = planner.candidates(1)
+        T = part.T_base_obj @ grasps.T_obj_grasp
+        boxes = np.concatenate(
+            [
+                g.boxes(grasps.opening_m, inner_half_m=grasps.width_m / 2 + cfg.clearance_m),
+                g.boxes(grasps.width_m)[:, 2:4],
+            ],
+            axis=1,
+        )
+        d_min = np.maximum(planner._floor_backoff(T, boxes, np.clip(-T[:, 2, 2], 0.0, 1.0)), 0.0)
+        hit = planner._walls_at_every_backoff(T, boxes, d_min, grasps.contact_z_m, sweep)
+        d_max = g.pad_length_m / 2 - grasps.contact_z_m[:, 0] - cfg.min_engagement_m
+        for k in np.flatnonzero(hit & (d_max >= d_min)):
+            for d in np.linspace(d_min[k], d_max[k], 5):
+                back = make_T(t=(0.0, 0.0, -d))
+                swept = boxes[k].copy()
+                swept[:, 0, 2] -= sweep
+                assert planner._wall_gap((T[k] @ back)[None], swept[None])[0] < cfg.bin_clearance_m
+            refused += 1
+    assert refused > 10
+
+
+def test_with_max_planned_parts_the_best_parts_are_planned_and_the_rest_skipped(planner):
+    """Planning only the best parts gives the same best grasps as planning all, and leaves the others unchecked."""
+    parts = [
+        PartEstimate(1, _flat("hex_nut", -0.55 + 0.05 * k, 0.05 * (k % 2) - 0.025, yaw_rad=0.4 * k), 0.5 + 0.1 * k)
+        for k in range(4)
+    ]
+    one = GraspPlanner(
+        [builtin_part("hex_nut")], PlannerConfig(grasp_params=PARAMS, max_planned_parts=1), cache_dir=planner.cache_dir
+    )
+    full, lazy = planner.plan_parts(parts), one.plan_parts(parts)
+    assert len({g.part_index for g in full.grasps}) == 4
+    assert lazy.best.part_index == full.best.part_index and lazy.best.score == pytest.approx(full.best.score)
+    statuses = [p.status for p in lazy.parts]
+    assert statuses.count("planned") == 1 and statuses.count("not_planned") == 3
+    skipped = [p for p in lazy.parts if p.status == "not_planned" and sum(p.rejections.values()) == 0]
+    assert skipped, "a part that cannot beat the planned one is not checked at all"
+
+
+def test_grasps_too_thin_for_the_object_detection_are_not_used(planner):
+    bracket = builtin_part("l_bracket")
+    assert (grasp_candidates(bracket, PARAMS, cache_dir=planner.cache_dir).width_m < 0.004).any()  # across the sheet
+    p = GraspPlanner([bracket], PlannerConfig(grasp_params=PARAMS), cache_dir=planner.cache_dir)
+    assert len(p.candidates(4)) and p.candidates(4).width_m.min() >= p.config.min_grasp_width_m
+
+
 def test_an_unreachable_part_gives_nothing_safe_with_the_reason(planner):
-    far = make_T(t=(1.4, 0.2, FLOOR_Z + 5.4 * MM))  # beyond the UR5e's 0.85 m reach
-    plan = planner.plan_parts([PartEstimate(1, far, 0.9)])
+    # a bin beyond the UR5e's 0.85 m reach, and a nut in it
+    far_bin = BinGeometry(T_base_bin=make_T(t=(1.4, 0.2, FLOOR_Z)))
+    config = PlannerConfig(grasp_params=PARAMS, bin=far_bin, q_reference_rad=tuple(ur5e.HOME_Q))
+    far = GraspPlanner([builtin_part("hex_nut")], config, cache_dir=planner.cache_dir)
+    plan = far.plan_parts([PartEstimate(1, _flat("hex_nut", 1.4, 0.2), 0.9)])
     assert plan.nothing_safe and plan.best is None
     assert plan.parts[0].status == "unreachable"
     assert plan.rejections["unreachable"] > 0
     assert set(plan.rejections) == set(REJECTION_CAUSES)
     summary = plan.summary()
     assert summary.startswith("nothing safe to pick") and "unreachable" in summary
+    # in reach of the arm, but the cell's workspace box (the robot refuses motion outside it) ends below the lift
+    from robot.ur_config import WorkspaceBox
+
+    low_box = WorkspaceBox((-0.85, -0.65, 0.0), (0.1, 0.45, 0.15))
+    boxed = GraspPlanner(
+        [builtin_part("hex_nut")], PlannerConfig(grasp_params=PARAMS, workspace=low_box), cache_dir=planner.cache_dir
+    )
+    nut = PartEstimate(1, _flat("hex_nut", -0.5, 0.0), 0.9)
+    assert not planner.plan_parts([nut]).nothing_safe
+    assert boxed.plan_parts([nut]).parts[0].status == "unreachable"
+
+
+def test_parts_outside_the_bin_are_not_planned_and_do_not_count_as_in_it(planner):
+    """The camera also sees the place tray: a part lying there is outside the bin, never planned (the planner does
+    not know the tray's walls), and a plan with only such parts says the bin is empty."""
+    in_tray = PartEstimate(1, _flat("hex_nut", -0.2, -0.40, on_z=0.01), 0.9)
+    in_bin = PartEstimate(1, _flat("hex_nut", -0.5, 0.0), 0.9)
+    plan = planner.plan_parts([in_tray, in_bin])
+    assert [p.status for p in plan.parts] == ["outside_bin", "planned"] and plan.n_in_bin == 1
+    assert {g.part_index for g in plan.grasps} == {1}
+    only_tray = planner.plan_parts([in_tray])
+    assert only_tray.nothing_safe and only_tray.n_in_bin == 0 and "outside_bin" in only_tray.summary()
+    above = PartEstimate(1, make_T(t=(-0.5, 0.0, 0.6)), 0.9)  # held or falling above the bin: still the bin's
+    assert planner.plan_parts([above]).parts[0].status != "outside_bin"
 
 
 def test_part_level_refusals_are_results_not_errors(planner):

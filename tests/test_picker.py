@@ -97,35 +97,65 @@ class FakeRobot:
 
 
 class FakeGripper:
+    """Fingers that open to the commanded width; with ``lag_reads`` the width reaches it only after that many reads
+    (a gripper that answers "stopped" before its fingers have moved); ``stuck`` keeps them at the part's width."""
+
     can_set_width = True
 
     def __init__(self, robot: FakeRobot, bin_: FakeBin, empty_once: bool = False) -> None:
         self.robot, self.bin, self.empty_once = robot, bin_, empty_once
         self.held = False
+        self.width = 0.085
+        self.target = 0.085
+        self.lag_reads = 0
+        self.stuck = False
+        self.slip_at: float | None = None  # the part at this x always slips out while lifting
+        self.settling_reads = 0  # object detection reads "moving" (False) this many times after each close
+        self.reads_left = 0
 
     def open(self, width_m=None, speed_m_s=None):
+        self.target = 0.085 if width_m is None else width_m
+        if self.stuck:
+            return
         if self.held:
             self.bin.parts.remove(self.robot.q_now[0]) if self.robot.q_now[0] in self.bin.parts else None
         self.held = False
+        self.opening = True
+        self.reads_left = self.lag_reads
 
     def close(self, force_n=None, speed_m_s=None):
+        self.opening = False
         if self.empty_once:
             self.empty_once = False
+            self.width = 0.0
             return False
         self.held = True
+        self.width = 0.02
+        self.settle_left = self.settling_reads
         return True
 
     def width_m(self):
-        return 0.02 if self.held else 0.0
+        if getattr(self, "opening", True) and not self.held and not self.stuck:
+            if self.reads_left > 0:
+                self.reads_left -= 1
+            else:
+                self.width = self.target
+        return self.width
 
     def object_detected(self):
+        if self.held and self.slip_at is not None and self.robot.q_now[0] == self.slip_at:
+            self.held, self.width = False, 0.0
+        if self.held and getattr(self, "settle_left", 0) > 0:
+            self.settle_left -= 1
+            return False
         return self.held
 
 
-def make_picker(bin_: FakeBin, planner=None, **robot_kw) -> tuple[Picker, FakeRobot]:
+def make_picker(bin_: FakeBin, planner=None, config=None, **robot_kw) -> tuple[Picker, FakeRobot]:
     robot = FakeRobot(bin_, **robot_kw)
     gripper = FakeGripper(robot, bin_)
-    return Picker(robot, gripper, FakeCamera(), bin_, planner or FakePlanner(), np.eye(4), np.full(6, -1.0)), robot
+    camera, planner = FakeCamera(), planner or FakePlanner()
+    return Picker(robot, gripper, camera, bin_, planner, np.eye(4), np.full(6, -1.0), config), robot
 
 
 def test_clears_the_bin_and_stops_when_empty():
@@ -142,6 +172,17 @@ def test_nothing_safe_is_a_clean_stop_with_the_reasons():
     report = picker.run()
     assert report.stop_reason == "nothing_safe" and "unreachable" in report.stop_detail
     assert report.attempts == []
+
+
+def test_parts_seen_only_outside_the_bin_mean_the_bin_is_empty():
+    class OutsidePlanner(FakePlanner):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
+            parts = [type("P", (), {"status": "outside_bin"})() for _ in poses]
+            return type("P", (), {"grasps": [], "nothing_safe": True, "parts": parts, "n_in_bin": 0,
+                                  "summary": lambda self: "nothing safe: part 0: outside_bin"})()  # fmt: skip
+
+    report = make_picker(FakeBin([0.0]), OutsidePlanner())[0].run()
+    assert report.stop_reason == "bin_empty" and "outside it" in report.stop_detail and report.attempts == []
 
 
 def test_refused_motion_moves_on_to_the_next_candidate():
@@ -173,9 +214,81 @@ def test_gripper_closing_on_air_fails_verification_and_retries():
 def test_part_still_there_after_its_pick_is_marked_failed():
     bin_ = FakeBin([0.0])
     picker, _ = make_picker(bin_)
-    picker.gripper.open = lambda width_m=None, speed_m_s=None: setattr(picker.gripper, "held", False)  # never removes
+    gripper = picker.gripper
+
+    def open_without_removing(width_m=None, speed_m_s=None):  # the fingers open, but nothing leaves the bin
+        gripper.held, gripper.opening = False, True
+
+    gripper.open = open_without_removing
     report = picker.run(max_cycles=2)
     assert report.attempts[0].outcome == "part_still_in_bin"
+
+
+def test_fingers_slow_to_open_are_waited_for_before_the_arm_moves_in():
+    """A gripper may answer "stopped" while its fingers still move (the emulator does so when it opens from a
+    squeeze): the arm must not go down, nor the next part be grasped, before they are open."""
+    bin_ = FakeBin([0.0, 0.1])
+    picker, robot = make_picker(bin_)
+    picker.gripper.lag_reads = 5
+    widths_at_move_j = []
+    move_j = robot.move_j
+
+    def watch(q, speed_rad_s=None, accel_rad_s2=None):
+        if not picker.gripper.held:  # the transits to the part (holding one, the fingers are on it)
+            widths_at_move_j.append(picker.gripper.width)
+        move_j(q, speed_rad_s, accel_rad_s2)
+
+    robot.move_j = watch
+    report = picker.run()
+    assert report.stop_reason == "bin_empty" and report.n_picked == 2 and report.failures_by_cause() == {}
+    assert len(widths_at_move_j) >= 2 and min(widths_at_move_j) >= 0.03 - picker.config.open_tolerance_m
+
+
+def test_object_detection_lost_while_the_fingers_settle_is_not_a_slip():
+    """The emulated 2F-85 reads "moving" (no object) much of the time while its pads hold a part: a detection that
+    comes back, or fingers that rest at the part's width, mean the part is held."""
+    bin_ = FakeBin([0.0, 0.1])
+    picker, _ = make_picker(bin_)
+    picker.gripper.settling_reads = 3
+    assert [a.outcome for a in picker.run(max_cycles=1).attempts] == ["picked"]
+    picker.gripper.settling_reads = 10**6  # never comes back, but the fingers rest at the part's width
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["picked"] and report.stop_reason == "bin_empty"
+
+
+def test_a_part_stuck_in_the_fingers_stops_the_run_as_gripper_blocked():
+    bin_ = FakeBin([0.0, 0.1])
+    picker, _ = make_picker(bin_, config=PickerConfig(open_timeout_s=0.05))
+    close = picker.gripper.close
+
+    def close_and_stick(force_n=None, speed_m_s=None):
+        picker.gripper.stuck = True  # e.g. a tube wedged on a finger
+        return close(force_n, speed_m_s)
+
+    picker.gripper.close = close_and_stick
+    report = picker.run()
+    assert report.stop_reason == "gripper_blocked" and "stuck in the gripper" in report.stop_detail
+    assert [a.outcome for a in report.attempts] == ["not_released"]
+    assert report.n_picked == 0
+
+
+def test_fingers_that_do_not_open_keep_the_arm_out_of_the_bin():
+    bin_ = FakeBin([0.0])
+    picker, robot = make_picker(bin_, config=PickerConfig(open_timeout_s=0.05))
+    picker.gripper.stuck, picker.gripper.width = True, 0.0
+    report = picker.run()
+    assert report.stop_reason == "gripper_blocked" and [a.outcome for a in report.attempts] == ["gripper_blocked"]
+    np.testing.assert_array_equal(robot.q_now, np.full(6, -1.0))  # never left the observe pose
+
+
+def test_a_part_that_keeps_failing_is_given_up_and_the_run_does_not_loop():
+    bin_ = FakeBin([0.0, 0.1])
+    picker, _ = make_picker(bin_, config=PickerConfig(max_failures_per_part=2))
+    picker.gripper.slip_at = 0.0  # the part at x = 0 slips out every time
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["slipped", "slipped", "picked"]
+    assert report.stop_reason == "gave_up" and bin_.parts == [0.0]
+    assert report.cycles[-1].n_excluded == 1 and report.cycles[2].n_excluded == 1
 
 
 def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):

@@ -16,6 +16,8 @@ import logging
 import multiprocessing
 import os
 import sys
+import threading
+import time
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -41,7 +43,8 @@ def tune_emulator_process() -> None:
 
 _HOOKS = (
     "state", "trigger_protective_stop", "inject_collision_force", "log_messages", "unlock_protective_stop",
-    "part_poses", "capture", "part_names", "set_part_poses", "park_parts",
+    "part_poses", "capture", "part_names", "set_part_poses", "park_parts", "contacts", "place_parts",
+    "drop_connections",
 )  # fmt: skip
 
 # Where parked ("removed") parts wait: high above the cell (behind the camera), spread out, held against gravity.
@@ -88,6 +91,9 @@ def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict,
         "part_names": (lambda: arm.world.part_names()) if hasattr(arm, "world") else None,
         "set_part_poses": (lambda T: arm.world.set_part_poses(T)) if hasattr(arm, "world") else None,
         "park_parts": (lambda idx: _park_parts(arm.world, idx)) if hasattr(arm, "world") else None,
+        "contacts": (lambda: _contacts(arm.world)) if hasattr(arm, "world") else None,
+        "place_parts": (lambda T, held=(): _place_parts(arm.world, T, held)) if hasattr(arm, "world") else None,
+        "drop_connections": lambda down_s=2.0: _drop_connections(ctl, down_s),
         "capture": _capture_hook(arm) if hasattr(arm, "world") else None,
     }
     try:
@@ -155,6 +161,73 @@ def _park_parts(world: Any, indices: list[int]) -> None:
             # An applied force that cancels gravity (body_gravcomp cannot be switched on after compiling).
             world.data.xfrc_applied[body, :3] = -world.model.body_subtreemass[body] * world.model.opt.gravity
         world.set_part_poses(T)
+
+
+def _place_parts(world: Any, T_world_obj: np.ndarray, held: Any = ()) -> None:
+    """Teleports every part to ``T_world_obj`` (n, 4, 4) at rest; the parts in ``held`` stay there against gravity
+    (floating: an unreachable part in view), every other part is free again (an earlier hold or park released)."""
+    import mujoco
+
+    with world.lock:
+        names = world.part_names()
+        for i, name in enumerate(names):
+            body = mujoco.mj_name2id(world.model, mujoco.mjtObj.mjOBJ_BODY, name)
+            hold = i in set(int(k) for k in held)
+            world.data.xfrc_applied[body, :3] = (
+                -world.model.body_subtreemass[body] * world.model.opt.gravity if hold else 0.0
+            )
+        world.set_part_poses(T_world_obj)
+
+
+def _drop_connections(ctl: Any, down_s: float) -> int:
+    """A network link that goes down for ``down_s`` seconds: closes the robot's interfaces (RTDE, dashboard, script
+    ports: listeners and client connections) and opens them again afterwards, in a thread; the controller, its
+    program and the world keep running. Returns how many client connections were closed.
+
+    The listeners go down too: closing only the connections lets ur_rtde 1.6.5's own background reconnect race
+    with the client's next call, which crashed the client process (segmentation fault) in a trial."""
+    from sim.controller.tcp_service import TcpService, start_all
+
+    services = [ctl.rtde.service, ctl.dashboard.service, *ctl.script.services]
+    closed = sum(len(service.connections) for service in services)
+    for service in services:
+        service.stop()
+    log.warning("link down for %.1f s: %d client connection(s) closed (test hook)", down_s, closed)
+
+    def restore() -> None:
+        time.sleep(down_s)
+        fresh = [TcpService(s.name, s.host, s.port, s._handler) for s in services]
+        start_all(fresh)
+        ctl.rtde.service, ctl.dashboard.service, ctl.script.services = fresh[0], fresh[1], fresh[2:]
+        log.warning("link up again (test hook)")
+
+    threading.Thread(target=restore, name="link-restore", daemon=True).start()
+    return closed
+
+
+def _contacts(world: Any) -> list[dict]:
+    """The world's contacts of the last step, by body and geom name, with their normal force (N) and distance (m,
+    < 0: penetration): which link touched what when a protective stop fired, whether a part is in the fingers."""
+    import mujoco
+
+    out = []
+    with world.lock:
+        m, d = world.model, world.data
+        force = np.zeros(6)
+        for i in range(d.ncon):
+            g1, g2 = int(d.contact.geom1[i]), int(d.contact.geom2[i])
+            mujoco.mj_contactForce(m, d, i, force)
+            out.append(
+                {
+                    "geom1": mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g1) or f"geom{g1}",
+                    "geom2": mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g2) or f"geom{g2}",
+                    "body1": mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.geom_bodyid[g1])) or "",
+                    "body2": mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.geom_bodyid[g2])) or "",
+                    "dist_m": float(d.contact.dist[i]),
+                    "force_n": float(force[0]),
+                }
+            )
+    return out
 
 
 class ControllerProcess:
@@ -249,6 +322,22 @@ class ControllerProcess:
     def park_parts(self, indices: list[int]) -> None:
         """MuJoCo backend only: takes parts out of the cell (parked high above it, at rest)."""
         self.call("park_parts", [int(i) for i in indices])
+
+    def place_parts(self, T_world_obj: np.ndarray, held: list[int] | None = None) -> None:
+        """MuJoCo backend only: teleports every part to ``T_world_obj`` (n, 4, 4) at rest; parts ``held`` float
+        there against gravity, the others are free (undoes ``park_parts``)."""
+        self.call("place_parts", np.asarray(T_world_obj, dtype=float), [int(i) for i in (held or [])])
+
+    def drop_connections(self, down_s: float = 2.0) -> int:
+        """The robot's network link goes down for ``down_s`` seconds: every RTDE, dashboard and script connection
+        is closed and none accepted until then; the controller and the world keep running. Returns how many client
+        connections were closed."""
+        return self.call("drop_connections", float(down_s))
+
+    def contacts(self) -> list[dict]:
+        """MuJoCo backend only: the contacts of the last physics step, one dict each: ``geom1``, ``geom2``,
+        ``body1``, ``body2`` (names), ``dist_m`` (< 0: penetration) and ``force_n`` (normal force)."""
+        return self.call("contacts")
 
     def log_messages(self) -> list[str]:
         return self.call("log_messages")

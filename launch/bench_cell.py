@@ -1,0 +1,327 @@
+"""``sygrid bench cell``: the whole simulated picking cell, bin after bin, for a few perception/planner/speed settings.
+
+For each variant and each seed: the UR controller emulator (MuJoCo backend) starts on loopback with a bin of the
+scene's parts (default ``launch/scenes/pick_bin_10.json``: 10 built-in parts) dropped with the seed, and the
+picking runtime (``launch.pick.open_cell``: sim camera, perception, grasp planner, ``robot.picker`` through the
+stock ur_rtde client) runs until it stops. Per variant it reports:
+
+- pick success rate: picks over attempts that moved the arm (``RunReport.success_rate`` over all bins);
+- parts cleared: the share of the parts that left the bin, from the simulator's ground truth (a part can be
+  left because nothing was safe to pick, not only because an attempt failed);
+- cycle time: median and p90 of the robot (simulated) seconds from one look to the next, over the picks;
+- perception + planning wall time per cycle: median and p90 (ms, on this machine, as it is loaded);
+- failures by cause, stop reasons, and which parts were left in the bin with the planner's reason.
+
+Targets (issue 6): success >= 95 %, median cycle <= 8 s simulated, perception + planning <= 300 ms wall.
+Writes ``bench/results/cell.json`` and ``cell.png`` (``cell_quick.*`` with ``--quick``): parts cleared and pick
+success rate against the median cycle time per variant, and the parts left by cause.
+
+The emulator runs in real time: a bin of 10 parts takes about a minute, so 30 seeds of one variant take about half
+an hour. Variants with ``models`` perception need a trained model folder (``models/builtin/manifest.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robot.cell_setup import CellSetup, load_cell_setup
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_results
+from sygrid.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+HOST = "127.0.0.63"  # sygrid pick uses .50, sygrid bench sim .61, the sim-in-the-loop tests .70
+CELL_FILE = Path(__file__).parent / "cells" / "sim.toml"
+TARGETS = {"success_rate": 0.95, "cycle_median_s": 8.0, "perceive_plan_ms": 300.0}
+QUICK_SEEDS = 2
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One setting of the cell: the perception (``oracle``: ground truth; ``models``: the trained pipeline, with
+    optional overrides), and ``robot.grasp.PlannerConfig`` / ``robot.picker.PickerConfig`` fields to change."""
+
+    perception: str
+    description: str
+    planner: dict[str, Any] = field(default_factory=dict)
+    picker: dict[str, Any] = field(default_factory=dict)
+    refine: bool | None = None
+    detector_input_size: int | None = None
+
+
+_FAST = {
+    "approach_speed_m_s": 0.5,
+    "transit_linear_speed_m_s": 1.0,
+    "approach_accel_m_s2": 2.5,
+    "transit_speed_rad_s": 3.0,
+    "transit_accel_rad_s2": 6.0,
+}
+VARIANTS: dict[str, Variant] = {
+    "oracle": Variant("oracle", "ground-truth poses; default planner and speeds"),
+    "oracle_fast": Variant("oracle", "ground-truth poses; 2x approach speed, faster transits", picker=_FAST),
+    "oracle_cone30": Variant(
+        "oracle", "ground-truth poses; approach within 30 deg of vertical", {"approach_cone_deg": 30.0}
+    ),
+    "models": Variant("models", "trained detector + pose net, the manifest's settings"),
+    "models_refine": Variant("models", "trained models, with depth refinement", refine=True),
+    "models_norefine": Variant("models", "trained models, without depth refinement", refine=False),
+    "models_320": Variant("models", "trained models, detector input 320 px", detector_input_size=320),
+}
+QUICK_VARIANTS = ("oracle", "oracle_fast", "models")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seeds", type=int, default=30, help="bins per variant (seeds 0..N-1)")
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument(
+        "--variants", default=None, help=f"comma-separated names from {', '.join(VARIANTS)} (default: all)"
+    )
+    parser.add_argument(
+        "--perception", choices=("oracle", "models", "all"), default="all", help="only the variants of this kind"
+    )
+    parser.add_argument("--scene", type=Path, default=None, help="scene JSON (default: the cell file's)")
+    parser.add_argument("--config", type=Path, default=CELL_FILE, help="the simulated cell's file")
+    parser.add_argument("--max-cycles", type=int, default=25, help="per bin")
+    parser.add_argument(
+        "--quick", action="store_true", help=f"{QUICK_SEEDS} seeds, variants {', '.join(QUICK_VARIANTS)}"
+    )
+
+
+def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
+    names = _chosen_variants(args)
+    base = load_cell_setup(args.config)
+    if not base.is_sim:
+        raise ConfigError(f"{args.config}: sygrid bench cell needs a simulated cell ([cell] kind = 'sim')")
+    seeds = list(range(args.first_seed, args.first_seed + (QUICK_SEEDS if args.quick else args.seeds)))
+    results: dict[str, Any] = {"targets": TARGETS, "seeds": seeds, "scene": str(args.scene or base.data.sim.scene)}
+    results["variants"] = {}
+    for name in names:
+        variant = VARIANTS[name]
+        bins = []
+        for seed in seeds:
+            start = time.perf_counter()
+            outcome = run_bin(base, variant, seed, args.scene, args.max_cycles)
+            bins.append(outcome)
+            print(
+                f"{name} seed {seed}: {outcome['n_parts'] - outcome['n_left']}/{outcome['n_parts']} parts out, "
+                f"{outcome['n_picked']}/{outcome['n_tried']} attempts picked, {outcome['stop_reason']} "
+                f"({time.perf_counter() - start:.0f} s)",
+                flush=True,
+            )
+        results["variants"][name] = {"description": variant.description, **summarize(bins), "bins": bins}
+    print(format_results(results))
+    json_path, png_path = save_results("cell_quick" if args.quick else "cell", results, chart(results), out_dir)
+    print(f"wrote {json_path} and {png_path}")
+    return 0
+
+
+def _chosen_variants(args: argparse.Namespace) -> list[str]:
+    if args.variants:
+        names = [n.strip() for n in args.variants.split(",") if n.strip()]
+        unknown = [n for n in names if n not in VARIANTS]
+        if unknown:
+            raise ConfigError(f"--variants: unknown {unknown}; known: {', '.join(VARIANTS)}")
+    else:
+        names = list(QUICK_VARIANTS if args.quick else VARIANTS)
+    if args.perception != "all":
+        names = [n for n in names if VARIANTS[n].perception == args.perception]
+    models = [n for n in names if VARIANTS[n].perception == "models"]
+    base = load_cell_setup(args.config)
+    models_dir = base.resolve(base.data.perception.models_dir)
+    if models and not (models_dir / "manifest.json").is_file():
+        if args.variants or args.perception == "models":
+            raise ConfigError(f"variants {models} need trained models: {models_dir}/manifest.json is missing")
+        print(f"skipping {', '.join(models)}: no trained models in {models_dir} (manifest.json missing)")
+        names = [n for n in names if n not in models]
+    if not names:
+        raise ConfigError("no variant left to run (see --variants and --perception)")
+    return names
+
+
+def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> CellSetup:
+    """The cell file's setup for one bin: this benchmark's host, the seed (and scene), the variant's settings."""
+    d = base.data
+    sim = d.sim.model_copy(update={"host": HOST, "seed": seed, **({"scene": str(scene.resolve())} if scene else {})})
+    perception = d.perception.model_copy(
+        update={
+            "kind": variant.perception,
+            "refine": variant.refine,
+            "detector_input_size": variant.detector_input_size,
+        }
+    )
+    robot = {**d.robot, "host": HOST}
+    gripper = {**d.gripper, "host": HOST}
+    picker = {**d.picker, **variant.picker}
+    data = d.model_copy(
+        update={"sim": sim, "perception": perception, "robot": robot, "gripper": gripper, "picker": picker}
+    )
+    setup = CellSetup(data, base.path)
+    setup.planner_overrides = {**setup.planner_overrides, **variant.planner}
+    return setup
+
+
+def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, max_cycles: int) -> dict[str, Any]:
+    """One bin with one variant: the run's figures and the simulator's ground truth before and after."""
+    from launch.pick import open_cell
+    from sim.cell_config import CellConfig
+    from sygrid.objects import builtin_part
+
+    setup = _setup(base, variant, seed, scene)
+    start = time.perf_counter()
+    with open_cell(setup, seed, variant.perception) as (picker, process):
+        kinds = [name.split("_", 1)[1] for name in process.part_names()]
+        obj_kind = {builtin_part(k).obj_id: k for k in set(kinds)}
+        plans: list[Any] = []
+        plan = picker.planner.plan
+
+        def keep_last(*a: Any, **k: Any) -> Any:
+            plans[:] = [plan(*a, **k)]
+            return plans[0]
+
+        picker.planner.plan = keep_last
+        T_start = process.part_poses()
+        report = picker.run(max_cycles)
+        T_end = process.part_poses()
+    cell = CellConfig()
+    in_start, in_end = _in_bin(T_start, cell), _in_bin(T_end, cell)
+    left = Counter(k for k, inside in zip(kinds, in_end, strict=True) if inside)
+    total = Counter(k for k, inside in zip(kinds, in_start, strict=True) if inside)
+    left_why: Counter[str] = Counter()
+    if plans and report.stop_reason in ("nothing_safe", "gave_up", "too_many_failures", "max_cycles"):
+        for part in plans[0].parts:
+            if part.status != "outside_bin":
+                left_why[f"{obj_kind.get(part.obj_id, part.obj_id)}: {part.status}"] += 1
+    unseen = int(in_end.sum()) - sum(left_why.values())
+    if unseen > 0:  # left in the bin but not in the last plan: hidden from the camera, or given up before planning
+        left_why["unseen or given up"] += unseen
+    cycles = report.cycles
+    return {
+        "seed": seed,
+        "n_parts": int(in_start.sum()),
+        "n_left": int(in_end.sum()),
+        "n_picked": report.n_picked,
+        "n_tried": sum(a.outcome != "motion_refused" for a in report.attempts),
+        "failures": report.failures_by_cause(),
+        "failed_attempts": [
+            {"part": obj_kind.get(a.obj_id, a.obj_id), "outcome": a.outcome, "stage": a.stage, "detail": a.detail}
+            for a in report.attempts
+            if a.outcome != "picked"
+        ],
+        "stop_reason": report.stop_reason,
+        "stop_detail": report.stop_detail,
+        "parts_by_kind": dict(total),
+        "left_by_kind": dict(left),
+        "left_why": dict(left_why),
+        "cycle_s": report.sim_cycle_times_s(),
+        "perceive_plan_ms": [1e3 * (c.stage_wall_s["perceive"] + c.stage_wall_s["plan"]) for c in cycles if c.n_poses],
+        "perceive_ms": [1e3 * c.stage_wall_s["perceive"] for c in cycles if c.n_poses],
+        "plan_ms": [1e3 * c.stage_wall_s["plan"] for c in cycles if c.n_planned or c.end == "nothing_safe"],
+        "wall_s": time.perf_counter() - start,
+    }
+
+
+def _in_bin(T_world_obj: np.ndarray, cell: Any) -> np.ndarray:
+    """``(n,)`` which parts lie in the cell's bin (inner footprint, below twice its height)."""
+    p = (np.linalg.inv(cell.T_world_bin) @ T_world_obj)[:, :3, 3]
+    half = np.array(cell.bin_inner_size_m) / 2
+    return (np.abs(p[:, 0]) < half[0]) & (np.abs(p[:, 1]) < half[1]) & (p[:, 2] > -0.01) & (p[:, 2] < 4 * half[2])
+
+
+def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
+    """A variant's figures over its bins (see the module docstring)."""
+    n_parts, n_left = sum(b["n_parts"] for b in bins), sum(b["n_left"] for b in bins)
+    n_picked, n_tried = sum(b["n_picked"] for b in bins), sum(b["n_tried"] for b in bins)
+    cycle = [t for b in bins for t in b["cycle_s"]]
+    pp = [t for b in bins for t in b["perceive_plan_ms"]]
+    failures, stops, left_why = Counter(), Counter(), Counter()
+    by_kind_total, by_kind_left = Counter(), Counter()
+    for b in bins:
+        failures.update(b["failures"])
+        stops[b["stop_reason"]] += 1
+        left_why.update(b["left_why"])
+        by_kind_total.update(b["parts_by_kind"])
+        by_kind_left.update(b["left_by_kind"])
+    return {
+        "pick_success_rate": n_picked / n_tried if n_tried else float("nan"),
+        "parts_cleared": 1.0 - n_left / n_parts if n_parts else float("nan"),
+        "n_parts": n_parts,
+        "n_left": n_left,
+        "n_picked": n_picked,
+        "n_attempts": n_tried,
+        "cycle_median_s": median(cycle),
+        "cycle_p90_s": percentile(cycle, 90),
+        "perceive_plan_median_ms": median(pp),
+        "perceive_plan_p90_ms": percentile(pp, 90),
+        "perceive_median_ms": median([t for b in bins for t in b["perceive_ms"]]),
+        "plan_median_ms": median([t for b in bins for t in b["plan_ms"]]),
+        "failures_by_cause": dict(failures),
+        "stop_reasons": dict(stops),
+        "left_by_cause": dict(left_why.most_common()),
+        "cleared_by_kind": {
+            k: f"{by_kind_total[k] - by_kind_left[k]}/{by_kind_total[k]}" for k in sorted(by_kind_total)
+        },
+    }
+
+
+def format_results(results: dict[str, Any]) -> str:
+    t = results["targets"]
+    lines = [
+        f"targets: pick success >= {100 * t['success_rate']:.0f} %, median cycle <= {t['cycle_median_s']:g} s "
+        f"simulated, perception + planning <= {t['perceive_plan_ms']:g} ms wall",
+        f"{'variant':<18}{'cleared':>9}{'success':>9}{'cycle p50':>11}{'cycle p90':>11}{'p+p p50':>10}{'p+p p90':>10}",
+    ]
+    for name, r in results["variants"].items():
+        lines.append(
+            f"{name:<18}{100 * r['parts_cleared']:>8.0f}%{100 * r['pick_success_rate']:>8.0f}%"
+            f"{r['cycle_median_s']:>10.2f}s{r['cycle_p90_s']:>10.2f}s{r['perceive_plan_median_ms']:>8.0f}ms"
+            f"{r['perceive_plan_p90_ms']:>8.0f}ms"
+        )
+    for name, r in results["variants"].items():
+        lines.append(f"{name}: failures {r['failures_by_cause'] or 'none'}; stops {r['stop_reasons']}")
+        lines.append(f"{name}: cleared by kind {r['cleared_by_kind']}")
+        lines.append(f"{name}: left in the bin {r['left_by_cause'] or 'nothing'}")
+    return "\n".join(lines)
+
+
+def chart(results: dict[str, Any]):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    variants = results["variants"]
+    fig, (ax, ax_left) = plt.subplots(1, 2, figsize=(14, 5), gridspec_kw={"width_ratios": [1, 1.2]})
+    for name, r in variants.items():
+        x = r["cycle_median_s"]
+        ax.scatter([x], [100 * r["parts_cleared"]], marker="s", s=50)
+        ax.scatter([x], [100 * r["pick_success_rate"]], marker="o", s=50, facecolors="none", edgecolors="k")
+        ax.annotate(name, (x, 100 * r["parts_cleared"]), textcoords="offset points", xytext=(6, -4), fontsize=8)
+    ax.axhline(100 * TARGETS["success_rate"], color="grey", ls=":", lw=1)
+    ax.axvline(TARGETS["cycle_median_s"], color="grey", ls=":", lw=1)
+    ax.scatter([], [], marker="s", color="C0", label="parts cleared (ground truth)")
+    ax.scatter([], [], marker="o", facecolors="none", edgecolors="k", label="pick success rate (picks / attempts)")
+    ax.set(xlabel="median cycle time [simulated s]", ylabel="%", ylim=(0, 105),
+           title=f"{len(results['seeds'])} bin(s) per variant")  # fmt: skip
+    ax.legend(fontsize=8, loc="lower left")
+    ax.grid(alpha=0.3)
+    causes = sorted({c for r in variants.values() for c in r["left_by_cause"]})
+    names = list(variants)
+    bottom = np.zeros(len(names))
+    for cause in causes:
+        vals = np.array([variants[n]["left_by_cause"].get(cause, 0) / max(variants[n]["n_parts"], 1) for n in names])
+        ax_left.barh(names, 100 * vals, left=100 * bottom, label=cause)
+        bottom += vals
+    ax_left.set(xlabel="% of the parts left in the bin, by part and planner reason", title="what was left")
+    if causes:
+        ax_left.legend(fontsize=7, ncols=3, loc="upper center", bbox_to_anchor=(0.5, -0.14))
+    fig.suptitle("sygrid bench cell: simulated UR5e cell, pick until the bin is empty or nothing is safe")
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,211 @@
+"""Sim in the loop: whole pick cycles of ``robot.picker`` with the stock ur_rtde client and the gripper socket against
+the UR controller emulator (MuJoCo cell), the emulator's camera and the oracle perception (ground-truth poses:
+perception is not what is tested here), built by the demo's own ``launch.pick.open_cell`` from a cell file.
+
+One emulator serves the module (127.0.0.70; no other test uses 127.0.0.7x): a bin of five parts dropped with a
+fixed seed. Each test puts the parts back where the drop left them (or parks some of them out of the cell) and
+then asserts what the run did: outcomes, failure causes, stop reasons, where the parts ended up. Never wall time.
+
+Slow by nature: the emulator runs in real time, a pick cycle is about 5 s of robot time, and the whole file needs
+about 80 s (12 cycles, a protective-stop unlock and a reconnect).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rtde_control")
+
+from launch.pick import open_cell
+from robot.cell_setup import load_cell_setup
+from sim.cell_config import CellConfig
+from sygrid.transforms import invert, make_T
+
+HOST = "127.0.0.70"
+SEED = 6  # the drop leaves all five parts pickable (the planner finds a safe grasp for each in turn)
+SCENE = {
+    "name": "pick_five",
+    "objects": [
+        {"builtin": "hex_nut", "count": 2},
+        {"builtin": "l_bracket", "count": 1},
+        {"builtin": "pipe", "count": 1},
+        {"builtin": "spur_gear", "count": 1},
+    ],
+}
+# Above the bin, 0.17 m below the overhead camera, out of the UR5e's reach (its flange would be 0.89 m from the
+# shoulder), floating there.
+T_WORLD_UNREACHABLE = make_T(t=(-0.5, 0.0, 0.75))
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory):
+    """``(picker, process, T_world_obj at the start)`` of the five-part cell, built from a cell file."""
+    folder = tmp_path_factory.mktemp("pick_sim")
+    (folder / "five.json").write_text(json.dumps(SCENE))
+    text = Path("launch/cells/sim.toml").read_text()
+    text = text.replace('host = "127.0.0.50"', f'host = "{HOST}"').replace("seed = 0", f"seed = {SEED}")
+    text = text.replace('scene = "../scenes/pick_bin_10.json"', 'scene = "five.json"')
+    (folder / "cell.toml").write_text(text)
+    setup = load_cell_setup(folder / "cell.toml")
+    assert setup.robot.host == HOST and setup.data.sim.seed == SEED
+    with open_cell(setup, perception_kind="oracle") as (picker, process):
+        yield picker, process, process.part_poses()
+
+
+@pytest.fixture
+def fresh(cell):
+    """The cell as the drop left it: every part back in the bin, the arm at the observe pose, the gripper open, the
+    picker's memory of earlier runs cleared."""
+    picker, process, start = cell
+    picker.robot.recover()
+    picker.gripper.open()
+    picker._to_observe()
+    process.place_parts(start)
+    picker._failed_at.clear()
+    picker._last_picked = None
+    time.sleep(0.2)  # a few hundred physics steps: the parts are at rest where they were
+    return picker, process, start
+
+
+def _keep_only(process, start: np.ndarray, keep: int, T_world_keep: np.ndarray | None = None, hold=False) -> None:
+    """Parks every part but ``keep`` far out of the cell (held against gravity); ``keep`` goes to its start pose or
+    ``T_world_keep`` (held there when ``hold``)."""
+    T = start.copy()
+    parked = [i for i in range(len(T)) if i != keep]
+    for i in parked:
+        T[i] = make_T(t=(5.0 + 0.5 * i, 5.0, 3.0))
+    if T_world_keep is not None:
+        T[keep] = T_world_keep
+    process.place_parts(T, held=parked + ([keep] if hold else []))
+
+
+def _in_bin(T_world_obj: np.ndarray) -> np.ndarray:
+    cfg = CellConfig()
+    p = (invert(cfg.T_world_bin) @ T_world_obj)[:, :3, 3]
+    half = np.array(cfg.bin_inner_size_m) / 2
+    return (np.abs(p[:, 0]) < half[0]) & (np.abs(p[:, 1]) < half[1]) & (p[:, 2] > -0.01) & (p[:, 2] < half[2] * 2)
+
+
+def _nut(process) -> int:
+    """A nut of the five (the first in the part list)."""
+    return next(i for i, name in enumerate(process.part_names()) if name.endswith("hex_nut"))
+
+
+def test_clears_a_bin_of_five_parts(fresh):
+    picker, process, start = fresh
+    assert _in_bin(start).all()
+    report = picker.run(max_cycles=8)
+    assert report.stop_reason == "bin_empty", report.stop_detail
+    assert report.n_picked == 5 and [a.outcome for a in report.attempts] == ["picked"] * 5
+    assert report.failures_by_cause() == {}
+    assert not _in_bin(process.part_poses()).any(), "every part has left the bin"
+    assert not picker.robot.is_protective_stopped()
+    # the first test on this emulator: no contact of the arm with the bin ever stopped it
+    assert not any("protective stop" in line for line in process.log_messages())
+    # the cycle's record: robot time between two looks, and the stages that ran
+    assert len(report.sim_cycle_times_s()) == 5 and min(report.sim_cycle_times_s()) > 1.0
+    assert all(c.stage_wall_s["place"] > 0 and c.n_planned >= 1 for c in report.cycles[:5])
+
+
+def test_an_empty_bin_stops_at_once(fresh):
+    picker, process, start = fresh
+    process.park_parts(list(range(len(start))))
+    report = picker.run()
+    assert report.stop_reason == "bin_empty" and "no parts" in report.stop_detail
+    assert len(report.cycles) == 1 and report.cycles[0].n_detections == 0 and report.attempts == []
+
+
+def test_an_unreachable_part_is_refused_with_the_reason(fresh):
+    picker, process, start = fresh
+    nut = _nut(process)
+    _keep_only(process, start, nut, T_WORLD_UNREACHABLE, hold=True)
+    q_before = picker.robot.q()
+    report = picker.run()
+    assert report.stop_reason == "nothing_safe" and report.attempts == [], (report.stop_detail, report.attempts)
+    assert report.cycles[0].n_poses == 1
+    assert "unreachable" in report.stop_detail, report.stop_detail
+    np.testing.assert_allclose(picker.robot.q(), q_before, atol=1e-3)  # nothing moved
+
+
+def test_a_grasp_that_slips_fails_verification_and_is_retried(fresh):
+    """The part leaves the fingers while the arm lifts it (moved back to the bin floor as the lift ends): the
+    fingers close on nothing, the attempt is "slipped", and the next look picks it where it lies."""
+    picker, process, start = fresh
+    nut = _nut(process)
+    _keep_only(process, start, nut)
+    gripper = picker.gripper
+    real = gripper.object_detected
+    slipped = []
+
+    def slip_once() -> bool:
+        if not slipped:
+            T = process.part_poses()
+            T[nut] = start[nut]  # out of the fingers, back where it lay
+            process.place_parts(T, held=[i for i in range(len(T)) if i != nut])
+            slipped.append(True)
+            time.sleep(0.3)  # the fingers close on the empty space
+        return real()
+
+    gripper.object_detected = slip_once
+    try:
+        report = picker.run(max_cycles=4)
+    finally:
+        del gripper.object_detected
+    assert [a.outcome for a in report.attempts] == ["slipped", "picked"], [a.detail for a in report.attempts]
+    assert report.attempts[0].stage == "verify" and "the fingers closed to" in report.attempts[0].detail
+    assert report.stop_reason == "bin_empty" and not _in_bin(process.part_poses()[[nut]]).any()
+
+
+def _during_first_transit(picker, action) -> list:
+    """Runs ``action`` 0.3 s into the first joint move towards a part (the arm is moving)."""
+    robot, fired = picker.robot, []
+    real = robot.move_j
+
+    def move_j(q, speed_rad_s=None, accel_rad_s2=None):
+        if not fired and np.max(np.abs(np.asarray(q) - picker.q_observe)) > 0.1:
+            fired.append(threading.Timer(0.3, action))
+            fired[0].start()
+        return real(q, speed_rad_s, accel_rad_s2)
+
+    robot.move_j = move_j
+    return fired
+
+
+def test_a_protective_stop_mid_move_is_recovered_and_the_run_goes_on(fresh):
+    picker, process, start = fresh
+    nut = _nut(process)
+    _keep_only(process, start, nut)
+    fired = _during_first_transit(picker, lambda: process.trigger_protective_stop("test: a person in the cell"))
+    try:
+        report = picker.run(max_cycles=4)
+    finally:
+        del picker.robot.move_j
+    assert fired, "the arm never moved towards the part"
+    assert [a.outcome for a in report.attempts] == ["protective_stop", "picked"], [a.detail for a in report.attempts]
+    assert report.attempts[0].stage == "approach"
+    assert report.stop_reason == "bin_empty" and not picker.robot.is_protective_stopped()
+    assert any("protective stop: test" in line for line in process.log_messages())
+
+
+def test_a_dropped_connection_is_reconnected_and_the_run_goes_on(fresh):
+    picker, process, start = fresh
+    nut = _nut(process)
+    _keep_only(process, start, nut)
+    dropped = []
+    fired = _during_first_transit(picker, lambda: dropped.append(process.drop_connections(down_s=2.0)))
+    try:
+        report = picker.run(max_cycles=4)
+    finally:
+        del picker.robot.move_j
+    assert fired and dropped and dropped[0] >= 3  # receive, control, IO (and the dashboard, the script port)
+    assert any("link down" in line for line in process.log_messages())
+    assert [a.outcome for a in report.attempts] == ["connection_lost", "picked"], report.stop_detail
+    assert report.stop_reason == "bin_empty" and picker.robot.is_connected()
