@@ -7,7 +7,8 @@ rejection cause (``REJECTION_CAUSES``):
 
 1. part level: a model for its id (``no_model``), inside the bin (``outside_bin``: its origin outside the bin's
    inner footprint or below its floor; the camera may also see the place tray, whose walls the planner does not
-   know), a pose confidence of at least ``min_pose_score`` (``low_confidence``), candidates at all
+   know), a pose confidence of at least ``min_pose_score`` (``low_confidence``), a pose that depth refinement
+   confirmed where refinement ran (``unrefined``, with ``require_refined``), candidates at all
    (``no_candidates``), nothing lying on it (``covered``: the share of its upward surface with a depth point or a
    neighbour's surface above it);
 2. the approach within ``approach_cone_deg`` of straight down (``approach_angle``);
@@ -80,6 +81,7 @@ REJECTION_CAUSES = (
     "no_model",
     "outside_bin",
     "low_confidence",
+    "unrefined",
     "no_candidates",
     "covered",
     "approach_angle",
@@ -90,7 +92,7 @@ REJECTION_CAUSES = (
     "singular",
     "collision_transit",
 )
-_PART_LEVEL = ("no_model", "outside_bin", "low_confidence", "no_candidates", "covered")
+_PART_LEVEL = ("no_model", "outside_bin", "low_confidence", "unrefined", "no_candidates", "covered")
 _DOWN = np.array([0.0, 0.0, -1.0])
 _SURFACE_SAMPLES = 2000  # per model: own-point test, neighbour obstacles, covered test
 _NEIGHBOUR_SAMPLES = 400  # of those, the ones a neighbour contributes as obstacles
@@ -161,6 +163,8 @@ class PlannerConfig:
     between the grasp and its pre-grasp or lift (straight-line moves). q_reference_rad: the configuration IK
     solutions stay near (None: the one above the bin centre nearest ``ur5e.HOME_Q``).
     min_pose_score: parts whose pose score is lower are not picked.
+    require_refined: parts whose depth refinement was run and refused (the RGB estimate alone: centimetres off on
+        this stack's models) are not picked (``unrefined``); poses without refinement (ground truth) are.
     own_points_tolerance_m: depth points this close to a part's estimated surface are that part.
     bin_surface_tolerance_m: depth points this close to the bin's floor or walls are the bin.
     depth_stride_px: every n-th depth pixel in each direction becomes a point.
@@ -195,6 +199,7 @@ class PlannerConfig:
     max_joint_step_rad: float = 1.0
     q_reference_rad: tuple[float, ...] | None = None
     min_pose_score: float = 0.0
+    require_refined: bool = True
     own_points_tolerance_m: float = 0.005
     bin_surface_tolerance_m: float = 0.003
     depth_stride_px: int = 2
@@ -251,11 +256,13 @@ class PlannerConfig:
 
 @dataclass(frozen=True, eq=False)
 class PartEstimate:
-    """A part to plan for: its object id, pose in the robot base frame and pose confidence in [0, 1]."""
+    """A part to plan for: its object id, pose in the robot base frame, pose confidence in [0, 1], and whether
+    depth refinement confirmed the pose (None: no refinement was run, e.g. ground truth or an RGB-only cell)."""
 
     obj_id: int
     T_base_obj: np.ndarray
     score: float = 1.0
+    refined: bool | None = None
 
     def __post_init__(self) -> None:
         if not is_rigid(self.T_base_obj, atol=1e-4):
@@ -449,9 +456,10 @@ class GraspPlanner:
         if not is_rigid(T_base_camera, atol=1e-4):
             raise ValueError(f"T_base_camera must be a 4x4 rigid transform, got {T_base_camera.tolist()}")
         parts = [
-            PartEstimate(p.obj_id, T_base_camera @ np.asarray(p.T_camera_object, dtype=float), float(p.score))
+            PartEstimate(p.obj_id, T_base_camera @ np.asarray(p.T_camera_object, dtype=float), float(p.score),
+                         _refined(p))
             for p in poses
-        ]
+        ]  # fmt: skip
         cloud = None
         if depth_m is not None:
             if intrinsics is None:
@@ -584,6 +592,8 @@ class GraspPlanner:
         report["top_height_m"] = float(surfaces[index][:, 2].max())
         if part.score < cfg.min_pose_score:
             return part_level("low_confidence", n)
+        if cfg.require_refined and part.refined is False:
+            return part_level("unrefined", n)
         if n == 0:
             return part_level("no_candidates", 1)
 
@@ -1124,3 +1134,9 @@ def _place_pose(T_base_place: np.ndarray, x_grasp: np.ndarray) -> np.ndarray:
     T = T_base_place.copy()
     T[:3, 0], T[:3, 1] = x, np.cross(z, x)
     return T
+
+
+def _refined(pose: ObjectPose) -> bool | None:
+    """Did depth refinement confirm this estimate (``perception.refine``'s ``details["icp"]["status"]``)?"""
+    status = (pose.details or {}).get("icp", {}).get("status")
+    return None if status is None else status == "refined"

@@ -566,3 +566,15 @@ def _render_depth(parts, K: CameraIntrinsics, T_base_camera: np.ndarray) -> np.n
     depth = np.zeros(len(rays_cam), dtype=np.float32)
     depth[index] = (hits - origins[index]) @ T_base_camera[:3, 2]  # distance along the camera z axis
     return depth.reshape(K.height, K.width)
+
+
+def test_a_pose_whose_depth_refinement_was_refused_is_not_picked(planner):
+    """The RGB estimate alone is centimetres off on the shipped models: a part whose ICP kept it is left alone,
+    while a refined pose, and a pose that was never refined (ground truth), are planned."""
+    T_base_nut = _flat("hex_nut", -0.5, 0.0, yaw_rad=0.3)
+    plans = {r: planner.plan_parts([PartEstimate(1, T_base_nut, 0.9, refined=r)]) for r in (True, False, None)}
+    assert not plans[True].nothing_safe and not plans[None].nothing_safe
+    assert plans[False].nothing_safe and plans[False].parts[0].status == "unrefined"
+    detection = Detection(0, 1, 0.9, np.array([0.0, 0.0, 10.0, 10.0]))
+    kept = ObjectPose(detection, np.eye(4), 0.9, "direct", {"icp": {"status": "kept_initial"}})
+    assert not planner.plan([kept], T_base_nut).grasps  # the status travels from the pose into the plan
