@@ -102,23 +102,31 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         raise ConfigError(f"{args.config}: sygrid bench cell needs a simulated cell ([cell] kind = 'sim')")
     seeds = list(range(args.first_seed, args.first_seed + (QUICK_SEEDS if args.quick else args.seeds)))
     results: dict[str, Any] = {"targets": TARGETS, "seeds": seeds, "scene": str(args.scene or base.data.sim.scene)}
-    results["variants"] = {}
-    for name in names:
-        variant = VARIANTS[name]
-        bins = []
-        for seed in seeds:
+    bins: dict[str, list] = {name: [] for name in names}
+    name_out = "cell_quick" if args.quick else "cell"
+    # Seeds outside, variants inside, and the results saved after each seed: every variant has seen the same bins
+    # at any moment, and a run stopped early keeps what it measured (``seeds_done``).
+    for k, seed in enumerate(seeds):
+        for name in names:
             start = time.perf_counter()
-            outcome = run_bin(base, variant, seed, args.scene, args.max_cycles)
-            bins.append(outcome)
+            outcome = run_bin(base, VARIANTS[name], seed, args.scene, args.max_cycles)
+            bins[name].append(outcome)
             print(
                 f"{name} seed {seed}: {outcome['n_parts'] - outcome['n_left']}/{outcome['n_parts']} parts out, "
                 f"{outcome['n_picked']}/{outcome['n_tried']} attempts picked, {outcome['stop_reason']} "
                 f"({time.perf_counter() - start:.0f} s)",
                 flush=True,
             )
-        results["variants"][name] = {"description": variant.description, **summarize(bins), "bins": bins}
+        results["seeds_done"] = seeds[: k + 1]
+        results["variants"] = {
+            name: {"description": VARIANTS[name].description, **summarize(b), "bins": b} for name, b in bins.items()
+        }
+        if k + 1 < len(seeds):
+            figure = chart(results)
+            save_results(name_out, results, figure, out_dir)
+            figure.clf()  # the next seed draws a new figure
     print(format_results(results))
-    json_path, png_path = save_results("cell_quick" if args.quick else "cell", results, chart(results), out_dir)
+    json_path, png_path = save_results(name_out, results, chart(results), out_dir)
     print(f"wrote {json_path} and {png_path}")
     return 0
 
