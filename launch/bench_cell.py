@@ -70,10 +70,10 @@ VARIANTS: dict[str, Variant] = {
     "oracle_cone30": Variant(
         "oracle", "ground-truth poses; approach within 30 deg of vertical", {"approach_cone_deg": 30.0}
     ),
-    "models": Variant("models", "trained detector + pose net, the manifest's settings"),
+    "models": Variant("models", "trained detector + pose net, the cell file's settings"),
     "models_refine": Variant("models", "trained models, with depth refinement", refine=True),
     "models_norefine": Variant("models", "trained models, without depth refinement", refine=False),
-    "models_320": Variant("models", "trained models, detector input 320 px", detector_input_size=320),
+    "models_480": Variant("models", "trained models, detector at its training size 480 px", detector_input_size=480),
 }
 QUICK_VARIANTS = ("oracle", "oracle_fast", "models")
 
@@ -158,12 +158,10 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
     """The cell file's setup for one bin: this benchmark's host, the seed (and scene), the variant's settings."""
     d = base.data
     sim = d.sim.model_copy(update={"host": HOST, "seed": seed, **({"scene": str(scene.resolve())} if scene else {})})
+    # the variant's settings where it has them, the cell file's elsewhere
+    overrides = {"refine": variant.refine, "detector_input_size": variant.detector_input_size}
     perception = d.perception.model_copy(
-        update={
-            "kind": variant.perception,
-            "refine": variant.refine,
-            "detector_input_size": variant.detector_input_size,
-        }
+        update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}
     )
     robot = {**d.robot, "host": HOST}
     gripper = {**d.gripper, "host": HOST}
