@@ -27,9 +27,10 @@ the next cycle looks again (the pile has changed). A part whose location has see
 failed attempts (within ``exclusion_distance_m``: a part that moved is a new chance) is left out of planning, so
 one stubborn part cannot make the run loop. The run stops cleanly when the camera sees no parts ("bin_empty"),
 when no safe grasp is left ("nothing_safe", with the planner's reasons), when every part left has been given up
-("gave_up"), when the fingers cannot be freed ("gripper_blocked"), after ``max_cycles``, or after
-``max_failed_cycles`` cycles in a row without a pick. A motion error that cannot be recovered (an emergency
-stop, a protective stop that cannot be released) is raised.
+("gave_up"), when the fingers cannot be freed ("gripper_blocked"), after ``max_cycles``, after
+``max_failed_cycles`` cycles in a row without a pick, or when a stop cannot be released by the cell itself (an
+emergency stop, a protective stop that does not release: "needs_operator", nothing more is sent, the cycles so far
+are kept in the report).
 
 Times: stage timings are wall seconds; ``sim_time_s`` is the camera's timestamp (simulated seconds in the
 simulated cell, the device clock on hardware), so a cycle's robot time is the difference between two captures.
@@ -61,7 +62,15 @@ log = logging.getLogger(__name__)
 
 STAGES = ("capture", "perceive", "plan", "approach", "grasp", "verify", "place")
 #: Why a run stopped.
-STOP_REASONS = ("bin_empty", "nothing_safe", "gave_up", "gripper_blocked", "max_cycles", "too_many_failures")
+STOP_REASONS = (
+    "bin_empty",
+    "nothing_safe",
+    "gave_up",
+    "gripper_blocked",
+    "max_cycles",
+    "too_many_failures",
+    "needs_operator",  # a stop the cell cannot release itself (emergency stop, arm pinned in a protective stop)
+)
 #: The outcome of one attempt (one planned grasp tried): "picked" or a failure cause.
 FAILURE_CAUSES = (
     "motion_refused",  # checked and refused, nothing sent: next candidate
@@ -320,7 +329,11 @@ class Picker:
         while True:
             if len(cycles) >= limit:
                 return self._finish(cycles, "max_cycles", f"stopped after {limit} cycle(s)")
-            record = self.cycle(len(cycles))
+            try:
+                record = self.cycle(len(cycles))
+            except (RecoveryError, MotionFailedError) as exc:  # a recoverable MotionFailedError never gets here
+                log.error("the cell needs an operator: %s", exc)
+                return self._finish(cycles, "needs_operator", f"{type(exc).__name__}: {exc}")
             if cycles and cycles[-1].sim_cycle_s is None:
                 cycles[-1].sim_cycle_s = record.sim_time_s - cycles[-1].sim_time_s
             cycles.append(record)

@@ -12,7 +12,7 @@ from perception.camera import Frame
 from perception.results import Detection, ObjectPose
 from robot.cell_setup import load_cell_setup
 from robot.picker import Picker, PickerConfig
-from robot.ur_errors import MotionRefusedError, ProtectiveStopError
+from robot.ur_errors import MotionRefusedError, ProtectiveStopError, RecoveryError
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
 from sygrid.transforms import make_T
@@ -200,6 +200,20 @@ def test_protective_stop_is_recovered_and_the_cycle_looks_again():
     assert robot.recovered == 1
     assert [a.outcome for a in report.attempts] == ["protective_stop", "picked"]
     assert report.stop_reason == "bin_empty"
+
+
+def test_a_stop_the_cell_cannot_release_ends_the_run_with_its_report():
+    bin_ = FakeBin([0.0, 0.1])
+    picker, robot = make_picker(bin_, stop_once_x=0.1)
+
+    def pinned(timeout_s=None):
+        raise RecoveryError("still protective-stopped after 'Protective stop releasing'")
+
+    picker.run(max_cycles=1)  # picks the part at x = 0.0
+    robot.recover = pinned
+    report = picker.run()
+    assert report.stop_reason == "needs_operator" and "still protective-stopped" in report.stop_detail
+    assert bin_.parts == [0.1]  # nothing more was tried after the stop
 
 
 def test_gripper_closing_on_air_fails_verification_and_retries():
