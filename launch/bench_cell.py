@@ -315,7 +315,7 @@ def chart(results: dict[str, Any]):
     ax.scatter([], [], marker="s", color="C0", label="parts cleared (ground truth)")
     ax.scatter([], [], marker="o", facecolors="none", edgecolors="k", label="pick success rate (picks / attempts)")
     ax.set(xlabel="median cycle time [simulated s]", ylabel="%", ylim=(0, 105),
-           title=f"{len(results['seeds'])} bin(s) per variant")  # fmt: skip
+           title=f"{len(results.get('seeds_done', results['seeds']))} bin(s) per variant")  # fmt: skip
     ax.legend(fontsize=8, loc="lower left")
     ax.grid(alpha=0.3)
     causes = sorted({c for r in variants.values() for c in r["left_by_cause"]})
