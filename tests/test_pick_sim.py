@@ -13,6 +13,7 @@ about 80 s (12 cycles, a protective-stop unlock and a reconnect).
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from pathlib import Path
@@ -52,7 +53,8 @@ def cell(tmp_path_factory: pytest.TempPathFactory):
     (folder / "five.json").write_text(json.dumps(SCENE))
     text = Path("launch/cells/sim.toml").read_text()
     text = text.replace('host = "127.0.0.50"', f'host = "{HOST}"').replace("seed = 0", f"seed = {SEED}")
-    text = text.replace('scene = "../scenes/pick_bin_10.json"', 'scene = "five.json"')
+    text, n_scenes = re.subn(r"^scene = .*$", 'scene = "five.json"', text, flags=re.MULTILINE)
+    assert n_scenes == 1, "the cell file's [sim] scene line was not found"
     (folder / "cell.toml").write_text(text)
     setup = load_cell_setup(folder / "cell.toml")
     assert setup.robot.host == HOST and setup.data.sim.seed == SEED
