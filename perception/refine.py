@@ -185,6 +185,18 @@ def _better(a: dict, b: dict) -> bool:
     return a["inlier_rmse_m"] < b["inlier_rmse_m"]
 
 
+@dataclass(frozen=True)
+class _Start:
+    """One ICP start: the object pose it starts from, the centred scene and model clouds, the cloud sizes, and its
+    fit before ICP (``fitness``, ``inlier_rmse_m``)."""
+
+    T_camera_object: np.ndarray
+    cloud: o3d.geometry.PointCloud
+    target: o3d.geometry.PointCloud
+    figures: dict
+    fit: dict
+
+
 def _keep(pose: ObjectPose, reason: str, info: dict) -> ObjectPose:
     log.debug("ICP kept the initial pose of obj_id %d: %s", pose.obj_id, reason)
     icp = {**info, "status": "kept_initial", "reason": reason}
@@ -263,15 +275,14 @@ class DepthRefiner:
         if cfg.pca_hypotheses:
             starts += pca_rotations(points, scene)
         n_starts = len(starts)
-        if len(starts) > cfg.icp_starts:  # rank the starts by how well they fit before any ICP; refine the best
-            ranked = [(R, self._refine_from(R, T_init, scene, model, points, normals, run_icp=False)) for R in starts]
-            ranked = [(R, c) for R, c in ranked if c is not None]
-            ranked.sort(key=lambda rc: (-round(rc[1][2]["fitness"], 2), rc[1][2]["inlier_rmse_m"]))
-            starts = [R for R, _ in ranked[: cfg.icp_starts]]
+        prepared = [p for p in (self._start(R, T_init, scene, model, points, normals) for R in starts) if p is not None]
+        if n_starts > cfg.icp_starts:  # rank the starts by how well they fit before any ICP; refine the best
+            prepared.sort(key=lambda p: (-round(p.fit["fitness"], 2), p.fit["inlier_rmse_m"]))
+            prepared = prepared[: cfg.icp_starts]
         best = None
-        for R_start in starts:
-            candidate = self._refine_from(R_start, T_init, scene, model, points, normals)
-            if candidate is not None and (best is None or _better(candidate[2], best[2])):
+        for start in prepared:
+            candidate = self._fit(start, model)
+            if best is None or _better(candidate[2], best[2]):
                 best = candidate
         if best is None:
             info["time_ms"] = (time.perf_counter() - t_start) * 1e3
@@ -309,7 +320,7 @@ class DepthRefiner:
             {**pose.details, "icp": {**info, "status": "refined"}},
         )
 
-    def _refine_from(
+    def _start(
         self,
         R_start: np.ndarray,
         T_init: np.ndarray,
@@ -317,12 +328,12 @@ class DepthRefiner:
         model: ObjectModel,
         points: np.ndarray,
         normals: np.ndarray,
-        run_icp: bool = True,
-    ) -> tuple[np.ndarray, np.ndarray, dict] | None:
-        """ICP from one start rotation; (T_start, T_refined, figures), or None when no model surface faces the
-        camera. The start is where the depth says the part is: the visible model surface at ``R_start`` moved to
-        share the depth cloud's centroid (the estimator's translation is its weakest output, a relative depth error
-        of a few per cent is centimetres at the bin, and ICP's basin is a fraction of the diameter)."""
+    ) -> _Start | None:
+        """The ICP problem from one start rotation, with the start's own fit at the widest correspondence distance
+        (what the starts are ranked by), or None when no model surface faces the camera. The start is where the
+        depth says the part is: the visible model surface at ``R_start`` moved to share the depth cloud's centroid
+        (the estimator's translation is its weakest output, a relative depth error of a few per cent is
+        centimetres at the bin, and ICP's basin is a fraction of the diameter)."""
         cfg = self.config
         diameter = float(model.diameter_m)
         T_start = make_T(R_start, T_init[:3, 3])
@@ -345,27 +356,39 @@ class DepthRefiner:
         target.normals = o3d.utility.Vector3dVector(n_cam)
         figures: dict = {"scene_points": len(cloud.points), "model_points": len(p_cam)}
         if len(cloud.points) < cfg.min_scene_points:
-            return T_start, T_start.copy(), {**figures, "fitness": 0.0, "inlier_rmse_m": math.nan, "iterations": 0,
-                                             "correction_m": 0.0, "correction_deg": 0.0}  # fmt: skip
-        if not run_icp:  # the start's own fit at the widest correspondence distance
-            fit = o3d.pipelines.registration.evaluate_registration(
+            fit = {"fitness": 0.0, "inlier_rmse_m": math.nan}
+        else:
+            result = o3d.pipelines.registration.evaluate_registration(
                 cloud, target, max(cfg.correspondence_fractions) * diameter
             )
-            return T_start, T_start.copy(), {**figures, "fitness": fit.fitness, "inlier_rmse_m": fit.inlier_rmse}
+            fit = {"fitness": result.fitness, "inlier_rmse_m": result.inlier_rmse}
+        return _Start(T_start, cloud, target, figures, fit)
+
+    def _fit(self, start: _Start, model: ObjectModel) -> tuple[np.ndarray, np.ndarray, dict]:
+        """ICP from a prepared start: (T_start, T_refined, figures)."""
+        T_start, figures = start.T_camera_object, start.figures
+        if len(start.cloud.points) < self.config.min_scene_points:
+            return T_start, T_start.copy(), {**figures, "fitness": 0.0, "inlier_rmse_m": math.nan, "iterations": 0,
+                                             "correction_m": 0.0, "correction_deg": 0.0}  # fmt: skip
         axes = np.array([s.axis for s in model.symmetries_continuous], dtype=np.float64).reshape(-1, 3)
-        T_scene_to_model, iterations, result = self._icp(cloud, target, diameter, R_start, axes)
+        diameter = float(model.diameter_m)
+        T_scene_to_model, iterations, result = self._icp(start.cloud, start.target, diameter, T_start[:3, :3], axes)
         # ICP moved the (centred) scene onto the model; move the model onto the scene instead.
-        T_centre = make_T(t=centre)
+        T_centre = make_T(t=T_start[:3, 3])
         T_refined = T_centre @ invert(T_scene_to_model) @ invert(T_centre) @ T_start
-        figures.update(
-            fitness=float(result.fitness),
-            inlier_rmse_m=float(result.inlier_rmse),
-            iterations=iterations,
-            # ICP's own correction from its start (what tells a diverged run)
-            correction_m=float(np.linalg.norm(T_refined[:3, 3] - T_start[:3, 3])),
-            correction_deg=symmetric_pose_errors(T_refined, T_start, _symmetries(model))[0],
+        return (
+            T_start,
+            T_refined,
+            {
+                **figures,
+                "fitness": float(result.fitness),
+                "inlier_rmse_m": float(result.inlier_rmse),
+                "iterations": iterations,
+                # ICP's own correction from its start (what tells a diverged run)
+                "correction_m": float(np.linalg.norm(T_refined[:3, 3] - T_start[:3, 3])),
+                "correction_deg": symmetric_pose_errors(T_refined, T_start, _symmetries(model))[0],
+            },
         )
-        return T_start, T_refined, figures
 
     def _icp(
         self,
