@@ -27,7 +27,7 @@ import matplotlib.pyplot as plt
 from tqdm import tqdm
 
 from perception.detector import YoloSegDetector
-from perception.evaluation import EvalSettings, bop_items, default_split, match_poses
+from perception.evaluation import EvalSettings, eval_items, match_poses
 from perception.pipeline import PerceptionPipeline, PipelineOverrides, load_manifest
 from perception.pose import PoseEstimator
 from perception.refine import DepthRefiner, RefineConfig
@@ -92,12 +92,8 @@ def run_benchmark(
     pose_variants = [(p, m, r) for p in poses for m in ("direct", "pnp") for r in ("", "ICP")]
     pose_variants[2:2] = [(manifest.pose.onnx, "direct", r) for r in REFINE_VARIANTS]
 
-    root = data_dir / "bop"
-    if not root.is_dir():
-        raise ConfigError(f"{data_dir}: not a generated dataset (no bop/ folder)")
-    split = default_split(root)
-    items = bop_items(root, split)[:max_images]
-    settings = EvalSettings()
+    settings = EvalSettings(max_images=max_images)
+    root, split, items = eval_items(data_dir, settings)
     det_acc = {name: _Variant(name) for name in detectors}
     pose_acc = {v: _Variant(_pose_label(*v)) for v in pose_variants}
     base_name, min_px = f"{manifest.detector.onnx} @ {base_size}", pipeline.min_mask_px

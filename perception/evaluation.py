@@ -55,6 +55,15 @@ def default_split(root: Path) -> str:
     raise ConfigError(f"{root}: no BOP split folder (test, val_pbr or train_pbr)")
 
 
+def eval_items(data_dir: str | Path, settings: EvalSettings) -> tuple[Path, str, list[tuple[int, int]]]:
+    """The BOP root, split and (scene_id, image_id) items of a generated dataset that an evaluation runs on."""
+    root = Path(data_dir) / "bop"
+    if not root.is_dir():
+        raise ConfigError(f"{data_dir}: not a generated dataset (no bop/ folder)")
+    split = settings.split or default_split(root)
+    return root, split, bop_items(root, split)[: settings.max_images]
+
+
 def match_poses(ann: ImageAnnotation, poses: list[ObjectPose], min_visib: float, min_iou: float) -> list:
     """Per evaluated GT instance: (instance, matched ObjectPose or None)."""
     free = sorted(poses, key=lambda p: -p.score)
@@ -85,11 +94,7 @@ def evaluate(
 ) -> dict:
     """Runs ``pipeline`` on the split's images; returns detection metrics, the pose table and median timings."""
     s = settings or EvalSettings()
-    root = Path(data_dir) / "bop"
-    if not root.is_dir():
-        raise ConfigError(f"{data_dir}: not a generated dataset (no bop/ folder)")
-    split = s.split or default_split(root)
-    items = bop_items(root, split)[: s.max_images]
+    root, split, items = eval_items(data_dir, s)
     if not items:
         raise ConfigError(f"{root / split}: no images")
     images, detections, records, timings = [], [], [], []
@@ -126,9 +131,7 @@ def evaluate_detector(
     """Box and mask mAP of ``detector`` alone on the split's images (for the COCO convention of a low confidence
     threshold, e.g. 0.001, where the pipeline runs at its operating threshold)."""
     s = settings or EvalSettings()
-    root = Path(data_dir) / "bop"
-    split = s.split or default_split(root)
-    items = bop_items(root, split)[: s.max_images]
+    root, split, items = eval_items(data_dir, s)
     images, detections = [], []
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, _ = load_bop_item(root, scene_id, image_id, split=split)
