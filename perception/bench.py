@@ -96,7 +96,7 @@ def run_benchmark(
     root, split, items = eval_items(data_dir, settings)
     det_acc = {name: _Variant(name) for name in detectors}
     pose_acc = {v: _Variant(_pose_label(*v)) for v in pose_variants}
-    base_name, min_px = f"{manifest.detector.onnx} @ {base_size}", pipeline.min_mask_px
+    base_name = f"{manifest.detector.onnx} @ {base_size}"
     images, n_detections, image_hw = [], [], None
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
@@ -109,7 +109,7 @@ def run_benchmark(
             det_acc[name].outputs.append(found)
         base = det_acc.get(base_name)
         found = base.outputs[-1] if base else pipeline.detector.detect(rgb)
-        usable = [d for d in found if d.obj_id in pipeline.models and (d.mask is None or d.mask.sum() >= min_px)]
+        usable = pipeline.poseable(found)
         n_detections.append(len(usable))
         for pose_name, estimator in poses.items():
             for method in ("direct", "pnp"):

@@ -129,16 +129,20 @@ class PerceptionPipeline:
             min_mask_px=manifest.min_mask_px,
         )
 
+    def poseable(self, detections: list[Detection]) -> list[Detection]:
+        """The detections a pose is estimated for: of a part the pipeline has a model of, and not a sliver (too few
+        mask pixels for the RoI or the depth fit)."""
+        return [
+            d for d in detections if d.obj_id in self.models and (d.mask is None or d.mask.sum() >= self.min_mask_px)
+        ]
+
     def run(self, frame: Frame) -> PerceptionResult:
         """Detects, estimates and (optionally) refines every part in ``frame``; an empty frame gives no poses."""
         timings: dict[str, float] = {}
         t = time.perf_counter()
         detections = self.detector.detect(frame.rgb)
         timings["detect"] = 1e3 * (time.perf_counter() - t)
-        # A sliver of a part cannot carry a pose (too few pixels for the RoI or the depth fit).
-        usable = [
-            d for d in detections if d.obj_id in self.models and (d.mask is None or d.mask.sum() >= self.min_mask_px)
-        ]
+        usable = self.poseable(detections)
         t = time.perf_counter()
         poses = self.pose.estimate(frame.rgb, usable, frame.intrinsics, method=self.pose_method)
         timings["pose"] = 1e3 * (time.perf_counter() - t)
