@@ -12,7 +12,7 @@ Three measurements on the 20-part bin (``launch/scenes/builtin_bin.json``, 640x4
    scene build + path tracing + denoising (``RenderResult.timings``). The renderer returns only the final uint8
    image, not the noisy linear colour and its guides, so the OIDN variant is a second render of the same samples
    (same seed) rather than OIDN applied to the first one.
-2. **Complete items of the default preset** (the scene's own render settings, "fast": 16 spp + OIDN, box filter):
+2. **Complete items of the default preset** (the scene's own render settings, "fast": 4 spp + OIDN, box filter):
    ``sygrid.dataset.make_item`` (drop + render with full masks + annotations), then the item written in BOP, YOLO
    and COCO to a temporary folder by the generator's own writers. Median seconds per item and the split by stage.
 3. **Memory**: the process's resident set size after each of ``--rss-items`` consecutive complete items; growth =
