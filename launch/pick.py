@@ -100,8 +100,8 @@ def open_cell(
 
             models_dir = setup.resolve(d.perception.models_dir)
             overrides = PipelineOverrides(
-                detector_input_size=d.perception.detector_input_size, refine=d.perception.refine,
-                num_threads=d.perception.num_threads,
+                detector_input_size=d.perception.detector_input_size, conf_threshold=d.perception.conf_threshold,
+                refine=d.perception.refine, max_refined=d.perception.max_refined, num_threads=d.perception.num_threads,
             )  # fmt: skip
             perception = PerceptionPipeline.from_folder(models_dir, overrides)
             models = perception.models

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from perception.camera import Frame
@@ -56,6 +57,7 @@ class PoseEntry(_Strict):
 
 class RefineEntry(_Strict):
     enabled: bool = True
+    max_refined: int | None = Field(default=None, ge=1)
 
 
 class Manifest(_Strict):
@@ -75,6 +77,7 @@ class PipelineOverrides:
     conf_threshold: float | None = None
     pose_method: str | None = None
     refine: bool | None = None
+    max_refined: int | None = None
     num_threads: int = 2
 
 
@@ -98,10 +101,16 @@ class PerceptionPipeline:
         refiner: DepthRefiner | None = None,
         pose_method: str = "direct",
         min_mask_px: int = 30,
+        max_refined: int | None = None,
     ) -> None:
+        """``max_refined``: stop refining once this many poses are refined, nearest parts (top of the pile) first;
+        the rest keep their RGB estimate with ``details["icp"]["status"] == "skipped"``. None refines every pose."""
+        if max_refined is not None and max_refined < 1:
+            raise ConfigError(f"PerceptionPipeline: max_refined must be >= 1 or None, got {max_refined}")
         self.detector, self.pose, self.models, self.refiner = detector, pose, models, refiner
         self.pose_method = pose_method
         self.min_mask_px = min_mask_px
+        self.max_refined = max_refined
 
     @classmethod
     def from_folder(cls, folder: str | Path, overrides: PipelineOverrides | None = None) -> PerceptionPipeline:
@@ -127,6 +136,7 @@ class PerceptionPipeline:
             DepthRefiner() if refine else None,
             pose_method=o.pose_method or manifest.pose.method,
             min_mask_px=manifest.min_mask_px,
+            max_refined=o.max_refined or manifest.refine.max_refined,
         )
 
     def poseable(self, detections: list[Detection]) -> list[Detection]:
@@ -148,11 +158,38 @@ class PerceptionPipeline:
         timings["pose"] = 1e3 * (time.perf_counter() - t)
         t = time.perf_counter()
         if self.refiner is not None:
-            poses = [self.refiner.refine(p, frame.depth_m, frame.intrinsics, self.models[p.obj_id]) for p in poses]
+            poses = self._refine(poses, frame)
         timings["refine"] = 1e3 * (time.perf_counter() - t)
         timings["total"] = sum(timings.values())
         poses.sort(key=lambda p: -p.score)
         return PerceptionResult(poses, detections, timings)
+
+
+    def _refine(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose]:
+        """Refines nearest first: a picking cell takes parts from the top of the pile, so with ``max_refined`` the
+        ICP time goes to the parts a grasp planner will choose from (about 20 ms each on a 2-core CPU)."""
+        assert self.refiner is not None
+        out: list[ObjectPose] = []
+        for pose in sorted(poses, key=lambda p: _median_depth(p, frame.depth_m)):
+            n_refined = sum(p.details.get("icp", {}).get("status") == "refined" for p in out)
+            if self.max_refined is not None and n_refined >= self.max_refined:
+                icp = {"status": "skipped", "reason": f"{self.max_refined} nearer parts were refined (max_refined)"}
+                out.append(ObjectPose(pose.detection, pose.T_camera_object, pose.score, pose.method,
+                                      {**pose.details, "icp": icp}))  # fmt: skip
+            else:
+                out.append(self.refiner.refine(pose, frame.depth_m, frame.intrinsics, self.models[pose.obj_id]))
+        return out
+
+
+def _median_depth(pose: ObjectPose, depth_m: np.ndarray) -> float:
+    """The median measured depth (m) inside the pose's mask; the estimate's own depth where the mask has none."""
+    mask = pose.detection.mask
+    if mask is not None and mask.shape == depth_m.shape:
+        z = depth_m[mask]
+        z = z[np.isfinite(z) & (z > 0)]
+        if len(z):
+            return float(np.median(z))
+    return float(pose.T_camera_object[2, 3])
 
 
 def load_manifest(folder: Path) -> Manifest:

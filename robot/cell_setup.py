@@ -9,7 +9,8 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [gripper]     robot.gripper config: kind = "robotiq_socket" | "digital_output", ... (host defaults to the robot)
     [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps)
     [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
-    [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, detector_input_size
+    [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
+                  conf_threshold, detector_input_size
     [planner]     robot.grasp.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
     [picker]      robot.picker.PickerConfig fields
 
@@ -62,6 +63,8 @@ class PerceptionSection(_Strict):
     kind: Literal["models", "oracle"] = "models"
     models_dir: str = "models/builtin"
     refine: bool | None = None
+    max_refined: int | None = Field(default=None, ge=1)
+    conf_threshold: float | None = Field(default=None, gt=0, lt=1)
     detector_input_size: int | None = Field(default=None, ge=32, le=4096)
     num_threads: int = Field(default=2, ge=1)
 

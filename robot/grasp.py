@@ -163,8 +163,9 @@ class PlannerConfig:
     between the grasp and its pre-grasp or lift (straight-line moves). q_reference_rad: the configuration IK
     solutions stay near (None: the one above the bin centre nearest ``ur5e.HOME_Q``).
     min_pose_score: parts whose pose score is lower are not picked.
-    require_refined: parts whose depth refinement was run and refused (the RGB estimate alone: centimetres off on
-        this stack's models) are not picked (``unrefined``); poses without refinement (ground truth) are.
+    require_refined: parts whose depth refinement refused the estimate or was skipped (the RGB estimate alone:
+        centimetres off on this stack's models) are not picked (``unrefined``); poses without refinement (ground
+        truth) are.
     own_points_tolerance_m: depth points this close to a part's estimated surface are that part.
     bin_surface_tolerance_m: depth points this close to the bin's floor or walls are the bin.
     depth_stride_px: every n-th depth pixel in each direction becomes a point.

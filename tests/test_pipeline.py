@@ -125,3 +125,44 @@ def test_bad_model_folders_name_the_file_and_field(model_dir: Path, tmp_path: Pa
         PerceptionPipeline.from_folder(broken)
     with pytest.raises(ConfigError, match=r"no bop/ folder"):
         evaluate(PerceptionPipeline.from_folder(model_dir), tmp_path, progress=False)
+
+
+class _RecordingRefiner:
+    """Refines by marking the pose (refuses obj_id 4), recording the order it was asked in."""
+
+    def __init__(self) -> None:
+        self.order: list[float] = []
+
+    def refine(self, pose, depth_m, intrinsics, model):
+        from perception.results import ObjectPose
+
+        self.order.append(float(pose.T_camera_object[2, 3]))
+        status = "kept_initial" if pose.obj_id == 4 else "refined"
+        return ObjectPose(pose.detection, pose.T_camera_object, pose.score, pose.method, {"icp": {"status": status}})
+
+
+def test_max_refined_refines_the_nearest_parts_until_enough_are_refined():
+    from perception.results import Detection, ObjectPose
+    from robot.grasp import _refined
+    from sygrid.camera import CameraIntrinsics
+
+    depth = np.zeros((40, 60), np.float32)
+    poses = []
+    for k, (obj_id, z) in enumerate([(1, 0.90), (4, 0.80), (1, 0.85), (1, 0.95), (1, 0.70)]):
+        mask = np.zeros_like(depth, dtype=bool)
+        mask[5:15, 10 * k : 10 * k + 8] = True
+        depth[mask] = z  # the pose's own z is ignored where the mask has depth
+        T = np.eye(4)
+        T[2, 3] = 2.0 - z
+        poses.append(ObjectPose(Detection(0, obj_id, 0.9, np.array([0.0, 0, 1, 1]), mask), T, 0.9, "direct"))
+    refiner = _RecordingRefiner()
+    pipeline = PerceptionPipeline(None, None, {1: None, 4: None}, refiner, max_refined=2)  # type: ignore[arg-type]
+    frame = Frame(np.zeros((40, 60, 3), np.uint8), depth, CameraIntrinsics(100, 100, 30, 20, 60, 40), 0.0)
+    out = pipeline._refine(poses, frame)
+    # nearest first (0.70, 0.80 refused, 0.85): two refined, then the rest skipped
+    assert refiner.order == pytest.approx([2.0 - 0.70, 2.0 - 0.80, 2.0 - 0.85])
+    statuses = [p.details["icp"]["status"] for p in out]
+    assert statuses == ["refined", "kept_initial", "refined", "skipped", "skipped"]
+    assert [_refined(p) for p in out] == [True, False, True, False, False]  # the planner picks none of the others
+    with pytest.raises(ConfigError, match="max_refined must be >= 1"):
+        PerceptionPipeline(None, None, {}, refiner, max_refined=0)  # type: ignore[arg-type]
