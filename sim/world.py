@@ -161,20 +161,27 @@ class CellWorld:
     def arm_collision_force_n(self) -> float:
         """Largest contact normal force (N) between an arm or gripper geom and the table, bin, tray or robot base,
         or between two arm links, in the last step. Contacts with parts are never collisions."""
+        return self.arm_collision()[0]
+
+    def arm_collision(self) -> tuple[float, str]:
+        """``arm_collision_force_n`` and the two geoms of that contact (``"geom_a / geom_b"``; "" without one),
+        so a protective stop can say what hit what."""
         with self.lock:
             m, d = self.model, self.data
             n = d.ncon
             if n == 0:
-                return 0.0
+                return 0.0, ""
             g1, g2 = d.contact.geom1[:n], d.contact.geom2[:n]
             arm, env = self._geom_is_arm, self._geom_is_env
             hit = (arm[g1] & (env[g2] | arm[g2])) | (arm[g2] & env[g1])
             force = np.zeros(6)
-            largest = 0.0
+            largest, pair = 0.0, ""
             for i in np.flatnonzero(hit):
                 mujoco.mj_contactForce(m, d, int(i), force)
-                largest = max(largest, float(force[0]))
-            return largest
+                if force[0] > largest:
+                    largest = float(force[0])
+                    pair = f"{_geom_name(m, int(g1[i]))} / {_geom_name(m, int(g2[i]))}"
+            return largest, pair
 
     # ------------------------------------------------------------------------------------------ gripper
 
@@ -366,3 +373,12 @@ def _check_vector(name: str, v: np.ndarray) -> np.ndarray:
 
 def _safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "_-" else "_" for c in name)
+
+
+def _geom_name(model: mujoco.MjModel, geom: int) -> str:
+    """The geom's name, else its body's name with the geom index (mesh pieces are often unnamed)."""
+    name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, geom)
+    if name:
+        return name
+    body = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.geom_bodyid[geom]))
+    return f"{body or 'body'}#{geom}"

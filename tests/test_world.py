@@ -131,7 +131,9 @@ def test_pushing_into_the_table_is_a_large_collision_force() -> None:
     assert free_force < 1.0
     _, push_force = _move(world, _q_for_tcp(world, spot + np.array([0, 0, -0.03])), 0.6)
     assert push_force > 100.0
-    assert world.arm_collision_force_n() > 100.0
+    force, geoms = world.arm_collision()
+    assert force == world.arm_collision_force_n() > 100.0
+    assert "table" in geoms  # the protective-stop message says what hit what
 
 
 def test_parts_keep_the_world_state_and_rest_in_the_bin(tmp_path) -> None:

@@ -27,6 +27,7 @@ class ArmSample:
     qd: np.ndarray
     torque: np.ndarray
     collision_force_n: float = 0.0
+    collision_geoms: str = ""  # the two geoms of the largest collision contact, for the protective-stop message
     gripper_width_m: float = GRIPPER_STROKE_M
     gripper_target_m: float = GRIPPER_STROKE_M  # the last width commanded through set_gripper
     gripper_moving: bool = False

@@ -348,6 +348,7 @@ class EmulatedController:
         if sample.collision_force_n > self.protective_stop_force_n and not self.protective_stopped:
             self._enter_protective_stop(
                 f"contact force {sample.collision_force_n:.1f} N above the {self.protective_stop_force_n:g} N limit"
+                + (f" ({sample.collision_geoms})" if sample.collision_geoms else "")
             )
         running = self.program is not None and self.runtime_state == RUNTIME_PLAYING
         if running and self._watchdog_hz and now - self._last_cmd_write > 1.0 / self._watchdog_hz:

@@ -53,12 +53,14 @@ class WorldBackend:
 
     def _sample_locked(self) -> ArmSample:
         w = self.world
+        collision_force_n, collision_geoms = w.arm_collision()
         return ArmSample(
             time_s=float(w.time_s),
             q=np.array(w.arm_q(), dtype=float),
             qd=np.array(w.arm_qd(), dtype=float),
             torque=np.array(w.arm_torque(), dtype=float),
-            collision_force_n=float(w.arm_collision_force_n()),
+            collision_force_n=collision_force_n,
+            collision_geoms=collision_geoms,
             gripper_width_m=float(w.gripper_width_m()),
             gripper_target_m=self._gripper_target_m,
             gripper_moving=bool(w.gripper_moving()),
