@@ -164,7 +164,6 @@ class PerceptionPipeline:
         poses.sort(key=lambda p: -p.score)
         return PerceptionResult(poses, detections, timings)
 
-
     def _refine(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose]:
         """Refines nearest first: a picking cell takes parts from the top of the pile, so with ``max_refined`` the
         ICP time goes to the parts a grasp planner will choose from (about 20 ms each on a 2-core CPU)."""
