@@ -147,6 +147,7 @@ class GripperController:
         self._dt_s = dt_s
         self._target_width_m = STROKE_M
         self._setpoint_m = 0.0  # the servo's moving set point; starts closed, like the compiled model
+        self._restart_from_width = False
         self._speed_m_s = MAX_SPEED_M_S
         self._force_n = MAX_FORCE_N
         self._qadr = np.zeros(2, dtype=int)
@@ -172,8 +173,15 @@ class GripperController:
         _check_range("force_n", force_n, MIN_FORCE_N, MAX_FORCE_N)
         self._target_width_m, self._speed_m_s, self._force_n = float(width_m), float(speed_m_s), float(force_n)
         model.actuator_forcerange[self._actuator_id] = [-self._force_n, self._force_n]
+        self._restart_from_width = True
 
     def apply(self, data: mujoco.MjData) -> None:
+        if self._restart_from_width:
+            # A new request starts from where the fingers are: after squeezing a part the set point lies at the
+            # closed end, and opening from there kept the servo stalled (reported as "stopped on an object while
+            # opening") until the set point had travelled back up to the part's width.
+            self._setpoint_m = float(np.clip(self.width_m(data), 0.0, STROKE_M))
+            self._restart_from_width = False
         step = self._speed_m_s * self._dt_s
         self._setpoint_m += float(np.clip(self._target_width_m - self._setpoint_m, -step, step))
         data.ctrl[self._actuator_id] = self._setpoint_m
