@@ -13,7 +13,8 @@ stock ur_rtde client) runs until it stops. Per variant it reports:
 - failures by cause, stop reasons, and which parts were left in the bin with the planner's reason.
 
 Targets (issue 6): success >= 95 %, median cycle <= 8 s simulated, perception + planning <= 300 ms wall.
-Writes ``bench/results/cell.json`` and ``cell.png`` (``cell_quick.*`` with ``--quick``): parts cleared and pick
+Writes ``bench/results/cell.json`` and ``cell.png`` (``cell_quick.*`` with ``--quick``, ``NAME.*`` with ``--name``,
+so a sweep of more variants over fewer seeds can sit beside the headline run): parts cleared and pick
 success rate against the median cycle time per variant, and the parts left by cause.
 
 The emulator runs in real time: a bin of 10 parts takes about a minute, so 30 seeds of one variant take about half
@@ -74,6 +75,7 @@ VARIANTS: dict[str, Variant] = {
     "models_refine": Variant("models", "trained models, with depth refinement", refine=True),
     "models_norefine": Variant("models", "trained models, without depth refinement", refine=False),
     "models_480": Variant("models", "trained models, detector at its training size 480 px", detector_input_size=480),
+    "models_640": Variant("models", "trained models, detector at 640 px", detector_input_size=640),
 }
 QUICK_VARIANTS = ("oracle", "oracle_fast", "models")
 
@@ -90,6 +92,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=None, help="scene JSON (default: the cell file's)")
     parser.add_argument("--config", type=Path, default=CELL_FILE, help="the simulated cell's file")
     parser.add_argument("--max-cycles", type=int, default=25, help="per bin")
+    parser.add_argument("--name", default=None, help="results file name (default: cell, or cell_quick with --quick)")
     parser.add_argument(
         "--quick", action="store_true", help=f"{QUICK_SEEDS} seeds, variants {', '.join(QUICK_VARIANTS)}"
     )
@@ -103,7 +106,7 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     seeds = list(range(args.first_seed, args.first_seed + (QUICK_SEEDS if args.quick else args.seeds)))
     results: dict[str, Any] = {"targets": TARGETS, "seeds": seeds, "scene": str(args.scene or base.data.sim.scene)}
     bins: dict[str, list] = {name: [] for name in names}
-    name_out = "cell_quick" if args.quick else "cell"
+    name_out = args.name or ("cell_quick" if args.quick else "cell")
     # Seeds outside, variants inside, and the results saved after each seed: every variant has seen the same bins
     # at any moment, and a run stopped early keeps what it measured (``seeds_done``).
     for k, seed in enumerate(seeds):

@@ -23,11 +23,14 @@ rejection cause (``REJECTION_CAUSES``):
 6. the score, then inverse kinematics in score order: grasp, pre-grasp, lift and place within the joint limits
    less ``joint_limit_margin_rad``, with the TCP inside the robot's ``workspace`` box (``unreachable``; the robot
    would refuse the motion), with no joint jumping more than ``max_joint_step_rad`` between
-   the straight-line waypoints (``singular``: a branch switch on the way);
+   the straight-line waypoints (``singular``: a branch switch on the way); and the wrist links (boxes around their
+   collision cylinders) at least ``bin_clearance_m`` from the bin walls at the pre-grasp, grasp and lift
+   (``collision_bin``): with an inclined approach near a wall, the wrist reaches over the rim before the fingers do;
 7. the joint moves (from where the arm is to the lift, with the fingers open; from the lift to the place pose,
-   with the part in the fingers): the gripper (and the held part's box) sampled along the straight joint line
-   must keep ``transit_clearance_m`` from the bin walls (``collision_transit``). A joint move is not a straight
-   line of the tool: between two poses above the bin it can swing the fingers through a wall.
+   with the part in the fingers): the gripper (and the held part's box) and the wrist links, sampled along the
+   straight joint line, must keep ``transit_clearance_m`` from the bin walls (``collision_transit``). A joint
+   move is not a straight line of the tool: between two poses above the bin it can swing the fingers through a
+   wall.
 
 The lift is far enough back along the approach that the gripper and the held part clear the bin's rim by
 ``rim_clearance_m`` (at least ``lift_height_m``): the joint moves start and end above the rim, and the straight
@@ -59,10 +62,13 @@ from scipy.spatial import cKDTree
 from perception.results import ObjectPose
 from robot.grasp_geometry import (
     FINGER_BOXES,
+    WRIST_LINKS,
     GripperGeometry,
     obb_gap_m,
     points_box_distance_m,
     required_backoff_m,
+    wrist_link_boxes_m,
+    wrist_link_frames,
 )
 from robot.grasp_scene import BinGeometry, depth_points
 from robot.grasps import GraspSet, GraspSetParams, grasp_candidates
@@ -425,6 +431,7 @@ class GraspPlanner:
         if np.any(self._limits[:, 0] >= self._limits[:, 1]):
             raise ConfigError(f"PlannerConfig.joint_limit_margin_rad {margin} leaves no joint range")
         self._down = -self.config.bin.floor_normal if self.config.bin is not None else _DOWN
+        self._wrist_boxes = wrist_link_boxes_m()
         self.q_reference = self._reference_configuration()
 
     def candidates(self, obj_id: int) -> GraspSet:
@@ -770,6 +777,9 @@ class GraspPlanner:
             if step > cfg.max_joint_step_rad:
                 ev.report["rejections"]["singular"] += 1
                 continue
+            if self.wrist_gap_m(np.stack([q_pre, q_grasp, q_lift])).min() < cfg.bin_clearance_m:
+                ev.report["rejections"]["collision_bin"] += 1
+                continue
             # the half-turn about z above mirrors the part's box (TCP frame) in x and y
             part_box = r["part_box"][k]
             if T_grasp[:3, 0] @ r["T_grasp"][k][:3, 0] < 0:
@@ -935,7 +945,19 @@ class GraspPlanner:
         q = q_from[None] + np.linspace(0.0, 1.0, n)[:, None] * (q_to - q_from)[None]
         T = forward_kinematics(q, cfg.gripper.T_flange_tcp)
         boxes = np.broadcast_to(np.asarray(boxes_tcp, dtype=float), (n, *np.shape(boxes_tcp)))
-        return float(self._wall_gap(T, boxes, cfg.transit_clearance_m or 0.0).min())
+        gripper = float(self._wall_gap(T, boxes, cfg.transit_clearance_m or 0.0).min())
+        return min(gripper, float(self.wrist_gap_m(q, cfg.transit_clearance_m or 0.0).min()))
+
+    def wrist_gap_m(self, q: np.ndarray, threshold_m: float | None = None) -> np.ndarray:
+        """``(n,)`` the smallest gap (m; < 0: overlap; inf without a bin) between the bin walls and the wrist links'
+        boxes at each of the configurations ``q`` ``(n, 6)``."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        if self.config.bin is None:
+            return np.full(len(q), math.inf)
+        T_base_link = wrist_link_frames(q)
+        boxes = np.broadcast_to(self._wrist_boxes[:, None], (len(q), len(WRIST_LINKS), 1, 2, 3))
+        gap = self._wall_gap(T_base_link.reshape(-1, 4, 4), boxes.reshape(-1, 1, 2, 3), threshold_m)
+        return gap.reshape(len(q), len(WRIST_LINKS)).min(axis=1)
 
     def _lift_distance(
         self, T: np.ndarray, boxes_closed: np.ndarray, surface_base: np.ndarray, cos_angle: np.ndarray

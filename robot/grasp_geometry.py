@@ -217,3 +217,37 @@ def obb_gap_m(
     r_b = np.matmul(np.abs(np.matmul(axes, np.swapaxes(axes_b, -1, -2))), half_b)[..., 0]
     gap = np.where(usable, dist - r_a - r_b, -np.inf)
     return gap.max(axis=-1)
+
+
+#: The wrist links (wrist 1, 2, 3) whose boxes the planner keeps clear of the bin walls: near a wall, with an inclined
+#: approach, the wrist reaches over the rim before the fingers do (the emulator's protective stops named
+#: wrist_2_link against a bin wall). Indices into ``ur5e.LINK_NAMES``.
+WRIST_LINKS = (3, 4, 5)
+
+
+def wrist_link_frames(q: np.ndarray) -> np.ndarray:
+    """``(n, 3, 4, 4)`` ``T_base_link`` of the wrist links at configurations ``q`` ``(n, 6)``: each link's body frame
+    is its joint frame, DH frame ``i`` (``link_transforms``) turned by ``q_i`` (as ``sim.cell_model`` builds it)."""
+    from sygrid.robots.kinematics import link_transforms
+
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    c, s = np.cos(q[:, WRIST_LINKS]), np.sin(q[:, WRIST_LINKS])
+    Rz = np.zeros((len(q), len(WRIST_LINKS), 4, 4))
+    Rz[..., 0, 0], Rz[..., 0, 1], Rz[..., 1, 0], Rz[..., 1, 1] = c, -s, s, c
+    Rz[..., 2, 2] = Rz[..., 3, 3] = 1.0
+    return link_transforms(q)[:, WRIST_LINKS] @ Rz
+
+
+def wrist_link_boxes_m() -> np.ndarray:
+    """``(3, 2, 3)`` ``[lo, hi]`` of each wrist link's collision cylinders (``ur5e.LINK_CYLINDERS_M``, all along the
+    link frame's z) as one box in that link's body frame (its joint frame: DH frame ``i-1`` turned by ``q_i``)."""
+    from sygrid.robots import ur5e
+
+    boxes = []
+    for i in WRIST_LINKS:
+        cyl = ur5e.LINK_CYLINDERS_M[i + 1]  # index 0 is the robot base
+        ends = np.array([(p0, p1) for p0, p1, _ in cyl])  # (c, 2, 3)
+        radius = np.array([r for _, _, r in cyl])[:, None] * np.array([1.0, 1.0, 0.0])
+        assert np.allclose(ends[:, 0, :2], ends[:, 1, :2]), "wrist link cylinders run along z"
+        boxes.append([(ends.min(axis=1) - radius).min(axis=0), (ends.max(axis=1) + radius).max(axis=0)])
+    return np.array(boxes, dtype=float)

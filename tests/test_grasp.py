@@ -12,7 +12,14 @@ import trimesh
 
 from perception.results import Detection, ObjectPose
 from robot.grasp import REJECTION_CAUSES, GraspPlanner, PartEstimate, PlannerConfig
-from robot.grasp_geometry import GripperGeometry, obb_gap_m, points_box_distance_m, required_backoff_m
+from robot.grasp_geometry import (
+    WRIST_LINKS,
+    GripperGeometry,
+    obb_gap_m,
+    points_box_distance_m,
+    required_backoff_m,
+    wrist_link_frames,
+)
 from robot.grasp_scene import BinGeometry, depth_points
 from robot.grasps import (
     GraspSetParams,
@@ -426,6 +433,55 @@ def test_joint_moves_to_and_from_the_bin_keep_the_gripper_off_its_walls(planner)
             assert any(hits), "without the check, some planned move should hit the wall"
         else:
             assert not plan.nothing_safe, plan.summary()
+
+
+def test_wrist_boxes_follow_the_simulated_arm_and_cover_its_wrist(planner):
+    """The planner's wrist links (frames from the DH chain, boxes around the collision cylinders) are the simulated
+    cell's: same frames as MuJoCo's bodies, and every wrist/bin contact MuJoCo finds is a negative gap."""
+    from sim.world import CellWorld
+
+    world = CellWorld()
+    m, d = world.model, world.data
+    arm_q = [m.joint(n).qposadr[0] for n in ur5e.JOINT_NAMES]
+    wrist_bodies = [m.body(ur5e.LINK_NAMES[i]).id for i in WRIST_LINKS]
+    bin_id = m.body("bin").id
+    b = planner.config.bin
+    rng = np.random.default_rng(3)
+    qs = []
+    for _ in range(300):  # the TCP near a wall, low in the bin, tilted up to 60 deg: the wrist meets the rim
+        side = rng.choice([-1.0, 1.0])
+        axis = rng.integers(2)
+        xy = rng.uniform(-0.5, 0.5, 2) * np.array(b.inner_size_m[:2])
+        xy[axis] = side * (b.inner_size_m[axis] / 2 - rng.uniform(0.02, 0.08))
+        T_bin_tcp = make_T(
+            rotation_about([1.0, 0.0, 0.0], math.pi) @ rotation_about(rng.normal(size=3), rng.uniform(0, 1.05)),
+            (*xy, rng.uniform(0.01, 0.1)),
+        )
+        q = ik_nearest(b.T_base_bin @ T_bin_tcp, planner.q_reference, planner.config.gripper.T_flange_tcp)
+        if q is not None:
+            qs.append(q)
+    qs = np.array(qs)
+    frames = wrist_link_frames(qs)
+    gaps = planner.wrist_gap_m(qs)
+    T_base_world = invert(world.config.T_world_base)
+    touching = []
+    for q, T_links, gap in zip(qs, frames, gaps, strict=True):
+        d.qpos[arm_q] = q
+        mujoco.mj_forward(m, d)
+        for T, body in zip(T_links, wrist_bodies, strict=True):
+            T_mj = T_base_world @ make_T(d.xmat[body].reshape(3, 3), d.xpos[body])
+            assert np.allclose(T, T_mj, atol=1e-9)
+        wrist_on_bin = any(
+            {m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]} & set(wrist_bodies)
+            and bin_id in {m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]}
+            and c.dist < 0
+            for c in d.contact[: d.ncon]
+        )
+        touching.append(wrist_on_bin)
+        if wrist_on_bin:
+            assert gap < 0.0
+    assert len(qs) > 200 and 5 <= sum(touching) < len(qs)  # the sample has both cases
+    assert np.all(gaps[~np.array(touching)] > -0.03)  # the boxes are only a little larger than the cylinders
 
 
 def test_the_early_wall_check_only_refuses_grasps_that_hit_a_wall_at_every_backoff(planner):
