@@ -17,6 +17,7 @@ the caller (``PipelineOverrides``), which is how the benchmark sweeps input size
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -164,20 +165,38 @@ class PerceptionPipeline:
         poses.sort(key=lambda p: -p.score)
         return PerceptionResult(poses, detections, timings)
 
-    def _refine(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose]:
-        """Refines nearest first: a picking cell takes parts from the top of the pile, so with ``max_refined`` the
-        ICP time goes to the parts a grasp planner will choose from (about 20 ms each on a 2-core CPU)."""
+    def refine_more(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose] | None:
+        """``poses`` with the next ``max_refined`` of those ``run`` skipped refined (nearest first), for a caller
+        that found nothing to do with the refined ones; None when none was skipped."""
+        if self.refiner is None or not any(_icp_status(p) == "skipped" for p in poses):
+            return None
+        refined = self._refine(poses, frame, todo=lambda p: _icp_status(p) == "skipped")
+        return sorted(refined, key=lambda p: -p.score)
+
+    def _refine(
+        self, poses: list[ObjectPose], frame: Frame, todo: Callable[[ObjectPose], bool] = lambda p: True
+    ) -> list[ObjectPose]:
+        """Refines the poses ``todo`` selects, nearest first: a picking cell takes parts from the top of the pile,
+        so with ``max_refined`` the ICP time (about 20 ms a part on a 2-core CPU) goes to the parts a grasp
+        planner chooses from. The others keep their RGB estimate, marked ``skipped``."""
         assert self.refiner is not None
         out: list[ObjectPose] = []
+        n_refined = 0
         for pose in sorted(poses, key=lambda p: _median_depth(p, frame.depth_m)):
-            n_refined = sum(p.details.get("icp", {}).get("status") == "refined" for p in out)
-            if self.max_refined is not None and n_refined >= self.max_refined:
+            if not todo(pose):
+                out.append(pose)
+            elif self.max_refined is not None and n_refined >= self.max_refined:
                 icp = {"status": "skipped", "reason": f"{self.max_refined} nearer parts were refined (max_refined)"}
                 out.append(ObjectPose(pose.detection, pose.T_camera_object, pose.score, pose.method,
                                       {**pose.details, "icp": icp}))  # fmt: skip
             else:
                 out.append(self.refiner.refine(pose, frame.depth_m, frame.intrinsics, self.models[pose.obj_id]))
+                n_refined += _icp_status(out[-1]) == "refined"
         return out
+
+
+def _icp_status(pose: ObjectPose) -> str | None:
+    return pose.details.get("icp", {}).get("status")
 
 
 def _median_depth(pose: ObjectPose, depth_m: np.ndarray) -> float:

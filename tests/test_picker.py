@@ -174,6 +174,40 @@ def test_nothing_safe_is_a_clean_stop_with_the_reasons():
     assert report.attempts == []
 
 
+def test_nothing_safe_among_the_refined_parts_refines_the_skipped_ones_and_plans_again():
+    """A pipeline that refined only the nearest parts (``max_refined``) is asked for the next ones before the
+    picker gives up; the planner here plans only refined parts."""
+
+    class LazyBin(FakeBin):
+        def run(self, frame):
+            result = super().run(frame)
+            result.poses = [ObjectPose(p.detection, p.T_camera_object, 1.0, "fake", {"icp": {"status": "skipped"}})
+                            for p in result.poses]  # fmt: skip
+            return result
+
+        def refine_more(self, poses, frame):
+            self.calls = getattr(self, "calls", 0) + 1
+            if not any(p.details["icp"]["status"] == "skipped" for p in poses):
+                return None
+            first = next(i for i, p in enumerate(poses) if p.details["icp"]["status"] == "skipped")
+            return [ObjectPose(p.detection, p.T_camera_object, 1.0, "fake", {"icp": {"status": "refined"}})
+                    if i == first else p for i, p in enumerate(poses)]  # fmt: skip
+
+    class RefinedOnly(FakePlanner):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
+            refined = [p if p.details["icp"]["status"] == "refined" else None for p in poses]
+            grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3]) for i, p in enumerate(refined) if p]
+            return type("P", (), {"grasps": grasps, "nothing_safe": not grasps, "summary": lambda self: "plan"})()
+
+    bin_ = LazyBin([0.0, 0.1])
+    report = make_picker(bin_, RefinedOnly())[0].run()
+    assert report.n_picked == 2 and report.stop_reason == "bin_empty"
+    assert bin_.calls == 2  # once per cycle: the first refinement gave a plan
+    empty = LazyBin([0.0])
+    empty.refine_more = lambda poses, frame: None  # nothing was skipped: the plan's answer stands
+    assert make_picker(empty, RefinedOnly())[0].run().stop_reason == "nothing_safe"
+
+
 def test_parts_seen_only_outside_the_bin_mean_the_bin_is_empty():
     class OutsidePlanner(FakePlanner):
         def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):

@@ -164,5 +164,9 @@ def test_max_refined_refines_the_nearest_parts_until_enough_are_refined():
     statuses = [p.details["icp"]["status"] for p in out]
     assert statuses == ["refined", "kept_initial", "refined", "skipped", "skipped"]
     assert [_refined(p) for p in out] == [True, False, True, False, False]  # the planner picks none of the others
+    more = pipeline.refine_more(out, frame)  # the next two skipped ones, nearest first; the others stay as they were
+    assert refiner.order[3:] == pytest.approx([2.0 - 0.90, 2.0 - 0.95])
+    assert sorted(p.details["icp"]["status"] for p in more) == ["kept_initial"] + ["refined"] * 4
+    assert pipeline.refine_more(more, frame) is None
     with pytest.raises(ConfigError, match="max_refined must be >= 1"):
         PerceptionPipeline(None, None, {}, refiner, max_refined=0)  # type: ignore[arg-type]
