@@ -180,3 +180,32 @@ def test_a_rotation_far_outside_icps_basin_is_recovered_from_the_clouds_principa
     alone = DepthRefiner(alone_config).refine(pose, depth, CAMERA, model)
     # ICP alone stays outside the 5 deg the starts reach (the bolt's end point varies from run to run: 9-30 deg seen)
     assert symmetric_pose_errors(alone.T_camera_object, T_true, symmetries)[0] > 5.0
+
+
+class _RefusesFirst(DepthRefiner):
+    """Refuses the first ICP result it is asked about, as if that start had diverged."""
+
+    def __init__(self, config: RefineConfig) -> None:
+        super().__init__(config)
+        self.refused: list[int] = []
+
+    def _refusal(self, fit, diameter):
+        key = id(fit)
+        if not self.refused or self.refused[0] == key:
+            self.refused[:1] = [key]
+            return "refused for the test"
+        return super()._refusal(fit, diameter)
+
+
+def test_a_refused_icp_run_falls_back_to_the_next_start():
+    model = builtin_part("hex_nut")
+    depth = raycast_depth(model, T_NUT, CAMERA)
+    pose = _pose(model, depth > 0, _perturbed(T_NUT, [0.2, 1.0, 0.3], 4.0, [2.0, -1.5, 2.5]))
+    refined = _RefusesFirst(RefineConfig()).refine(pose, depth, CAMERA, model)
+    assert refined.details["icp"]["status"] == "refined" and refined.details["icp"]["fallback_runs"] == 1
+    re, te = symmetric_pose_errors(refined.T_camera_object, T_NUT, model.symmetry_transforms())
+    assert re < 2.0 and te < 0.001
+    kept = _RefusesFirst(RefineConfig(fallback_starts=0)).refine(pose, depth, CAMERA, model)
+    assert kept.details["icp"]["status"] == "kept_initial" and kept.details["icp"]["reason"] == "refused for the test"
+    with pytest.raises(ValueError, match="fallback_starts >= 0"):
+        RefineConfig(fallback_starts=-1)
