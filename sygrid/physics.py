@@ -232,6 +232,7 @@ def simulate_drop(
 
 # ---------------------------------------------------------------------------------------------- helpers
 
+
 def bounding_radius_m(model: ObjectModel, collision: CollisionModel) -> float:
     """Radius of a sphere about the object origin that holds the mesh and every collision geom. Not the model's
     half diameter: the origin need not be the centre of the smallest enclosing sphere (an L-bracket's is not), and
@@ -249,9 +250,7 @@ def bounding_radius_m(model: ObjectModel, collision: CollisionModel) -> float:
 
 def _check_no_initial_contact(mj_model: mujoco.MjModel, data: mujoco.MjData) -> None:
     overlapping = [
-        (int(data.contact.geom1[i]), int(data.contact.geom2[i]))
-        for i in range(data.ncon)
-        if data.contact.dist[i] < 0
+        (int(data.contact.geom1[i]), int(data.contact.geom2[i])) for i in range(data.ncon) if data.contact.dist[i] < 0
     ]
     if overlapping:
         g1, g2 = overlapping[0]
