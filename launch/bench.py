@@ -13,6 +13,7 @@ BENCHMARKS = {
     "render": "sygrid.bench.render",
     "perception": "perception.bench",
     "cell": "launch.bench_cell",
+    "cell-detector": "launch.bench_cell_detector",
 }
 
 

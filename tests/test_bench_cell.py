@@ -42,3 +42,26 @@ def test_report_and_chart_from_partial_results():
     assert "oracle" in format_results(results)
     figure = chart(results)
     assert figure.axes[0].get_title() == "1 bin(s) per variant"  # what was measured, not what was asked for
+
+
+def test_cell_detector_recall_and_precision_on_hand_made_detections():
+    import numpy as np
+
+    from launch.bench_cell_detector import best_scores, is_right, size_row
+    from launch.bench_cell_detector import chart as detector_chart
+    from perception.results import Detection
+
+    truth = [(1, np.array([0.0, 0.0, 10.0, 10.0])), (2, np.array([20.0, 20.0, 30.0, 30.0]))]
+    right = Detection(0, 1, 0.9, np.array([2.0, 2.0, 8.0, 8.0]))
+    wrong_class = Detection(1, 3, 0.8, np.array([22.0, 22.0, 28.0, 28.0]))
+    weak = Detection(1, 2, 0.3, np.array([21.0, 21.0, 29.0, 29.0]))
+    detections = [right, wrong_class, weak]
+    assert [is_right(d, truth) for d in detections] == [True, False, True]
+    assert best_scores(truth, detections) == [0.9, 0.3]
+    row = size_row(640, [0.02, 0.03, 0.04], np.array(best_scores(truth, detections)),
+                   [(d.score, is_right(d, truth)) for d in detections], conf=0.4)  # fmt: skip
+    assert row["ms_median"] == pytest.approx(30.0) and row["recall"] == 0.5 and row["precision"] == 0.5
+    at_02 = next(b for b in row["by_threshold"] if b["conf"] == 0.2)
+    assert at_02["recall"] == 1.0 and at_02["precision"] == pytest.approx(2 / 3)
+    results = {"config": {"conf_threshold": 0.4, "seeds": 1, "parts_seen": 2}, "sizes": [row]}
+    assert detector_chart(results).axes[0].get_xlabel() == "detector ms per frame (median)"

@@ -1,0 +1,148 @@
+"""``sygrid bench cell-detector``: the detector on the simulated cell's own camera, per input size.
+
+The training images and the cell's overhead camera (0.9 m above the bin) see parts at different sizes, so the
+input size that the test set prefers is not the cell's. For each seed the cell's bin is filled (the cell file's
+scene, dropped with the seed) and the first overhead frame is taken; the detector runs at each input size on the
+same frames. Ground truth is the simulator's: the parts whose centre the camera sees (``sim.oracle_perception``'s
+visibility test) with the box of their projected 3D bounds. A detection is right when it has a part's class and
+its box centre lies in that part's box (the projected 3D box is loose, so no IoU threshold). Reports per size:
+recall (parts found) and precision at the model folder's confidence threshold, the recall over thresholds, and
+the median detector time per frame (this machine, onnxruntime CPU). Writes ``bench/results/cell_detector.{json,png}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from launch.bench_cell import CELL_FILE
+from robot.cell_setup import load_cell_setup
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, save_results
+from sygrid.errors import ConfigError
+
+SIZES = (480, 640, 800, 960)
+THRESHOLDS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+_FLOOR_CONF = 0.05  # detections kept for the threshold sweep
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seeds", type=int, default=12, help="bins (seeds 0..N-1), one frame each")
+    parser.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="detector input sizes")
+    parser.add_argument("--config", type=Path, default=CELL_FILE, help="the simulated cell's file")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per frame and size")
+
+
+def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
+    from perception.detector import YoloSegDetector
+    from perception.pipeline import load_manifest
+
+    setup = load_cell_setup(args.config)
+    if not setup.is_sim:
+        raise ConfigError(f"{args.config}: sygrid bench cell-detector needs a simulated cell ([cell] kind = 'sim')")
+    if args.seeds < 1 or args.repeats < 1 or any(s < 32 for s in args.sizes):
+        raise ConfigError("--seeds >= 1, --repeats >= 1 and every --size >= 32 expected")
+    models_dir = setup.resolve(setup.data.perception.models_dir)
+    manifest = load_manifest(models_dir)
+    conf = setup.data.perception.conf_threshold or manifest.detector.conf_threshold
+    frames = [first_frame(setup.resolve(setup.data.sim.scene), seed) for seed in range(args.seeds)]
+    rows = []
+    for size in args.sizes:
+        detector = YoloSegDetector(models_dir / manifest.detector.onnx, conf_threshold=_FLOOR_CONF,
+                                   iou_threshold=manifest.detector.iou_threshold, input_size=size)  # fmt: skip
+        detector.detect(frames[0][0])  # warm-up
+        times, found, kept = [], [], []
+        for rgb, truth in frames:
+            for _ in range(args.repeats):
+                start = time.perf_counter()
+                detections = detector.detect(rgb)
+                times.append(time.perf_counter() - start)
+            found += best_scores(truth, detections)
+            kept += [(d.score, is_right(d, truth)) for d in detections]
+        rows.append(size_row(size, times, np.array(found), kept, conf))
+        print(f"{size:4d} px: {rows[-1]['ms_median']:6.1f} ms, recall {rows[-1]['recall']:.2f}, "
+              f"precision {rows[-1]['precision']:.2f} at confidence {conf}")  # fmt: skip
+    results = {"config": {"cell": str(args.config), "seeds": args.seeds, "conf_threshold": conf,
+                          "models": str(models_dir), "parts_seen": int(sum(len(t) for _, t in frames))},
+               "sizes": rows}  # fmt: skip
+    json_path, png_path = save_results("cell_detector", results, chart(results), out_dir)
+    print(f"wrote {json_path} and {png_path}")
+    return 0
+
+
+def first_frame(scene: Path, seed: int) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
+    """The overhead RGB frame of a fresh bin and its visible parts as (obj_id, box xyxy)."""
+    from sim.camera import SimCamera
+    from sim.cell import build_cell_world
+    from sim.oracle_perception import OraclePerception
+
+    world = build_cell_world(scene, seed)
+    camera = SimCamera(world)
+    try:
+        frame = camera.capture()
+    finally:
+        camera.close()
+    oracle = OraclePerception(world, world.config.T_world_base, frame.T_base_camera)
+    return frame.rgb, [(d.obj_id, d.bbox_xyxy) for d in oracle.run(frame).detections]
+
+
+def _centre_in(detection: Any, obj_id: int, box: np.ndarray) -> bool:
+    cx, cy = (detection.bbox_xyxy[:2] + detection.bbox_xyxy[2:]) / 2.0
+    return detection.obj_id == obj_id and box[0] <= cx <= box[2] and box[1] <= cy <= box[3]
+
+
+def is_right(detection: Any, truth: list[tuple[int, np.ndarray]]) -> bool:
+    return any(_centre_in(detection, obj_id, box) for obj_id, box in truth)
+
+
+def best_scores(truth: list[tuple[int, np.ndarray]], detections: list[Any]) -> list[float]:
+    """Per visible part, the highest score of a detection that finds it (0: none)."""
+    return [max((d.score for d in detections if _centre_in(d, obj_id, box)), default=0.0) for obj_id, box in truth]
+
+
+def size_row(size: int, times: list[float], found: np.ndarray, kept: list[tuple[float, bool]], conf: float) -> dict:
+    scores = np.array([s for s, _ in kept])
+    right = np.array([r for _, r in kept], dtype=bool)
+
+    def recall(th: float) -> float:
+        return float((found >= th).mean()) if len(found) else float("nan")
+
+    def precision(th: float) -> float:
+        above = scores >= th
+        return float(right[above].mean()) if above.any() else float("nan")
+
+    return {
+        "size": size,
+        "ms_median": 1e3 * median(times),
+        "recall": recall(conf),
+        "precision": precision(conf),
+        "by_threshold": [{"conf": th, "recall": recall(th), "precision": precision(th)} for th in THRESHOLDS],
+    }
+
+
+def chart(results: dict):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_time, ax_pr) = plt.subplots(1, 2, figsize=(11, 4.2))
+    rows, conf = results["sizes"], results["config"]["conf_threshold"]
+    ax_time.plot([r["ms_median"] for r in rows], [r["recall"] for r in rows], "o-")
+    for r in rows:
+        ax_time.annotate(f"{r['size']} px", (r["ms_median"], r["recall"]), textcoords="offset points", xytext=(5, -10))
+        ax_pr.plot([b["recall"] for b in r["by_threshold"]], [b["precision"] for b in r["by_threshold"]], "o-",
+                   label=f"{r['size']} px")  # fmt: skip
+    ax_time.set(xlabel="detector ms per frame (median)", ylabel=f"parts found at confidence {conf}",
+                title="Cell camera: recall against time")  # fmt: skip
+    ax_pr.set(xlabel="recall", ylabel="precision", title=f"Thresholds {THRESHOLDS[0]}-{THRESHOLDS[-1]}")
+    ax_pr.legend()
+    for ax in (ax_time, ax_pr):
+        ax.grid(alpha=0.3)
+    n = results["config"]["parts_seen"]
+    fig.suptitle(f"sygrid bench cell-detector: {results['config']['seeds']} bins, {n} visible parts")
+    fig.tight_layout()
+    return fig
