@@ -64,6 +64,7 @@ from robot.grasp_geometry import (
     FINGER_BOXES,
     WRIST_LINKS,
     GripperGeometry,
+    lowest_elbow_point_m,
     obb_gap_m,
     points_box_distance_m,
     required_backoff_m,
@@ -157,7 +158,9 @@ class PlannerConfig:
     direction); the arm also waits there while the camera looks.
     transit_clearance_m: the gripper (and the held part) to the bin walls along the joint moves to the lift and to
     the place pose, sampled every ``transit_step_rad`` of the largest joint change (None: not checked, for
-    comparisons only). workspace: the robot's workspace box (``URConfig.workspace``): waypoints whose TCP lies
+    comparisons only). min_elbow_height_m: the upper arm and forearm stay this high above the base's xy plane along
+    those joint moves (the default cell's table is at 0 and its tray's rim at 0.035 m; None: not checked).
+    workspace: the robot's workspace box (``URConfig.workspace``): waypoints whose TCP lies
     outside it are unreachable (None: not checked).
     clearance_m: gripper to neighbouring parts and depth points. bin_clearance_m: gripper to the bin walls.
     floor_clearance_m: pad tips above the bin floor. min_engagement_m: the least length of the pads over which the
@@ -196,6 +199,7 @@ class PlannerConfig:
     rim_clearance_m: float = 0.01
     T_base_place: np.ndarray = field(default_factory=_default_place_pose)
     transit_clearance_m: float | None = 0.005
+    min_elbow_height_m: float | None = 0.06
     transit_step_rad: float = 0.02
     workspace: WorkspaceBox | None = None
     clearance_m: float = 0.003
@@ -760,7 +764,9 @@ class GraspPlanner:
             T_pre = T_grasp @ make_T(t=(0.0, 0.0, -cfg.pre_grasp_distance_m))
             T_lift = T_grasp @ make_T(t=(0.0, 0.0, -float(r["lift"][k])))
             T_place = _place_pose(cfg.T_base_place, T_grasp[:3, 0])
-            q_grasp = ik_nearest(T_grasp, q_seed, T_flange_tcp, self._limits)
+            # the grasp's IK branch is the reference's, wherever the arm is: seeded from the arm's configuration, the
+            # branch drifted pick by pick (the shoulder ended up turned back and the elbow swung down to the tray)
+            q_grasp = ik_nearest(T_grasp, self.q_reference, T_flange_tcp, self._limits)
             q_pre = q_lift = q_place = None
             if q_grasp is not None:
                 q_pre = ik_nearest(T_pre, q_grasp, T_flange_tcp, self._limits)
@@ -928,6 +934,8 @@ class GraspPlanner:
             if (
                 self.transit_gap_m(q_seed, q_lift, open_boxes) >= cfg.transit_clearance_m
                 and self.transit_gap_m(q_lift, q_place, out_boxes) >= cfg.transit_clearance_m
+                and self._elbow_clear(q_seed, q_lift)
+                and self._elbow_clear(q_lift, q_place)
             ):
                 return lift
         return None
@@ -940,13 +948,19 @@ class GraspPlanner:
         cfg = self.config
         if cfg.bin is None:
             return math.inf
-        q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
-        n = max(2, math.ceil(float(np.abs(q_to - q_from).max()) / cfg.transit_step_rad) + 1)
-        q = q_from[None] + np.linspace(0.0, 1.0, n)[:, None] * (q_to - q_from)[None]
+        q = _joint_line(q_from, q_to, cfg.transit_step_rad)
+        n = len(q)
         T = forward_kinematics(q, cfg.gripper.T_flange_tcp)
         boxes = np.broadcast_to(np.asarray(boxes_tcp, dtype=float), (n, *np.shape(boxes_tcp)))
         gripper = float(self._wall_gap(T, boxes, cfg.transit_clearance_m or 0.0).min())
         return min(gripper, float(self.wrist_gap_m(q, cfg.transit_clearance_m or 0.0).min()))
+
+    def _elbow_clear(self, q_from: np.ndarray, q_to: np.ndarray) -> bool:
+        """The upper arm and forearm stay above ``min_elbow_height_m`` along the joint move."""
+        if self.config.min_elbow_height_m is None:
+            return True
+        q = _joint_line(q_from, q_to, self.config.transit_step_rad)
+        return bool(lowest_elbow_point_m(q).min() >= self.config.min_elbow_height_m)
 
     def wrist_gap_m(self, q: np.ndarray, threshold_m: float | None = None) -> np.ndarray:
         """``(n,)`` the smallest gap (m; < 0: overlap; inf without a bin) between the bin walls and the wrist links'
@@ -1063,6 +1077,14 @@ class _Evaluated:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+
+
+def _joint_line(q_from: np.ndarray, q_to: np.ndarray, step_rad: float) -> np.ndarray:
+    """``(n, 6)`` the straight joint-space line from ``q_from`` to ``q_to`` (what a joint move does), sampled every
+    ``step_rad`` of the largest joint change, both ends included."""
+    q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
+    n = max(2, math.ceil(float(np.abs(q_to - q_from).max()) / step_rad) + 1)
+    return q_from[None] + np.linspace(0.0, 1.0, n)[:, None] * (q_to - q_from)[None]
 
 
 def _code(cause: str) -> int:

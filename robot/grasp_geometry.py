@@ -225,17 +225,47 @@ def obb_gap_m(
 WRIST_LINKS = (3, 4, 5)
 
 
-def wrist_link_frames(q: np.ndarray) -> np.ndarray:
-    """``(n, 3, 4, 4)`` ``T_base_link`` of the wrist links at configurations ``q`` ``(n, 6)``: each link's body frame
-    is its joint frame, DH frame ``i`` (``link_transforms``) turned by ``q_i`` (as ``sim.cell_model`` builds it)."""
+def link_frames(q: np.ndarray) -> np.ndarray:
+    """``(n, 6, 4, 4)`` ``T_base_link`` of the six arm links at configurations ``q`` ``(n, 6)``: each link's body
+    frame is its joint frame, DH frame ``i`` (``link_transforms``) turned by ``q_i`` (as ``sim.cell_model`` builds
+    it), so ``ur5e.LINK_CYLINDERS_M[i + 1]`` are in it."""
     from sygrid.robots.kinematics import link_transforms
 
     q = np.atleast_2d(np.asarray(q, dtype=float))
-    c, s = np.cos(q[:, WRIST_LINKS]), np.sin(q[:, WRIST_LINKS])
-    Rz = np.zeros((len(q), len(WRIST_LINKS), 4, 4))
+    c, s = np.cos(q), np.sin(q)
+    Rz = np.zeros((*q.shape, 4, 4))
     Rz[..., 0, 0], Rz[..., 0, 1], Rz[..., 1, 0], Rz[..., 1, 1] = c, -s, s, c
     Rz[..., 2, 2] = Rz[..., 3, 3] = 1.0
-    return link_transforms(q)[:, WRIST_LINKS] @ Rz
+    return link_transforms(q)[:, :6] @ Rz
+
+
+def wrist_link_frames(q: np.ndarray) -> np.ndarray:
+    """``(n, 3, 4, 4)`` ``T_base_link`` of the wrist links (``link_frames``)."""
+    return link_frames(q)[:, WRIST_LINKS]
+
+
+#: The upper arm and forearm: on a joint move between the tray and a grasp far into the bin the elbow can swing
+#: low over the tray (the emulator's protective stops named upper_arm_link against a tray wall).
+ELBOW_LINKS = (1, 2)
+
+
+def lowest_elbow_point_m(q: np.ndarray) -> np.ndarray:
+    """``(n,)`` the lowest point (base-frame z, m) of the upper arm's and forearm's collision cylinders at each
+    configuration ``q`` ``(n, 6)``; exact for the cylinders: an end's z less the radius times the sine of the
+    axis's tilt from vertical."""
+    from sygrid.robots import ur5e
+
+    frames = link_frames(q)
+    lowest = np.full(len(frames), np.inf)
+    for i in ELBOW_LINKS:
+        for p0, p1, r in ur5e.LINK_CYLINDERS_M[i + 1]:
+            ends = np.array([p0, p1], dtype=float)
+            ends_base = np.einsum("nij,cj->nci", frames[:, i, :3, :3], ends) + frames[:, i, None, :3, 3]
+            axis = ends_base[:, 1] - ends_base[:, 0]
+            cos_z = np.abs(axis[:, 2]) / np.linalg.norm(axis, axis=1)
+            low = ends_base[:, :, 2].min(axis=1) - r * np.sqrt(np.clip(1.0 - cos_z**2, 0.0, 1.0))
+            lowest = np.minimum(lowest, low)
+    return lowest
 
 
 def wrist_link_boxes_m() -> np.ndarray:

@@ -4,6 +4,7 @@ against the mesh, the symmetry expansion, and the planner's picks, rejections an
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import mujoco
 import numpy as np
@@ -13,8 +14,10 @@ import trimesh
 from perception.results import Detection, ObjectPose
 from robot.grasp import REJECTION_CAUSES, GraspPlanner, PartEstimate, PlannerConfig
 from robot.grasp_geometry import (
+    ELBOW_LINKS,
     WRIST_LINKS,
     GripperGeometry,
+    lowest_elbow_point_m,
     obb_gap_m,
     points_box_distance_m,
     required_backoff_m,
@@ -482,6 +485,61 @@ def test_wrist_boxes_follow_the_simulated_arm_and_cover_its_wrist(planner):
             assert gap < 0.0
     assert len(qs) > 200 and 5 <= sum(touching) < len(qs)  # the sample has both cases
     assert np.all(gaps[~np.array(touching)] > -0.03)  # the boxes are only a little larger than the cylinders
+
+
+def test_lowest_elbow_point_is_that_of_the_simulated_arms_cylinders():
+    from sim.world import CellWorld
+
+    world = CellWorld()
+    m, d = world.model, world.data
+    arm_q = [m.joint(n).qposadr[0] for n in ur5e.JOINT_NAMES]
+    bodies = [m.body(ur5e.LINK_NAMES[i]).id for i in ELBOW_LINKS]
+    geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] in bodies]
+    assert geoms and all(m.geom_type[g] == mujoco.mjtGeom.mjGEOM_CYLINDER for g in geoms)
+    qs = np.random.default_rng(4).uniform(-np.pi, np.pi, (40, 6))
+    expected = []
+    for q in qs:
+        d.qpos[arm_q] = q
+        mujoco.mj_forward(m, d)
+        low = []
+        for g in geoms:  # centre z less the half-length along the axis and the radius across it
+            radius, half = m.geom_size[g, 0], m.geom_size[g, 1]
+            axis_z = d.geom_xmat[g].reshape(3, 3)[2, 2]
+            low.append(d.geom_xpos[g, 2] - abs(axis_z) * half - radius * np.sqrt(1.0 - axis_z**2))
+        expected.append(min(low) - world.config.T_world_base[2, 3])
+    assert np.allclose(lowest_elbow_point_m(qs), expected, atol=1e-9)
+
+
+def test_the_grasp_branch_does_not_drift_and_joint_moves_keep_the_elbow_up(planner):
+    """Seeded from wherever the arm was, IK drifted pick by pick to a branch with the shoulder turned back; a joint
+    move from there to the next grasp swung the elbow down onto the tray (the emulator stopped the arm on its wall).
+    The grasp's branch is the reference's whatever the arm's configuration, and the joint moves from an arm left in
+    such a configuration keep the upper arm and forearm above min_elbow_height_m."""
+    config = PlannerConfig(grasp_params=PARAMS, max_grasps_per_part=20)
+    p = GraspPlanner([builtin_part("spur_gear")], config, cache_dir=planner.cache_dir)
+    gear = PartEstimate(6, _flat("spur_gear", -0.413, 0.015, yaw_rad=2.99), 0.9)
+    q_canonical = ik_nearest(config.T_base_place, p.q_reference, config.gripper.T_flange_tcp)
+    q_drifted = np.array([-1.7246, -3.3054, 1.4073, 0.3272, -1.5708, 3.7766])  # the place pose, shoulder turned back
+    T_drifted = forward_kinematics(q_drifted, config.gripper.T_flange_tcp)  # over the tray, tool down, turned about z
+    assert np.allclose(T_drifted[:3, 2:], config.T_base_place[:3, 2:], atol=1e-3)
+
+    def on_reference_branch(q: np.ndarray) -> bool:  # shoulder, elbow and wrists near the reference's (q6 turns)
+        return bool(np.abs(q[:5] - p.q_reference[:5]).max() < np.pi / 2)
+
+    from_canonical = p.plan_parts([gear], q_seed=q_canonical).grasps
+    assert from_canonical and all(on_reference_branch(g.q_grasp) for g in from_canonical)
+    from_drifted = p.plan_parts([gear], q_seed=q_drifted)
+    for g in from_drifted.grasps:
+        assert on_reference_branch(g.q_grasp)
+        assert lowest_elbow_point_m(_joint_line(q_drifted, g.q_lift)).min() >= config.min_elbow_height_m
+    unchecked = GraspPlanner(
+        [builtin_part("spur_gear")], replace(config, min_elbow_height_m=None), cache_dir=planner.cache_dir
+    )
+    unchecked_plan = unchecked.plan_parts([gear], q_seed=q_drifted).grasps
+    assert unchecked_plan and all(on_reference_branch(g.q_grasp) for g in unchecked_plan)
+    dips = [lowest_elbow_point_m(_joint_line(q_drifted, g.q_lift)).min() for g in unchecked_plan]
+    assert min(dips) < config.min_elbow_height_m  # without the check, the elbow goes down
+    assert from_drifted.rejections["collision_transit"] > 0
 
 
 def test_the_early_wall_check_only_refuses_grasps_that_hit_a_wall_at_every_backoff(planner):
