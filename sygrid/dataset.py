@@ -33,7 +33,7 @@ from tqdm import tqdm
 from sygrid.annotations import ImageAnnotation, annotate
 from sygrid.drop import drop_scene, resolve_objects
 from sygrid.errors import ConfigError, SygridError
-from sygrid.fileio import read_json, write_json_atomic
+from sygrid.fileio import read_json, remove_stale_temporaries, write_json_atomic
 from sygrid.objects.model import ObjectModel
 from sygrid.recipe import Recipe
 from sygrid.render import apply_stereo_noise, intrinsics_from_spec, render_item
@@ -332,6 +332,9 @@ def generate(
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"{out_dir}: exists and is not a folder")
     ledger = Ledger(out_dir, recipe, seed, count)
+    if out_dir.is_dir():  # a killed run can leave a half-written file's temporary behind; the item is redone
+        for path in remove_stale_temporaries(out_dir):
+            log.info("removed %s, left by an interrupted run", path)
     todo = [i for i in range(count) if i not in ledger.done]
     models = resolve_objects(recipe.scene, recipe.base_dir)
     output = DatasetOutput(out_dir, recipe, models)

@@ -29,6 +29,15 @@ def write_bytes_atomic(path: str | Path, payload: bytes) -> Path:
     return path
 
 
+def remove_stale_temporaries(root: str | Path) -> list[Path]:
+    """Removes the temporary files (``.NAME.XXXXXXXX.tmp``) that ``write_bytes_atomic`` leaves when its process is
+    killed between creating one and renaming it; returns them. Only for a folder no other process is writing to."""
+    stale = [p for p in Path(root).rglob(".*.tmp") if p.is_file()]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
+
+
 def write_json_atomic(path: str | Path, data: object, indent: int | None = 1) -> Path:
     return write_bytes_atomic(path, json.dumps(data, indent=indent).encode())
 

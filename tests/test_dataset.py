@@ -122,6 +122,23 @@ def test_same_files_whatever_the_worker_count(tmp_path):
     assert [k for k in one if one[k] != two[k]] == []
 
 
+def test_a_temporary_left_by_a_killed_write_is_removed_on_resume(tmp_path):
+    """The kill test above lands between a temporary's creation and its rename only now and then; this makes it
+    happen: the rerun removes the temporary and leaves the set exactly as a clean run makes it."""
+    recipe = _recipe(tmp_path)
+    generate(recipe, tmp_path / "set", count=2, seed=3, progress=False)
+    scene = next((tmp_path / "set" / "bop").glob("*_pbr/000000"))
+    stale = scene / ".scene_camera.json.ab12cd34.tmp"
+    stale.write_text('{"half": ')
+    keep = scene / ".keep"  # not a temporary of ours
+    keep.write_text("")
+    before = _tree(tmp_path / "set")
+    generate(recipe, tmp_path / "set", count=2, seed=3, progress=False)
+    after = _tree(tmp_path / "set")
+    assert not stale.exists() and keep.exists()
+    assert {k: v for k, v in before.items() if not k.endswith(".tmp")} == after
+
+
 @pytest.mark.timeout(240)
 def test_ray_executor_makes_the_same_files(tmp_path):
     pytest.importorskip("ray")  # the 'dist' extra; installed by the README's set-up
