@@ -176,9 +176,9 @@ def test_a_rotation_far_outside_icps_basin_is_recovered_from_the_clouds_principa
     re, te = symmetric_pose_errors(refined.T_camera_object, T_true, symmetries)
     assert refined.details["icp"]["hypotheses"] == 5  # ICP ran from the one that fitted best at the start
     assert re < 5.0 and te < 0.0015, (re, te)
-    alone_config = RefineConfig(max_correction_deg=180.0, pca_hypotheses=False)
-    alone = DepthRefiner(alone_config).refine(pose, depth, CAMERA, model)
-    # ICP alone stays outside the 5 deg the starts reach (the bolt's end point varies from run to run: 9-30 deg seen)
+    # ICP alone, with the default 30 deg guard: it either does not get there (open3d's end point varies from run to
+    # run: 3.5-30 deg seen) or gets there only by turning more than the guard trusts, and keeps the estimate
+    alone = DepthRefiner(RefineConfig(pca_hypotheses=False)).refine(pose, depth, CAMERA, model)
     assert symmetric_pose_errors(alone.T_camera_object, T_true, symmetries)[0] > 5.0
 
 
