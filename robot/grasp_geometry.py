@@ -270,7 +270,7 @@ def lowest_elbow_point_m(q: np.ndarray) -> np.ndarray:
 
 def wrist_link_boxes_m() -> np.ndarray:
     """``(3, 2, 3)`` ``[lo, hi]`` of each wrist link's collision cylinders (``ur5e.LINK_CYLINDERS_M``, all along the
-    link frame's z) as one box in that link's body frame (its joint frame: DH frame ``i-1`` turned by ``q_i``)."""
+    link frame's z) as one box in that link's body frame (``link_frames``)."""
     from sygrid.robots import ur5e
 
     boxes = []
