@@ -122,7 +122,9 @@ class CameraLike(Protocol):
 
 class PerceptionLike(Protocol):
     """``perception.pipeline.PerceptionPipeline`` (or the simulated cell's oracle): ``run(frame)`` returns an object
-    with ``poses`` (``ObjectPose`` list), ``detections`` and ``timings_ms``."""
+    with ``poses`` (``ObjectPose`` list), ``detections`` and ``timings_ms``. Optional: ``refine_more(poses, frame)``,
+    the poses with more of them depth-refined (None when there is nothing left to refine); the picker calls it when
+    nothing is safe among the refined ones."""
 
     def run(self, frame: Frame) -> Any: ...
 
