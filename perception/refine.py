@@ -47,8 +47,9 @@ class RefineConfig:
         icp_starts: of those starts, how many (the best fits before any ICP) ICP is run from.
         fallback_starts: when the result from those is refused (the checks below), ICP from up to this many of the
             next starts in rank order, until one passes: a start that fits best before ICP is not always the one
-            ICP converges from (in the simulated cell, a nut estimated within 2 mm was refused after ICP from a
-            principal-axes start 59 deg away), and the extra runs cost only where refinement would have failed.
+            ICP converges from (in the simulated cell, a nut estimated within millimetres was refused after ICP
+            from a principal-axes start tens of degrees away), and the extra runs cost only where refinement would
+            have failed.
         correspondence_fractions: ICP stages: the max correspondence distance of each, x diameter (coarse to fine).
         max_iterations: ICP iterations per stage at most.
         voxel_fraction: voxel size for thinning the scene cloud, x diameter (0: no thinning).
