@@ -204,10 +204,15 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
     left = Counter(k for k, inside in zip(kinds, in_end, strict=True) if inside)
     total = Counter(k for k, inside in zip(kinds, in_start, strict=True) if inside)
     left_why: Counter[str] = Counter()
+    false_detections = 0
     if plans and report.stop_reason in ("nothing_safe", "gave_up", "too_many_failures", "max_cycles"):
         for part in plans[0].parts:
-            if part.status != "outside_bin":
-                left_why[f"{obj_kind.get(part.obj_id, part.obj_id)}: {part.status}"] += 1
+            if part.status == "outside_bin":
+                continue
+            if part.obj_id not in obj_kind:  # a class that is not in this bin: a false detection, not a part left
+                false_detections += 1
+            else:
+                left_why[f"{obj_kind[part.obj_id]}: {part.status}"] += 1
     unseen = int(in_end.sum()) - sum(left_why.values())
     if unseen > 0:  # left in the bin but not in the last plan: hidden from the camera, or given up before planning
         left_why["unseen or given up"] += unseen
@@ -229,6 +234,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "parts_by_kind": dict(total),
         "left_by_kind": dict(left),
         "left_why": dict(left_why),
+        "false_detections_last_plan": false_detections,
         "cycle_s": report.sim_cycle_times_s(),
         "perceive_plan_ms": [1e3 * (c.stage_wall_s["perceive"] + c.stage_wall_s["plan"]) for c in cycles if c.n_poses],
         "perceive_ms": [1e3 * c.stage_wall_s["perceive"] for c in cycles if c.n_poses],

@@ -40,10 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @dataclass
 class SceneShot:
-    """The first cycle's frame and perception result, for the report picture."""
+    """The first cycle's frame and the poses its plan was made from, for the report picture."""
 
     frame: Any = None
-    result: Any = None
+    poses: list[Any] | None = None
 
 
 @contextlib.contextmanager
@@ -132,9 +132,9 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     with open_cell(setup, args.seed, args.perception) as (picker, _process):
 
-        def keep_first(record: Any, frame: Any, result: Any) -> None:
+        def keep_first(record: Any, frame: Any, result: Any, poses: list[Any]) -> None:
             if shot.frame is None:
-                shot.frame, shot.result = frame, result
+                shot.frame, shot.poses = frame, poses
 
         picker.on_cycle = keep_first
         print(f"picking on {setup.data.cell.name or args.config} (perception: {kind}) ...")
@@ -203,7 +203,7 @@ def save_report_picture(report: RunReport, shot: SceneShot, models: Any, path: P
     if shot.frame is not None:
         img = shot.frame.rgb.copy()
         K = shot.frame.intrinsics.K
-        for pose in shot.result.poses:
+        for pose in shot.poses:
             x0, y0, x1, y1 = pose.detection.bbox_xyxy
             img = draw_bbox(img, (x0, y0, x1 - x0, y1 - y0), (255, 255, 0))
             model = models.get(pose.obj_id) if hasattr(models, "get") else None
@@ -211,7 +211,7 @@ def save_report_picture(report: RunReport, shot: SceneShot, models: Any, path: P
                 img = draw_3d_box(img, K, pose.T_camera_object, bounds_from_extents(model.extents_m), (0, 255, 0))
             img = draw_axes(img, K, pose.T_camera_object, 0.02)
         ax_i.imshow(img)
-        ax_i.set_title(f"first frame: {len(shot.result.poses)} estimated pose(s)")
+        ax_i.set_title(f"first frame: {len(shot.poses)} estimated pose(s)")
     ax_i.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

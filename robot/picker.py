@@ -293,7 +293,8 @@ class Picker:
         q_observe: joint angles (rad) where the arm waits while the camera looks (clear of its view); the arm
             goes there first and after every failed cycle.
         config: the cycle's settings.
-        on_cycle: called with each finished ``CycleRecord`` and its frame and perception result (for pictures).
+        on_cycle: called with each finished ``CycleRecord``, its frame, the perception result and the poses the
+            plan was made from (the result's, or after ``refine_more`` the further refined ones), for pictures.
     """
 
     def __init__(
@@ -306,7 +307,7 @@ class Picker:
         T_base_camera: np.ndarray,
         q_observe: np.ndarray,
         config: PickerConfig | None = None,
-        on_cycle: Callable[[CycleRecord, Frame, Any], None] | None = None,
+        on_cycle: Callable[[CycleRecord, Frame, Any, list[Any]], None] | None = None,
     ) -> None:
         self.robot, self.gripper, self.camera = robot, gripper, camera
         self.perception, self.planner = perception, planner
@@ -370,6 +371,7 @@ class Picker:
         record.n_detections, record.n_poses = len(result.detections), len(result.poses)
         record.perception_ms = {k: float(v) for k, v in getattr(result, "timings_ms", {}).items()}
         self._look_after_last_pick(result.poses)
+        seen_poses = result.poses  # for the callback: after refine_more, the poses the plan was made from
 
         try:
             if not result.poses:
@@ -394,6 +396,7 @@ class Picker:
                 if more is None:
                     break
                 poses = more
+                seen_poses = [*more, *(p for p in result.poses if self._given_up(p))]
                 plan = self._plan(poses, frame, record)
             record.n_planned, record.plan_summary = len(plan.grasps), plan.summary()
             if record.n_excluded:
@@ -428,7 +431,7 @@ class Picker:
                 sum(record.stage_wall_s.values()),
             )  # fmt: skip
             if self.on_cycle is not None:
-                self.on_cycle(record, frame, result)
+                self.on_cycle(record, frame, result, seen_poses)
 
     def _plan(self, poses: Sequence[Any], frame: Frame, record: CycleRecord) -> Any:
         t = time.perf_counter()

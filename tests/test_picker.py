@@ -200,9 +200,13 @@ def test_nothing_safe_among_the_refined_parts_refines_the_skipped_ones_and_plans
             return type("P", (), {"grasps": grasps, "nothing_safe": not grasps, "summary": lambda self: "plan"})()
 
     bin_ = LazyBin([0.0, 0.1])
-    report = make_picker(bin_, RefinedOnly())[0].run()
+    picker = make_picker(bin_, RefinedOnly())[0]
+    seen = []
+    picker.on_cycle = lambda record, frame, result, poses: seen.append([p.details["icp"]["status"] for p in poses])
+    report = picker.run()
     assert report.n_picked == 2 and report.stop_reason == "bin_empty"
     assert bin_.calls == 2  # once per cycle: the first refinement gave a plan
+    assert seen[0] == ["refined", "skipped"]  # the report's picture shows the poses the plan was made from
     empty = LazyBin([0.0])
     empty.refine_more = lambda poses, frame: None  # nothing was skipped: the plan's answer stands
     assert make_picker(empty, RefinedOnly())[0].run().stop_reason == "nothing_safe"

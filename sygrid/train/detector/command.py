@@ -37,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--width",
         default=DEFAULTS["size"],
         choices=MODEL_SIZES,
-        help="network size: p (pico, 1.0 M parameters), n (YOLOv8n's scale, 3.3 M), s (11.8 M) (%(default)s)",
+        help="network size: f (femto, 0.43 M parameters), p (pico, 1.0 M), n (YOLOv8n's scale, 3.3 M), "
+        "s (11.8 M) (%(default)s)",
     )
     parser.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="initialisation, data order, augmentation")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")

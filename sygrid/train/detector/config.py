@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
-MODEL_SIZES = ("p", "n", "s")  # the keys of model.SIZES (checked equal in the tests)
+MODEL_SIZES = ("f", "p", "n", "s")  # the keys of model.SIZES (checked equal in the tests)
 
 
 @dataclass(frozen=True)
@@ -68,7 +68,7 @@ class TrainConfig:
             Smaller than ``imgsz``, training sees crops at the runtime's object scale, centred on the parts (see
             ``augment``).
         batch: images per iteration.
-        size: network size, a key of ``model.SIZES`` (``"p"``, ``"n"``, ``"s"``).
+        size: network size, a key of ``model.SIZES`` (``"f"``, ``"p"``, ``"n"``, ``"s"``).
         seed: weights initialisation, data order and augmentation.
         threads: torch intra-op threads. On the shared 2-core machines of this project one thread trained as fast as
             two or faster (1.0 s vs 1.3 s per iteration): a second thread mostly waits for a core.

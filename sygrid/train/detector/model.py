@@ -11,7 +11,8 @@ Layout (the YOLOv8-seg structure, at widths for a few part classes on a CPU):
   conv, 3x3 conv, 1x1 conv) gives ``nm`` prototypes at stride 4.
 
 ``SIZES`` scales channels (``width``, of the YOLOv8 base 64-128-256-512-1024) and C2f repeats (``depth``, of
-3-6-6-3): ``"n"`` is YOLOv8n's scale, ``"p"`` (pico) half its width, ``"s"`` twice it.
+3-6-6-3): ``"n"`` is YOLOv8n's scale, ``"p"`` (pico) half its width, ``"f"`` (femto) a quarter (for the speed/accuracy
+chart's narrow end), ``"s"`` twice it.
 
 In training mode ``forward`` returns the raw head outputs for the loss; in eval mode it returns the decoded
 ``(output0, output1)`` of the ultralytics YOLOv8-seg ONNX layout: ``[B, 4 + nc + nm, A]`` (box centre x, y, width,
@@ -49,6 +50,7 @@ class ModelSize:
 
 
 SIZES = {
+    "f": ModelSize("f", width=0.0625, depth=0.33),
     "p": ModelSize("p", width=0.125, depth=0.33),
     "n": ModelSize("n", width=0.25, depth=0.33),
     "s": ModelSize("s", width=0.5, depth=0.33),
