@@ -41,7 +41,7 @@ from sygrid.train.detector.evaluate import ImageDetections, coco_evaluate, postp
 from sygrid.train.detector.export import _store_weights_as_half  # noqa: E402
 from sygrid.train.detector.loss import SegmentationLoss, Targets  # noqa: E402
 from sygrid.train.detector.model import SIZES, ModelConfig, build_model  # noqa: E402
-from sygrid.train.detector.trainer import TrainError, learning_rate, train  # noqa: E402
+from sygrid.train.detector.trainer import TrainError, _Trainer, learning_rate, train  # noqa: E402
 
 REG_MAX = 16
 
@@ -390,6 +390,16 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     # A different network cannot resume from this checkpoint.
     with pytest.raises(TrainError, match="differs from this run"):
         train(TrainConfig(**{**common, "size": "n"}, epochs=3, max_iters=1, progress=False, resume=True, export=False))
+
+    # Fine-tuning (--init): a new run in another folder starts from the checkpoint's EMA weights, at another input
+    # size; its first epoch is 1 again. Another network size is refused.
+    ema = torch.load(out / "last.pt", weights_only=True)["ema"]
+    tuned_cfg = {**common, "out": str(tmp_path / "tuned"), "imgsz": 160, "init": str(out / "last.pt")}
+    tuned = _Trainer(TrainConfig(**tuned_cfg, epochs=1, max_iters=1, progress=False, export=False))
+    assert all(torch.equal(v, tuned.model.state_dict()[k]) for k, v in ema.items())
+    assert tuned.epoch == 0
+    with pytest.raises(TrainError, match=r"--init\): the checkpoint's network"):
+        _Trainer(TrainConfig(**{**tuned_cfg, "size": "f"}, epochs=1, progress=False))
 
 
 def test_resume_without_checkpoint_is_a_clear_error(tiny_dataset, tmp_path):

@@ -43,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="initialisation, data order, augmentation")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     parser.add_argument(
+        "--init", default=None, help="start from this checkpoint's weights (fine-tuning; same --width and classes)"
+    )
+    parser.add_argument(
         "--threads",
         type=int,
         default=DEFAULTS["threads"],
@@ -90,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
             val_every=args.val_every,
             augment=augment,
             resume=args.resume,
+            init=args.init,
             half_weights=args.half_weights,
             progress=not args.no_progress,
             lr=args.lr,

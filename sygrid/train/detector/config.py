@@ -84,6 +84,9 @@ class TrainConfig:
         channels_last: NHWC tensors (oneDNN's preferred CPU layout).
         augment: overrides of ``AugmentConfig`` fields.
         resume: continue from ``out/last.pt``.
+        init: a checkpoint of this trainer (``best.pt`` or ``last.pt``) whose EMA weights start the run instead of
+            the seed's initialisation: fine-tuning, e.g. on views of one cell. Same network size and classes;
+            optimiser, schedule and EMA start afresh. A resumed run continues from its own ``last.pt`` instead.
         export: write ``detector.onnx`` from ``best.pt`` at the end.
         half_weights: store the ONNX weights as float16 (half the file; computed in float32, see ``export``).
         progress: tqdm progress bars.
@@ -113,6 +116,7 @@ class TrainConfig:
     channels_last: bool = True
     augment: dict = field(default_factory=dict)
     resume: bool = False
+    init: str | None = None
     export: bool = True
     half_weights: bool = False
     progress: bool = True

@@ -188,6 +188,8 @@ class _Trainer:
         self.best_epoch = None
         if cfg.resume:
             self._resume()
+        elif cfg.init:
+            self._init_from(Path(cfg.init))
 
     # ------------------------------------------------------------------------------------------ checkpoints
     def _resume(self) -> None:
@@ -211,6 +213,19 @@ class _Trainer:
         self.best_fitness = float(ckpt["best_fitness"])
         self.best_epoch = ckpt["best_epoch"]
         log.info("resumed from %s after epoch %d (%d iterations)", path, self.epoch, self.iteration)
+
+    def _init_from(self, path: Path) -> None:
+        ckpt = load_checkpoint(path)
+        # the class-bias prior (prior_image_size) only initialises weights that the checkpoint replaces
+        mine = {k: v for k, v in self.model_cfg.as_dict().items() if k != "prior_image_size"}
+        theirs = {k: v for k, v in ckpt["model_config"].items() if k != "prior_image_size"}
+        if mine != theirs:
+            raise TrainError(f"{path} (--init): the checkpoint's network {theirs} differs from this run's {mine}")
+        if ckpt["names"] != self.dataset.names:
+            raise TrainError(f"{path} (--init): classes {ckpt['names']}, the dataset has {self.dataset.names}")
+        self.model.load_state_dict(ckpt["ema"])
+        self.ema.model.load_state_dict(ckpt["ema"])
+        log.info("weights from %s (epoch %d of its run)", path, int(ckpt["epoch"]))
 
     def _common(self) -> dict:
         return {
