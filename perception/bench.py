@@ -43,6 +43,7 @@ QUICK_SIZES = (320, 480)
 REFINE_VARIANTS = {
     "ICP, 2 best starts": RefineConfig(icp_starts=2, max_iterations=30),
     "ICP from the estimate only": RefineConfig(pca_hypotheses=False),
+    "ICP, 1 iteration per open3d call": RefineConfig(iterations_per_call=1),
 }
 
 

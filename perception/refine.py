@@ -52,6 +52,9 @@ class RefineConfig:
             have failed.
         correspondence_fractions: ICP stages: the max correspondence distance of each, x diameter (coarse to fine).
         max_iterations: ICP iterations per stage at most.
+        iterations_per_call: ICP iterations per open3d call; the stage ends after a call whose last update was
+            negligible (the two ``converged_`` thresholds). 1 stops at the exact iteration but costs a k-d tree
+            build per iteration.
         voxel_fraction: voxel size for thinning the scene cloud, x diameter (0: no thinning).
         max_scene_points: scene points kept at most (a seeded random subset beyond that).
         mask_erosion_px: mask pixels peeled off the border first (edge depth mixes object and background).
@@ -70,6 +73,7 @@ class RefineConfig:
     fallback_starts: int = 2
     correspondence_fractions: tuple[float, ...] = (0.2, 0.05)
     max_iterations: int = 15
+    iterations_per_call: int = 5
     voxel_fraction: float = 1.0 / 60.0
     max_scene_points: int = 1000
     mask_erosion_px: int = 1
@@ -92,10 +96,12 @@ class RefineConfig:
                 f"RefineConfig: need icp_starts >= 1 and fallback_starts >= 0, got {self.icp_starts}, "
                 f"{self.fallback_starts}"
             )
-        if self.max_iterations < 1 or self.min_scene_points < 3 or self.max_scene_points < self.min_scene_points:
+        counts_ok = self.max_iterations >= 1 and self.iterations_per_call >= 1
+        if not counts_ok or self.min_scene_points < 3 or self.max_scene_points < self.min_scene_points:
             raise ValueError(
-                "RefineConfig: need max_iterations >= 1 and 3 <= min_scene_points <= max_scene_points, got "
-                f"{self.max_iterations}, {self.min_scene_points}, {self.max_scene_points}"
+                "RefineConfig: need max_iterations >= 1, iterations_per_call >= 1 and 3 <= min_scene_points <= "
+                f"max_scene_points, got {self.max_iterations}, {self.iterations_per_call}, {self.min_scene_points}, "
+                f"{self.max_scene_points}"
             )
         if not 0.0 <= self.min_fitness <= 1.0 or self.voxel_fraction < 0 or self.mask_erosion_px < 0:
             raise ValueError(
@@ -416,27 +422,33 @@ class DepthRefiner:
     ) -> tuple[np.ndarray, int, o3d.pipelines.registration.RegistrationResult]:
         """Staged point-to-plane ICP of ``source`` onto ``target``; (transform, iterations, last result).
 
-        Each open3d call runs one ICP iteration so that the iterations can be counted and a stage ends as soon as
-        the update is negligible: open3d's legacy result does not report its iteration count, and its tensor API,
-        which does, measured about ten times slower on these cloud sizes. For a part with continuous symmetry axes
+        Each open3d call runs ``iterations_per_call`` iterations, and a stage ends after the call whose update was
+        negligible: open3d's legacy result does not report its iteration count and its own stopping rule does not
+        know symmetry axes, and its tensor API, which does report the count, measured about ten times slower on
+        these cloud sizes. Not one iteration per call: every call builds the target's k-d tree again, which costs
+        more than an iteration (``sygrid bench perception`` times both). For a part with continuous symmetry axes
         (``symmetry_axes`` (k, 3), object frame; ``R_frame_object`` the model's rotation in the ICP frame) the
         rotation update is measured on the axes' directions only: about such an axis the data cannot pin the
         pose, open3d's unregularised solve wanders there (measured: back and forth by 0.06 deg for ever on a
         washer), and that harmless wandering must not keep the loop running.
         """
         cfg = self.config
-        one_step = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=1)
         T = np.eye(4)
         iterations = 0
         result = None
         for fraction in cfg.correspondence_fractions:
             distance = fraction * diameter
-            for _ in range(cfg.max_iterations):
+            done = 0
+            while done < cfg.max_iterations:
+                n = min(cfg.iterations_per_call, cfg.max_iterations - done)
+                # relative thresholds 0: open3d runs all n iterations; the stopping rule is the one below
+                criteria = o3d.pipelines.registration.ICPConvergenceCriteria(0.0, 0.0, n)
                 result = o3d.pipelines.registration.registration_icp(
-                    source, target, distance, T, self._estimation, one_step
+                    source, target, distance, T, self._estimation, criteria
                 )
                 T_next = np.asarray(result.transformation)
-                iterations += 1
+                iterations += n
+                done += n
                 # How far the implied object centre moved (a turn about an axis through it moves it not at all).
                 step_m = float(np.linalg.norm(invert(T_next)[:3, 3] - invert(T)[:3, 3]))
                 step_deg = _rotation_step_deg(T[:3, :3], T_next[:3, :3], R_frame_object, symmetry_axes)

@@ -79,7 +79,7 @@ def test_perception_benchmark_runs_every_variant_on_the_same_images(model_dir: P
     assert all(r["ms_median"] > 0 for r in results["detector"])
     assert [(r["method"], r["refine"]) for r in results["pose"]] == [
         ("direct", ""), ("direct", "ICP"), ("direct", "ICP, 2 best starts"), ("direct", "ICP from the estimate only"),
-        ("pnp", ""), ("pnp", "ICP"),
+        ("direct", "ICP, 1 iteration per open3d call"), ("pnp", ""), ("pnp", "ICP"),
     ]  # fmt: skip
     assert "detector.onnx @ 128" in format_results(results)
     chart(results)  # draws without data-dependent failures
