@@ -116,7 +116,7 @@ def detector_card(log: dict, args: argparse.Namespace, evals: dict[str, dict]) -
     command = (
         f"sygrid train detector --data {cfg['data']} --out {cfg['out']} --epochs {cfg['epochs']} "
         f"--imgsz {cfg['imgsz']} --batch {cfg['batch']} --width {cfg['size']} --lr {cfg['lr']} --seed {cfg['seed']} "
-        f"--threads {cfg['threads']}"
+        f"--threads {cfg['threads']}" + (f" --init {cfg['init']}" if cfg.get("init") else "")
     )
     lines = [
         "# Model card: detector (YOLOv8-style instance segmentation)",
@@ -130,6 +130,8 @@ def detector_card(log: dict, args: argparse.Namespace, evals: dict[str, dict]) -
         f"- seed: {cfg['seed']}; training time {seconds / 3600:.2f} h on this project's 2-core CPU machine "
         f"({len(epochs)} epochs x {log['iters_per_epoch']} iterations), best epoch {log['best_epoch']}",
     ]
+    if cfg.get("init"):
+        lines.append(f"- fine-tuned: the run started from the weights of `{cfg['init']}` (see that run's card)")
     if last_val:
         lines.append(
             f"- validation (last epoch): box mAP50 {last_val['box_map50']:.3f}, box mAP50-95 "
