@@ -18,7 +18,7 @@ so a sweep of more variants over fewer seeds can sit beside the headline run): p
 success rate against the median cycle time per variant, and the parts left by cause.
 
 The emulator runs in real time: a bin of 10 parts takes about a minute, so 30 seeds of one variant take about half
-an hour. Variants with ``models`` perception need a trained model folder (``models/builtin/manifest.json``).
+an hour. Variants with ``models`` perception need a trained model folder (the cell file's, or the variant's own).
 """
 
 from __future__ import annotations
@@ -56,7 +56,10 @@ class Variant:
     picker: dict[str, Any] = field(default_factory=dict)
     refine: bool | None = None
     detector_input_size: int | None = None
+    models_dir: str | None = None  # another model folder than the cell file's
 
+
+_BUILTIN_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "builtin")
 
 _FAST = {
     "approach_speed_m_s": 0.5,
@@ -76,6 +79,9 @@ VARIANTS: dict[str, Variant] = {
     "models_norefine": Variant("models", "trained models, without depth refinement", refine=False),
     "models_480": Variant("models", "trained models, detector at its training size 480 px", detector_input_size=480),
     "models_640": Variant("models", "trained models, detector at 640 px", detector_input_size=640),
+    "models_builtin": Variant(
+        "models", "the general built-in models (detector not tuned to the cell's views)", models_dir=_BUILTIN_MODELS
+    ),
 }
 QUICK_VARIANTS = ("oracle", "oracle_fast", "models")
 
@@ -144,14 +150,15 @@ def _chosen_variants(args: argparse.Namespace) -> list[str]:
         names = list(QUICK_VARIANTS if args.quick else VARIANTS)
     if args.perception != "all":
         names = [n for n in names if VARIANTS[n].perception == args.perception]
-    models = [n for n in names if VARIANTS[n].perception == "models"]
     base = load_cell_setup(args.config)
-    models_dir = base.resolve(base.data.perception.models_dir)
-    if models and not (models_dir / "manifest.json").is_file():
+    for name in [n for n in names if VARIANTS[n].perception == "models"]:
+        models_dir = base.resolve(VARIANTS[name].models_dir or base.data.perception.models_dir)
+        if (models_dir / "manifest.json").is_file():
+            continue
         if args.variants or args.perception == "models":
-            raise ConfigError(f"variants {models} need trained models: {models_dir}/manifest.json is missing")
-        print(f"skipping {', '.join(models)}: no trained models in {models_dir} (manifest.json missing)")
-        names = [n for n in names if n not in models]
+            raise ConfigError(f"variant {name} needs trained models: {models_dir}/manifest.json is missing")
+        print(f"skipping {name}: no trained models in {models_dir} (manifest.json missing)")
+        names.remove(name)
     if not names:
         raise ConfigError("no variant left to run (see --variants and --perception)")
     return names
@@ -162,7 +169,9 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
     d = base.data
     sim = d.sim.model_copy(update={"host": HOST, "seed": seed, **({"scene": str(scene.resolve())} if scene else {})})
     # the variant's settings where it has them, the cell file's elsewhere
-    overrides = {"refine": variant.refine, "detector_input_size": variant.detector_input_size}
+    overrides = {
+        "refine": variant.refine, "detector_input_size": variant.detector_input_size, "models_dir": variant.models_dir
+    }
     perception = d.perception.model_copy(
         update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}
     )
