@@ -4,7 +4,7 @@ VENV := .venv
 export MUJOCO_GL ?= egl
 export RAY_AUTH_MODE ?= disabled
 
-.PHONY: setup demo test lint bench models
+.PHONY: setup demo test lint bench models models-sim-cell
 
 setup:
 	@bash scripts/setup.sh
@@ -29,3 +29,12 @@ models: setup
 	test -f runs/pose/last.pt || $(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 12 --threads 1 --seed 0
 	$(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 24 --threads 1 --seed 0 --resume
 	$(VENV)/bin/sygrid models pack --detector runs/detector --pose runs/pose --out models/builtin --test-data datasets/builtin_test
+
+# The simulated cell's models (models/sim_cell): the shipped detector fine-tuned on views of the cell's camera
+# (0.82-0.98 m above the bin, at the cell's 800 px input size) and the shipped pose network. Needs `make models`'
+# detector run (runs/detector); about an hour on a 2-core CPU.
+models-sim-cell: setup
+	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_train.json --out datasets/sim_cell_train --count 500 --seed 0 --workers 2
+	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_test.json --out datasets/sim_cell_test --count 100 --seed 1000 --workers 2
+	$(VENV)/bin/sygrid train detector --data datasets/sim_cell_train --out runs/sim_cell_detector --init runs/detector/best.pt --imgsz 800 --epochs 12 --lr 0.002 --threads 2 --seed 0 $(if $(wildcard runs/sim_cell_detector/last.pt),--resume)
+	$(VENV)/bin/sygrid models pack --detector runs/sim_cell_detector --pose runs/pose --out models/sim_cell --test-data datasets/sim_cell_test

@@ -34,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="detector input sizes")
     parser.add_argument("--config", type=Path, default=CELL_FILE, help="the simulated cell's file")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per frame and size")
+    parser.add_argument(
+        "--models", type=Path, action="append", default=[], help="another model folder to compare (repeatable)"
+    )
 
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
@@ -45,28 +48,37 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         raise ConfigError(f"{args.config}: sygrid bench cell-detector needs a simulated cell ([cell] kind = 'sim')")
     if args.seeds < 1 or args.repeats < 1 or any(s < 32 for s in args.sizes):
         raise ConfigError("--seeds >= 1, --repeats >= 1 and every --size >= 32 expected")
-    models_dir = setup.resolve(setup.data.perception.models_dir)
-    manifest = load_manifest(models_dir)
-    conf = setup.data.perception.conf_threshold or manifest.detector.conf_threshold
+    folders = [setup.resolve(setup.data.perception.models_dir), *args.models]
+    conf = setup.data.perception.conf_threshold or load_manifest(folders[0]).detector.conf_threshold
     frames = [first_frame(setup.resolve(setup.data.sim.scene), seed) for seed in range(args.seeds)]
+    truth_ids = np.array([obj_id for _, truth in frames for obj_id, _ in truth])
     rows = []
-    for size in args.sizes:
-        detector = YoloSegDetector(models_dir / manifest.detector.onnx, conf_threshold=_FLOOR_CONF,
-                                   iou_threshold=manifest.detector.iou_threshold, input_size=size)  # fmt: skip
-        detector.detect(frames[0][0])  # warm-up
-        times, found, kept = [], [], []
-        for rgb, truth in frames:
-            for _ in range(args.repeats):
-                start = time.perf_counter()
-                detections = detector.detect(rgb)
-                times.append(time.perf_counter() - start)
-            found += best_scores(truth, detections)
-            kept += [(d.score, is_right(d, truth)) for d in detections]
-        rows.append(size_row(size, times, np.array(found), kept, conf))
-        print(f"{size:4d} px: {rows[-1]['ms_median']:6.1f} ms, recall {rows[-1]['recall']:.2f}, "
-              f"precision {rows[-1]['precision']:.2f} at confidence {conf}")  # fmt: skip
+    for models_dir in folders:
+        manifest = load_manifest(models_dir)
+        for size in args.sizes:
+            detector = YoloSegDetector(models_dir / manifest.detector.onnx, conf_threshold=_FLOOR_CONF,
+                                       iou_threshold=manifest.detector.iou_threshold, input_size=size)  # fmt: skip
+            detector.detect(frames[0][0])  # warm-up
+            names = dict(zip(detector.class_obj_ids, detector.class_names, strict=True))
+            times, found, kept = [], [], []
+            for rgb, truth in frames:
+                for _ in range(args.repeats):
+                    start = time.perf_counter()
+                    detections = detector.detect(rgb)
+                    times.append(time.perf_counter() - start)
+                found += best_scores(truth, detections)
+                kept += [(d.score, is_right(d, truth)) for d in detections]
+            row = {"models": models_dir.name, **size_row(size, times, np.array(found), kept, conf)}
+            row["recall_by_part"] = {
+                names.get(int(k), str(k)): float((np.array(found)[truth_ids == k] >= conf).mean())
+                for k in np.unique(truth_ids)
+            }
+            rows.append(row)
+            print(f"{models_dir.name} @ {size:4d} px: {row['ms_median']:6.1f} ms, recall {row['recall']:.2f}, "
+                  f"precision {row['precision']:.2f} at confidence {conf}; "
+                  f"by part {row['recall_by_part']}")  # fmt: skip
     results = {"config": {"cell": str(args.config), "seeds": args.seeds, "conf_threshold": conf,
-                          "models": str(models_dir), "parts_seen": int(sum(len(t) for _, t in frames))},
+                          "models": [str(f) for f in folders], "parts_seen": len(truth_ids)},
                "sizes": rows}  # fmt: skip
     json_path, png_path = save_results("cell_detector", results, chart(results), out_dir)
     print(f"wrote {json_path} and {png_path}")
@@ -131,15 +143,20 @@ def chart(results: dict):
 
     fig, (ax_time, ax_pr) = plt.subplots(1, 2, figsize=(11, 4.2))
     rows, conf = results["sizes"], results["config"]["conf_threshold"]
-    ax_time.plot([r["ms_median"] for r in rows], [r["recall"] for r in rows], "o-")
+    folders = list(dict.fromkeys(r.get("models", "") for r in rows))
+    for folder in folders:
+        mine = [r for r in rows if r.get("models", "") == folder]
+        ax_time.plot([r["ms_median"] for r in mine], [r["recall"] for r in mine], "o-", label=folder or None)
     for r in rows:
         ax_time.annotate(f"{r['size']} px", (r["ms_median"], r["recall"]), textcoords="offset points", xytext=(5, -10))
         ax_pr.plot([b["recall"] for b in r["by_threshold"]], [b["precision"] for b in r["by_threshold"]], "o-",
-                   label=f"{r['size']} px")  # fmt: skip
+                   label=" @ ".join(x for x in (r.get("models", ""), f"{r['size']} px") if x))  # fmt: skip
+    if len(folders) > 1:
+        ax_time.legend(fontsize=8)
     ax_time.set(xlabel="detector ms per frame (median)", ylabel=f"parts found at confidence {conf}",
                 title="Cell camera: recall against time")  # fmt: skip
     ax_pr.set(xlabel="recall", ylabel="precision", title=f"Thresholds {THRESHOLDS[0]}-{THRESHOLDS[-1]}")
-    ax_pr.legend()
+    ax_pr.legend(fontsize=7)
     for ax in (ax_time, ax_pr):
         ax.grid(alpha=0.3)
     n = results["config"]["parts_seen"]
