@@ -33,6 +33,7 @@ from perception.pose import PoseEstimator
 from perception.refine import DepthRefiner, RefineConfig
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_results
 from sygrid.errors import ConfigError
+from sygrid.fileio import read_json
 from sygrid.metrics import detection_metrics, pose_errors, pose_metrics_table
 from sygrid.writers import load_bop_item
 
@@ -177,8 +178,9 @@ def chart(results: dict):
     for row in results["detector"]:
         for key, marker in (("box_map50", "o"), ("mask_map50_95", "s")):
             ax_det.scatter(row["ms_median"], row[key], marker=marker, color="C0" if key == "box_map50" else "C1")
+        model, _, size = row["name"].rpartition(" @ ")
         ax_det.annotate(
-            row["name"].split(" @ ")[-1] if "@" in row["name"] else row["name"],
+            size if model.endswith(".onnx") else row["name"],  # the folder's detector: its size; others: named
             (row["ms_median"], row["box_map50"]),
             textcoords="offset points",
             xytext=(4, 4),
@@ -190,13 +192,18 @@ def chart(results: dict):
     ax_det.set(xlabel="detector latency per frame, median [ms]", ylabel="accuracy", ylim=(0, 1.02),
                title=f"detector input sizes ({results['n_images']} test images)")  # fmt: skip
     ax_det.legend(loc="lower right", fontsize=8)
-    for k, row in enumerate(results["pose"]):
-        ax_pose.scatter(row["ms_per_object_median"], row["add_recall"], color=f"C{k % 10}", label=row["name"])
+    # colour: method and refinement; marker: the pose model (its width)
+    methods = list(dict.fromkeys((r["method"], r["refine"]) for r in results["pose"]))
+    markers = dict(zip(dict.fromkeys(r["pose_model"] for r in results["pose"]), "o^sDv", strict=False))
+    for row in results["pose"]:
+        colour = f"C{methods.index((row['method'], row['refine'])) % 10}"
+        ax_pose.scatter(row["ms_per_object_median"], row["add_recall"], color=colour,
+                        marker=markers.get(row["pose_model"], "o"), label=row["name"])  # fmt: skip
     ax_pose.axvline(TARGETS_MS["pose_per_object"], color="grey", ls="--", lw=0.8)
     ax_pose.axvline(TARGETS_MS["pose_per_object"] + TARGETS_MS["refine_per_object"], color="grey", ls=":", lw=0.8)
     ax_pose.set(xlabel="pose (+ refinement) per object, median [ms]", ylabel="ADD(-S) < 0.1 d recall", ylim=(0, 1.02),
                 title="pose methods")  # fmt: skip
-    ax_pose.legend(fontsize=7, loc="lower right")
+    ax_pose.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     return fig
 
@@ -226,9 +233,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pose", action="append", default=[], metavar="NAME=PATH", help="another pose model")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--quick", action="store_true", help=f"sizes {QUICK_SIZES}, 20 images")
+    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved perception.json")
 
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
+    if args.replot:
+        saved = read_json(out_dir / "perception.json", "perception benchmark results")
+        png_path = out_dir / "perception.png"
+        chart(saved).savefig(png_path, dpi=110, bbox_inches="tight")
+        print(f"redrew {png_path} from {out_dir / 'perception.json'}")
+        return 0
     sizes = tuple(args.sizes or (QUICK_SIZES if args.quick else DEFAULT_SIZES))
     results = run_benchmark(
         args.models,
