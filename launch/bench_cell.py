@@ -289,6 +289,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "failures_by_cause": dict(failures),
         "stop_reasons": dict(stops),
         "left_by_cause": dict(left_why.most_common()),
+        "false_detections_last_plan": sum(b.get("false_detections_last_plan", 0) for b in bins),
         "cleared_by_kind": {
             k: f"{by_kind_total[k] - by_kind_left[k]}/{by_kind_total[k]}" for k in sorted(by_kind_total)
         },
