@@ -157,7 +157,9 @@ class PickerConfig:
     no object (its fingers settling) before the part counts as lost. still_there_distance_m: a part of the same model
     this close to a picked one in the next frame means the pick failed. max_failures_per_part /
     exclusion_distance_m: after this many failed attempts on parts of one model within this distance of each other,
-    parts there are no longer planned. open_tolerance_m / open_timeout_s: the fingers must reach a commanded
+    parts there are no longer planned (30 mm: a wrong estimate of a small part at the cell camera's 10-20 px jumps
+    by more than 15 mm from frame to frame; in the simulated cell an L-bracket was tried three times at 15 mm, each
+    close coming back empty, and the three failed cycles ended the bin). open_tolerance_m / open_timeout_s: the fingers must reach a commanded
     opening less this within this time (a gripper may report "stopped" while its fingers still move); release_tries:
     how often the gripper is opened at the place pose before the part counts as stuck. reconnect_timeout_s: how long
     recovery keeps trying to reach a controller that does not answer (a network link that is down).
@@ -176,7 +178,7 @@ class PickerConfig:
     slip_settle_s: float = 0.5
     still_there_distance_m: float = 0.01
     max_failures_per_part: int = 2
-    exclusion_distance_m: float = 0.015
+    exclusion_distance_m: float = 0.03
     open_tolerance_m: float = 0.003
     open_timeout_s: float = 2.0
     release_tries: int = 2
