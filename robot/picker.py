@@ -157,12 +157,11 @@ class PickerConfig:
     no object (its fingers settling) before the part counts as lost. still_there_distance_m: a part of the same model
     this close to a picked one in the next frame means the pick failed. max_failures_per_part /
     exclusion_distance_m: after this many failed attempts on parts of one model within this distance of each other,
-    parts there are no longer planned (30 mm: a wrong estimate of a small part at the cell camera's 10-20 px jumps
-    by more than 15 mm from frame to frame; in the simulated cell an L-bracket was tried three times at 15 mm, each
-    close coming back empty, and the three failed cycles ended the bin). open_tolerance_m / open_timeout_s: the fingers must reach a commanded
-    opening less this within this time (a gripper may report "stopped" while its fingers still move); release_tries:
-    how often the gripper is opened at the place pose before the part counts as stuck. reconnect_timeout_s: how long
-    recovery keeps trying to reach a controller that does not answer (a network link that is down).
+    parts there are no longer planned (checked on the poses planned from, refined ones included).
+    open_tolerance_m / open_timeout_s: the fingers must reach a commanded opening less this within this time (a
+    gripper may report "stopped" while its fingers still move); release_tries: how often the gripper is opened at
+    the place pose before the part counts as stuck. reconnect_timeout_s: how long recovery keeps trying to reach a
+    controller that does not answer (a network link that is down).
     """
 
     max_cycles: int = 50
@@ -178,7 +177,7 @@ class PickerConfig:
     slip_settle_s: float = 0.5
     still_there_distance_m: float = 0.01
     max_failures_per_part: int = 2
-    exclusion_distance_m: float = 0.03
+    exclusion_distance_m: float = 0.015
     open_tolerance_m: float = 0.003
     open_timeout_s: float = 2.0
     release_tries: int = 2
@@ -380,14 +379,9 @@ class Picker:
                 record.end, record.plan_summary = "bin_empty", "the camera sees no parts (no detections)"
                 return record
             poses = [p for p in result.poses if not self._given_up(p)]
-            record.n_excluded = len(result.poses) - len(poses)
+            excluded = [p for p in result.poses if self._given_up(p)]
             if not poses:
-                record.end = "gave_up"
-                record.plan_summary = (
-                    f"every part seen ({record.n_excluded}) is where {self.config.max_failures_per_part} attempts "
-                    "failed already"
-                )
-                return record
+                return self._all_given_up(record, len(excluded))
             plan = self._plan(poses, frame, record)
             refine_more = getattr(self.perception, "refine_more", None)
             while plan.nothing_safe and refine_more is not None:
@@ -397,9 +391,15 @@ class Picker:
                 record.stage_wall_s["perceive"] += time.perf_counter() - t
                 if more is None:
                     break
-                poses = more
-                seen_poses = [*more, *(p for p in result.poses if self._given_up(p))]
+                seen_poses = [*more, *excluded]
+                # a skipped part's RGB estimate can lie centimetres from where its refined pose puts it: where
+                # attempts failed is checked again on the refined poses
+                poses = [p for p in more if not self._given_up(p)]
+                excluded += [p for p in more if self._given_up(p)]
+                if not poses:
+                    return self._all_given_up(record, len(excluded))
                 plan = self._plan(poses, frame, record)
+            record.n_excluded = len(excluded)
             record.n_planned, record.plan_summary = len(plan.grasps), plan.summary()
             if record.n_excluded:
                 record.plan_summary += f" ({record.n_excluded} part(s) given up after repeated failures)"
@@ -434,6 +434,13 @@ class Picker:
             )  # fmt: skip
             if self.on_cycle is not None:
                 self.on_cycle(record, frame, result, seen_poses)
+
+    def _all_given_up(self, record: CycleRecord, n_excluded: int) -> CycleRecord:
+        record.end, record.n_excluded = "gave_up", n_excluded
+        record.plan_summary = (
+            f"every part seen ({n_excluded}) is where {self.config.max_failures_per_part} attempts failed already"
+        )
+        return record
 
     def _plan(self, poses: Sequence[Any], frame: Frame, record: CycleRecord) -> Any:
         t = time.perf_counter()

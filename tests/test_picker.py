@@ -343,6 +343,38 @@ def test_a_part_that_keeps_failing_is_given_up_and_the_run_does_not_loop():
     assert report.cycles[-1].n_excluded == 1 and report.cycles[2].n_excluded == 1
 
 
+def test_a_failing_part_found_again_by_refine_more_is_given_up():
+    """The pipeline's first estimate of a skipped part lies centimetres off; refine_more puts it where two
+    attempts failed already: the refined pose is left out too (found in the cell bench: an L-bracket was tried three
+    times at one spot, and the three failed cycles ended its bin)."""
+
+    class SkippedFarOff(FakeBin):
+        def run(self, frame):
+            result = super().run(frame)
+            result.poses = [ObjectPose(p.detection, make_T(t=(p.T_camera_object[0, 3] + 0.05, 0.0, 0.5)), 1.0, "fake",
+                                       {"icp": {"status": "skipped"}}) for p in result.poses]  # fmt: skip
+            return result
+
+        def refine_more(self, poses, frame):
+            if not any(p.details["icp"]["status"] == "skipped" for p in poses):
+                return None
+            return [ObjectPose(p.detection, make_T(t=(p.T_camera_object[0, 3] - 0.05, 0.0, 0.5)), 1.0, "fake",
+                               {"icp": {"status": "refined"}}) for p in poses]  # fmt: skip
+
+    class RefinedOnly(FakePlanner):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
+            grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3])
+                      for i, p in enumerate(poses) if p.details["icp"]["status"] == "refined"]  # fmt: skip
+            return type("P", (), {"grasps": grasps, "nothing_safe": not grasps, "summary": lambda self: "plan"})()
+
+    bin_ = SkippedFarOff([0.0])
+    picker, _ = make_picker(bin_, RefinedOnly(), config=PickerConfig(max_failures_per_part=2, max_failed_cycles=5))
+    picker.gripper.slip_at = 0.0  # the part slips out every time
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["slipped", "slipped"]
+    assert report.stop_reason == "gave_up" and report.cycles[-1].n_excluded == 1
+
+
 def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
     setup = load_cell_setup("launch/cells/sim.toml")
     assert setup.is_sim and setup.robot.host == "127.0.0.50" and setup.data.perception.kind == "models"
