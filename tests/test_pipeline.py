@@ -89,7 +89,7 @@ def test_perception_benchmark_runs_every_variant_on_the_same_images(
     # --replot redraws the chart from the saved JSON alone
     save_results("perception", results, chart(results), tmp_path)
     (tmp_path / "perception.png").unlink()
-    assert run(build_parser().parse_args(["bench", "perception", "--replot"]), out_dir=tmp_path) == 0
+    assert run(build_parser("bench").parse_args(["bench", "perception", "--replot"]), out_dir=tmp_path) == 0
     assert (tmp_path / "perception.png").stat().st_size > 0
 
 
