@@ -80,7 +80,10 @@ VARIANTS: dict[str, Variant] = {
     "models_480": Variant("models", "trained models, detector at its training size 480 px", detector_input_size=480),
     "models_640": Variant("models", "trained models, detector at 640 px", detector_input_size=640),
     "models_builtin": Variant(
-        "models", "the general built-in models (detector not tuned to the cell's views)", models_dir=_BUILTIN_MODELS
+        "models",
+        "the general built-in models at 800 px (their best size on the cell's frames)",
+        models_dir=_BUILTIN_MODELS,
+        detector_input_size=800,
     ),
 }
 QUICK_VARIANTS = ("oracle", "oracle_fast", "models")
@@ -170,7 +173,9 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
     sim = d.sim.model_copy(update={"host": HOST, "seed": seed, **({"scene": str(scene.resolve())} if scene else {})})
     # the variant's settings where it has them, the cell file's elsewhere
     overrides = {
-        "refine": variant.refine, "detector_input_size": variant.detector_input_size, "models_dir": variant.models_dir
+        "refine": variant.refine,
+        "detector_input_size": variant.detector_input_size,
+        "models_dir": variant.models_dir,
     }
     perception = d.perception.model_copy(
         update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}
