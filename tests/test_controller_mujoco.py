@@ -50,9 +50,10 @@ def test_mujoco_arm_tracks_the_trajectory_and_reports_torques(cell):
     while mover.is_alive():
         errors.append(np.max(np.abs(np.subtract(r.getTargetQ(), r.getActualQ()))))
         time.sleep(0.005)
-    # two getters, so a sample can straddle packages (2 mrad each at 1 rad/s) when this process is descheduled;
-    # the physics' own lag is the 1-2 ticks the stepper trails the tick. A failing PD loop would be off by 0.1 rad.
-    assert np.percentile(errors, 95) < 5e-3
+    # two getters, so a sample can straddle packages (2 mrad each at 1 rad/s), several when this process is
+    # descheduled (a clean-clone CI run measured 6.1 mrad at the 95th percentile); the physics' own lag is the 1-2
+    # ticks the stepper trails the tick. A failing PD loop would be off by 0.1 rad.
+    assert np.percentile(errors, 95) < 1e-2
     assert max(errors) < 2e-2
     assert wait_steady(r, target, atol=1e-4)
     c.getJointTorques()
