@@ -68,10 +68,10 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
                     times.append(time.perf_counter() - start)
                 found += best_scores(truth, detections)
                 kept += [(d.score, is_right(d, truth)) for d in detections]
-            row = {"models": models_dir.name, **size_row(size, times, np.array(found), kept, conf)}
+            found = np.array(found)
+            row = {"models": models_dir.name, **size_row(size, times, found, kept, conf)}
             row["recall_by_part"] = {
-                names.get(int(k), str(k)): float((np.array(found)[truth_ids == k] >= conf).mean())
-                for k in np.unique(truth_ids)
+                names.get(int(k), str(k)): float((found[truth_ids == k] >= conf).mean()) for k in np.unique(truth_ids)
             }
             rows.append(row)
             print(f"{models_dir.name} @ {size:4d} px: {row['ms_median']:6.1f} ms, recall {row['recall']:.2f}, "

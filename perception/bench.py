@@ -31,7 +31,7 @@ from perception.evaluation import EvalSettings, eval_items, match_poses
 from perception.pipeline import PerceptionPipeline, PipelineOverrides, load_manifest
 from perception.pose import PoseEstimator
 from perception.refine import DepthRefiner, RefineConfig
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_chart, save_results
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 from sygrid.metrics import detection_metrics, pose_errors, pose_metrics_table
@@ -239,9 +239,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     if args.replot:
         saved = read_json(out_dir / "perception.json", "perception benchmark results")
-        png_path = out_dir / "perception.png"
-        chart(saved).savefig(png_path, dpi=110, bbox_inches="tight")
-        print(f"redrew {png_path} from {out_dir / 'perception.json'}")
+        print(f"redrew {save_chart('perception', chart(saved), out_dir)} from {out_dir / 'perception.json'}")
         return 0
     sizes = tuple(args.sizes or (QUICK_SIZES if args.quick else DEFAULT_SIZES))
     results = run_benchmark(

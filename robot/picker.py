@@ -378,8 +378,7 @@ class Picker:
             if not result.poses:
                 record.end, record.plan_summary = "bin_empty", "the camera sees no parts (no detections)"
                 return record
-            poses = [p for p in result.poses if not self._given_up(p)]
-            excluded = [p for p in result.poses if self._given_up(p)]
+            poses, excluded = self._split_given_up(result.poses)
             if not poses:
                 return self._all_given_up(record, len(excluded))
             plan = self._plan(poses, frame, record)
@@ -394,8 +393,8 @@ class Picker:
                 seen_poses = [*more, *excluded]
                 # a skipped part's RGB estimate can lie centimetres from where its refined pose puts it: where
                 # attempts failed is checked again on the refined poses
-                poses = [p for p in more if not self._given_up(p)]
-                excluded += [p for p in more if self._given_up(p)]
+                poses, given_up = self._split_given_up(more)
+                excluded += given_up
                 if not poses:
                     return self._all_given_up(record, len(excluded))
                 plan = self._plan(poses, frame, record)
@@ -613,6 +612,13 @@ class Picker:
                 entry[1], entry[2] = p, entry[2] + 1
                 return
         self._failed_at.append([attempt.obj_id, p, 1])
+
+    def _split_given_up(self, poses: Sequence[Any]) -> tuple[list[Any], list[Any]]:
+        """``(kept, given_up)``: ``poses`` split by ``_given_up``."""
+        kept, given_up = [], []
+        for pose in poses:
+            (given_up if self._given_up(pose) else kept).append(pose)
+        return kept, given_up
 
     def _given_up(self, pose: Any) -> bool:
         """A part where ``max_failures_per_part`` attempts failed already (same model, within the distance)."""

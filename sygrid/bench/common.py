@@ -30,6 +30,11 @@ def save_results(name: str, data: dict, figure, out_dir: Path = DEFAULT_RESULTS_
     """Writes ``<name>.json`` and ``<name>.png`` into ``out_dir``; returns both paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     json_path = write_json_atomic(out_dir / f"{name}.json", {"machine": machine_info(), **data})
+    return json_path, save_chart(name, figure, out_dir)
+
+
+def save_chart(name: str, figure, out_dir: Path = DEFAULT_RESULTS_DIR) -> Path:
+    """Writes ``<name>.png`` into ``out_dir`` (``save_results``'s chart alone: a redraw from saved results)."""
     png_path = out_dir / f"{name}.png"
     figure.savefig(png_path, dpi=110, bbox_inches="tight")
-    return json_path, png_path
+    return png_path

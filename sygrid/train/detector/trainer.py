@@ -195,13 +195,7 @@ class _Trainer:
     def _resume(self) -> None:
         path = self.out / "last.pt"
         ckpt = load_checkpoint(path)
-        if ckpt["model_config"] != self.model_cfg.as_dict():
-            raise TrainError(
-                f"{path}: the checkpoint's network {ckpt['model_config']} differs from this run's "
-                f"{self.model_cfg.as_dict()} (resuming needs the same --width, --imgsz and dataset classes)"
-            )
-        if ckpt["names"] != self.dataset.names:
-            raise TrainError(f"{path}: trained on classes {ckpt['names']}, the dataset has {self.dataset.names}")
+        self._check_same_network(path, ckpt, "--resume", "--width, --imgsz and dataset classes")
         self.model.load_state_dict(ckpt["model"])
         self.ema.model.load_state_dict(ckpt["ema"])
         self.ema.updates = int(ckpt["ema_updates"])
@@ -217,15 +211,23 @@ class _Trainer:
     def _init_from(self, path: Path) -> None:
         ckpt = load_checkpoint(path)
         # the class-bias prior (prior_image_size) only initialises weights that the checkpoint replaces
-        mine = {k: v for k, v in self.model_cfg.as_dict().items() if k != "prior_image_size"}
-        theirs = {k: v for k, v in ckpt["model_config"].items() if k != "prior_image_size"}
-        if mine != theirs:
-            raise TrainError(f"{path} (--init): the checkpoint's network {theirs} differs from this run's {mine}")
-        if ckpt["names"] != self.dataset.names:
-            raise TrainError(f"{path} (--init): classes {ckpt['names']}, the dataset has {self.dataset.names}")
+        self._check_same_network(path, ckpt, "--init", "--width and dataset classes", ignore=("prior_image_size",))
         self.model.load_state_dict(ckpt["ema"])
         self.ema.model.load_state_dict(ckpt["ema"])
         log.info("weights from %s (epoch %d of its run)", path, int(ckpt["epoch"]))
+
+    def _check_same_network(self, path: Path, ckpt: dict, how: str, same: str, ignore: tuple[str, ...] = ()) -> None:
+        """``TrainError`` naming ``path`` and ``how`` when the checkpoint's network (less ``ignore``) or classes
+        are not this run's; ``same``: what the user must keep."""
+        mine = {k: v for k, v in self.model_cfg.as_dict().items() if k not in ignore}
+        theirs = {k: v for k, v in ckpt["model_config"].items() if k not in ignore}
+        if mine != theirs:
+            raise TrainError(
+                f"{path} ({how}): the checkpoint's network {theirs} differs from this run's {mine} (keep the same "
+                f"{same})"
+            )
+        if ckpt["names"] != self.dataset.names:
+            raise TrainError(f"{path} ({how}): classes {ckpt['names']}, the dataset has {self.dataset.names}")
 
     def _common(self) -> dict:
         return {
