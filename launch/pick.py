@@ -54,6 +54,7 @@ def open_cell(
     (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit."""
     from robot.grasp import GraspPlanner, PlannerConfig
     from robot.gripper import make_gripper
+    from robot.nudge import NudgePlanner
     from robot.ur import URRobot
 
     d = setup.data
@@ -116,7 +117,10 @@ def open_cell(
         q_observe = robot.ik(planner_config.T_base_place, planner.q_reference)
         if q_observe is None:
             raise ConfigError(f"{setup.path}: the place pose (planner T_base_place) is unreachable for the robot")
-        picker = Picker(robot, gripper, camera, perception, planner, T_base_camera, q_observe, setup.picker)
+        nudger = NudgePlanner(planner) if setup.picker.max_nudges else None
+        picker = Picker(
+            robot, gripper, camera, perception, planner, T_base_camera, q_observe, setup.picker, nudger=nudger
+        )
         yield picker, process
 
 
@@ -155,6 +159,7 @@ def print_summary(report: RunReport, wall_s: float) -> None:
         f"picked {report.n_picked} part(s) in {len(report.attempts)} attempt(s) over {len(report.cycles)} cycle(s): "
         f"success rate {100 * rate:.0f}%"
         + (f", failures {report.failures_by_cause()}" if report.failures_by_cause() else "")
+        + (f"; {report.n_nudges} nudge(s) away from the walls" if report.n_nudges else "")
     )
     if times:
         print(

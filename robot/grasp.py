@@ -64,6 +64,7 @@ from robot.grasp_geometry import (
     FINGER_BOXES,
     WRIST_LINKS,
     GripperGeometry,
+    box_corners,
     lowest_elbow_point_m,
     obb_gap_m,
     points_box_distance_m,
@@ -438,6 +439,11 @@ class GraspPlanner:
         self._wrist_boxes = wrist_link_boxes_m()
         self.q_reference = self._reference_configuration()
 
+    @property
+    def joint_limits_rad(self) -> np.ndarray:
+        """``(6, 2)`` the joint limits less ``joint_limit_margin_rad``: what IK solutions must stay within."""
+        return self._limits
+
     def candidates(self, obj_id: int) -> GraspSet:
         """The grasp candidates (object frame) of model ``obj_id``."""
         if obj_id not in self._models:
@@ -505,7 +511,7 @@ class GraspPlanner:
             raise ValueError(f"q_seed must be 6 finite joint angles (rad), got {q_seed.tolist()}")
         cloud = np.zeros((0, 3)) if cloud is None else cloud
 
-        surfaces = [self._surface_base(p) for p in parts]
+        surfaces = [self.surface_base(p) for p in parts]
         obstacles, owner = self._scene_obstacles(cloud, parts, surfaces)
         tops = np.array([s[:, 2].max() if s is not None else np.nan for s in surfaces])
         known = tops[np.isfinite(tops)]
@@ -703,7 +709,7 @@ class GraspPlanner:
         if cfg.bin is not None and len(idx):
             swept = boxes.copy()
             swept[..., 0, 2] -= np.maximum(lift, cfg.pre_grasp_distance_m)[:, None]
-            wall_gap = self._wall_gap(Tg, swept)
+            wall_gap = self.wall_gap_m(Tg, swept)
         wall_fail = wall_gap < cfg.bin_clearance_m
         cause[idx[wall_fail]] = _code("collision_bin")
         keep = ~wall_fail
@@ -865,8 +871,10 @@ class GraspPlanner:
         above = height[top_cells[:, 0], top_cells[:, 1]] > top @ up + self.config.cover_tolerance_m
         return float(above.mean())
 
-    def _wall_gap(self, T: np.ndarray, boxes: np.ndarray, threshold_m: float | None = None) -> np.ndarray:
-        """``(k,)`` the smallest of ``_wall_gap_per_box``."""
+    def wall_gap_m(self, T: np.ndarray, boxes: np.ndarray, threshold_m: float | None = None) -> np.ndarray:
+        """``(k,)`` the smallest gap (m; < 0: overlap) between the bin walls and each pose's boxes: ``T`` ``(k, 4,
+        4)`` TCP poses in the base frame, ``boxes`` ``(k, b, 2, 3)`` in their TCP frames. Exact below
+        ``threshold_m`` (default ``bin_clearance_m``), a lower bound above it."""
         return self._wall_gap_per_box(T, boxes, threshold_m).min(axis=1)
 
     def _wall_gap_per_box(self, T: np.ndarray, boxes: np.ndarray, threshold_m: float | None = None) -> np.ndarray:
@@ -879,7 +887,7 @@ class GraspPlanner:
         ``bin_clearance_m``) go through the separating-axis test."""
         b = self.config.bin
         k, nb = boxes.shape[:2]
-        corners = _box_corners(boxes).reshape(k, nb, 8, 3)
+        corners = box_corners(boxes).reshape(k, nb, 8, 3)
         T_bin_tcp = invert(b.T_base_bin) @ T
         c_bin = _rotate(T_bin_tcp, corners.reshape(k, nb * 8, 3)).reshape(k, nb, 8, 3) + T_bin_tcp[:, None, None, :3, 3]
         half_xy = np.array(b.inner_size_m[:2]) / 2.0
@@ -934,8 +942,8 @@ class GraspPlanner:
             if (
                 self.transit_gap_m(q_seed, q_lift, open_boxes) >= cfg.transit_clearance_m
                 and self.transit_gap_m(q_lift, q_place, out_boxes) >= cfg.transit_clearance_m
-                and self._elbow_clear(q_seed, q_lift)
-                and self._elbow_clear(q_lift, q_place)
+                and self.elbow_clear(q_seed, q_lift)
+                and self.elbow_clear(q_lift, q_place)
             ):
                 return lift
         return None
@@ -952,11 +960,11 @@ class GraspPlanner:
         n = len(q)
         T = forward_kinematics(q, cfg.gripper.T_flange_tcp)
         boxes = np.broadcast_to(np.asarray(boxes_tcp, dtype=float), (n, *np.shape(boxes_tcp)))
-        gripper = float(self._wall_gap(T, boxes, cfg.transit_clearance_m or 0.0).min())
+        gripper = float(self.wall_gap_m(T, boxes, cfg.transit_clearance_m or 0.0).min())
         return min(gripper, float(self.wrist_gap_m(q, cfg.transit_clearance_m or 0.0).min()))
 
-    def _elbow_clear(self, q_from: np.ndarray, q_to: np.ndarray) -> bool:
-        """The upper arm and forearm stay above ``min_elbow_height_m`` along the joint move."""
+    def elbow_clear(self, q_from: np.ndarray, q_to: np.ndarray) -> bool:
+        """Whether the upper arm and forearm stay above ``min_elbow_height_m`` along the joint move."""
         if self.config.min_elbow_height_m is None:
             return True
         q = _joint_line(q_from, q_to, self.config.transit_step_rad)
@@ -970,7 +978,7 @@ class GraspPlanner:
             return np.full(len(q), math.inf)
         T_base_link = wrist_link_frames(q)
         boxes = np.broadcast_to(self._wrist_boxes[:, None], (len(q), len(WRIST_LINKS), 1, 2, 3))
-        gap = self._wall_gap(T_base_link.reshape(-1, 4, 4), boxes.reshape(-1, 1, 2, 3), threshold_m)
+        gap = self.wall_gap_m(T_base_link.reshape(-1, 4, 4), boxes.reshape(-1, 1, 2, 3), threshold_m)
         return gap.reshape(len(q), len(WRIST_LINKS)).min(axis=1)
 
     def _lift_distance(
@@ -983,7 +991,7 @@ class GraspPlanner:
         lift = np.full(len(T), cfg.lift_height_m)
         if cfg.bin is None or not len(T):
             return lift
-        corners = _box_corners(boxes_closed)
+        corners = box_corners(boxes_closed)
         points = _rotate(T, corners) + T[:, None, :3, 3]
         low = np.minimum(
             cfg.bin.height_above_floor_m(points).min(axis=1), float(cfg.bin.height_above_floor_m(surface_base).min())
@@ -1018,7 +1026,7 @@ class GraspPlanner:
         cfg = self.config
         if cfg.bin is None or not len(T):
             return np.full(len(T), -np.inf)
-        corners = _box_corners(boxes)  # (k, b * 8, 3), TCP frame
+        corners = box_corners(boxes)  # (k, b * 8, 3), TCP frame
         points = _rotate(T, corners) + T[:, None, :3, 3]
         height = cfg.bin.height_above_floor_m(points).min(axis=1)
         # moving back by d along the approach raises the gripper by d * cos(angle)
@@ -1036,7 +1044,8 @@ class GraspPlanner:
         points_bin = points_bin[cfg.bin.in_pile_bin_frame(points_bin, cfg.bin_surface_tolerance_m)]
         return transform_points(cfg.bin.T_base_bin, points_bin)
 
-    def _surface_base(self, part: PartEstimate) -> np.ndarray | None:
+    def surface_base(self, part: PartEstimate) -> np.ndarray | None:
+        """``(n, 3)`` a sample of the part's surface in the base frame (None: no model for its id)."""
         data = self._models.get(part.obj_id)
         return None if data is None else transform_points(part.T_base_obj, data.surface)
 
@@ -1111,7 +1120,7 @@ def _local_points(
     lo = lo - margin_m
     hi = hi + margin_m
     lo[:, 2] -= sweep_m
-    corners = _box_corners(np.stack([lo, hi], axis=1)[:, None])  # (k, 8, 3)
+    corners = box_corners(np.stack([lo, hi], axis=1)[:, None])  # (k, 8, 3)
     corners_base = _rotate(T, corners) + T[:, None, :3, 3]
     box_lo, box_hi = corners_base.reshape(-1, 3).min(axis=0), corners_base.reshape(-1, 3).max(axis=0)
     points = points[np.all((points >= box_lo) & (points <= box_hi), axis=1)]
@@ -1142,19 +1151,6 @@ def _engagement(contact_z: np.ndarray, backoff: np.ndarray, g: GripperGeometry) 
 def _rotate(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``(k, p, 3)`` points rotated by each ``T[k]``'s rotation (a batched matrix product: faster than einsum)."""
     return np.matmul(points, np.swapaxes(T[:, :3, :3], 1, 2))
-
-
-def _box_corners(boxes: np.ndarray) -> np.ndarray:
-    """``(..., b, 2, 3)`` boxes -> ``(..., b * 8, 3)`` corners."""
-    lo, hi = boxes[..., 0, :], boxes[..., 1, :]
-    corners = [
-        np.stack([(hi if i else lo)[..., 0], (hi if j else lo)[..., 1], (hi if k else lo)[..., 2]], axis=-1)
-        for i in (0, 1)
-        for j in (0, 1)
-        for k in (0, 1)
-    ]
-    stacked = np.stack(corners, axis=-2)  # (..., b, 8, 3)
-    return stacked.reshape(*stacked.shape[:-3], -1, 3)
 
 
 def _part_box_tcp(T_base_tcp: np.ndarray, T_base_obj: np.ndarray, bounds_m: np.ndarray) -> np.ndarray:

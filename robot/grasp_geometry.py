@@ -126,6 +126,19 @@ class GripperGeometry:
 # ---------------------------------------------------------------------------------------------- points vs boxes
 
 
+def box_corners(boxes: np.ndarray) -> np.ndarray:
+    """``(..., b, 2, 3)`` boxes -> ``(..., b * 8, 3)`` corners."""
+    lo, hi = boxes[..., 0, :], boxes[..., 1, :]
+    corners = [
+        np.stack([(hi if i else lo)[..., 0], (hi if j else lo)[..., 1], (hi if k else lo)[..., 2]], axis=-1)
+        for i in (0, 1)
+        for j in (0, 1)
+        for k in (0, 1)
+    ]
+    stacked = np.stack(corners, axis=-2)  # (..., b, 8, 3)
+    return stacked.reshape(*stacked.shape[:-3], -1, 3)
+
+
 def required_backoff_m(
     points: np.ndarray,
     boxes: np.ndarray,

@@ -23,7 +23,10 @@ One cycle (``Picker.cycle``) takes one frame, estimates the parts, plans, and tr
 
 Retries: a refused motion (``MotionRefusedError``: checked, nothing sent) moves on to the next candidate; a grasp
 that fails verification, a protective stop or a dropped connection (after ``robot.recover()``) end the cycle, and
-the next cycle looks again (the pile has changed). A part whose location has seen ``max_failures_per_part``
+the next cycle looks again (the pile has changed). When nothing is safe to pick but a part lies too close to a
+wall for the fingers, the picker nudges it (``robot.nudge``: presses
+the closed fingers on its top and drags it away from the wall) and looks again: at most ``max_nudges`` per run
+and ``max_nudges_per_part`` at one location. A part whose location has seen ``max_failures_per_part``
 failed attempts (within ``exclusion_distance_m``: a part that moved is a new chance) is left out of planning, so
 one stubborn part cannot make the run loop. The run stops cleanly when the camera sees no parts ("bin_empty"),
 when no safe grasp is left ("nothing_safe", with the planner's reasons), when every part left has been given up
@@ -60,7 +63,7 @@ from sygrid.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-STAGES = ("capture", "perceive", "plan", "approach", "grasp", "verify", "place")
+STAGES = ("capture", "perceive", "plan", "approach", "grasp", "verify", "place", "nudge")
 #: Why a run stopped.
 STOP_REASONS = (
     "bin_empty",
@@ -129,6 +132,15 @@ class PerceptionLike(Protocol):
     def run(self, frame: Frame) -> Any: ...
 
 
+class NudgerLike(Protocol):
+    """``robot.nudge.NudgePlanner``."""
+
+    def plan(
+        self, poses: Sequence[Any], T_base_camera: np.ndarray, plan: Any, q_from: np.ndarray, q_after: np.ndarray,
+        skip: Callable[[int], bool] | None = None,
+    ) -> Any: ...  # fmt: skip
+
+
 class PlannerLike(Protocol):
     """``robot.grasp.GraspPlanner``."""
 
@@ -161,7 +173,8 @@ class PickerConfig:
     open_tolerance_m / open_timeout_s: the fingers must reach a commanded opening less this within this time (a
     gripper may report "stopped" while its fingers still move); release_tries: how often the gripper is opened at
     the place pose before the part counts as stuck. reconnect_timeout_s: how long recovery keeps trying to reach a
-    controller that does not answer (a network link that is down).
+    controller that does not answer (a network link that is down). max_nudges / max_nudges_per_part: nudges per
+    run (0: never nudge) and per location (within ``exclusion_distance_m``); a nudge is not a failed cycle.
     """
 
     max_cycles: int = 50
@@ -182,6 +195,8 @@ class PickerConfig:
     open_timeout_s: float = 2.0
     release_tries: int = 2
     reconnect_timeout_s: float = 30.0
+    max_nudges: int = 8
+    max_nudges_per_part: int = 2
 
     def __post_init__(self) -> None:
         for name in (
@@ -190,9 +205,12 @@ class PickerConfig:
             "max_failed_cycles",
             "max_failures_per_part",
             "release_tries",
+            "max_nudges_per_part",
         ):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ConfigError(f"PickerConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
+        if not (isinstance(self.max_nudges, int) and self.max_nudges >= 0):
+            raise ConfigError(f"PickerConfig.max_nudges must be an integer >= 0, got {self.max_nudges!r}")
         for name in (
             "slip_width_tolerance_m", "still_there_distance_m", "exclusion_distance_m", "open_tolerance_m",
             "open_timeout_s", "slip_settle_s", "reconnect_timeout_s",
@@ -228,7 +246,8 @@ class CycleRecord:
     perception_ms: dict[str, float] = field(default_factory=dict)
     plan_summary: str = ""
     attempts: list[Attempt] = field(default_factory=list)
-    end: str = ""  # "picked", "failed", or a stop reason
+    nudge: dict | None = None  # the nudge of a "nudged" cycle: part, cause, tilt, distance, outcome, detail
+    end: str = ""  # "picked", "failed", "nudged", or a stop reason
     sim_cycle_s: float | None = None  # filled when the next capture's time is known
 
     @property
@@ -258,6 +277,10 @@ class RunReport:
         tried = [a for a in self.attempts if a.outcome != "motion_refused"]
         return self.n_picked / len(tried) if tried else float("nan")
 
+    @property
+    def n_nudges(self) -> int:
+        return sum(c.nudge is not None for c in self.cycles)
+
     def failures_by_cause(self) -> dict[str, int]:
         counts: dict[str, int] = {}
         for a in self.attempts:
@@ -275,6 +298,7 @@ class RunReport:
             "stop_detail": self.stop_detail,
             "n_picked": self.n_picked,
             "n_attempts": len(self.attempts),
+            "n_nudges": self.n_nudges,
             "success_rate": self.success_rate,
             "failures_by_cause": self.failures_by_cause(),
             "sim_cycle_times_s": self.sim_cycle_times_s(),
@@ -296,6 +320,7 @@ class Picker:
         config: the cycle's settings.
         on_cycle: called with each finished ``CycleRecord``, its frame, the perception result and the poses the
             plan was made from (the result's, or after ``refine_more`` the further refined ones), for pictures.
+        nudger: plans nudges when nothing is safe to pick (None: the run stops there).
     """
 
     def __init__(
@@ -309,6 +334,7 @@ class Picker:
         q_observe: np.ndarray,
         config: PickerConfig | None = None,
         on_cycle: Callable[[CycleRecord, Frame, Any, list[Any]], None] | None = None,
+        nudger: NudgerLike | None = None,
     ) -> None:
         self.robot, self.gripper, self.camera = robot, gripper, camera
         self.perception, self.planner = perception, planner
@@ -318,9 +344,10 @@ class Picker:
         self.q_observe = np.asarray(q_observe, dtype=float)
         self.config = config or PickerConfig()
         self.on_cycle = on_cycle
+        self.nudger = nudger
         self._last_picked: Attempt | None = None
-        # [obj_id, position in the base frame (3,), failed attempts] per location where attempts failed
-        self._failed_at: list[list] = []
+        self._failed_at = _LocationCounts(self.config.exclusion_distance_m)  # failed attempts per location
+        self._nudged_at = _LocationCounts(self.config.exclusion_distance_m)
 
     # --- the run ---------------------------------------------------------------------------------------------
     def run(self, max_cycles: int | None = None) -> RunReport:
@@ -343,7 +370,8 @@ class Picker:
             cycles.append(record)
             if record.end in ("bin_empty", "nothing_safe", "gave_up", "gripper_blocked"):
                 return self._finish(cycles, record.end, record.plan_summary)
-            failed_in_row = 0 if record.picked else failed_in_row + 1
+            if record.end != "nudged":  # a nudge is neither a pick nor a failure
+                failed_in_row = 0 if record.picked else failed_in_row + 1
             if failed_in_row >= self.config.max_failed_cycles:
                 return self._finish(
                     cycles, "too_many_failures", f"{failed_in_row} cycles in a row without a pick; last: {record.end}"
@@ -406,7 +434,7 @@ class Picker:
                 if getattr(plan, "n_in_bin", None) == 0:  # the camera sees parts, but none in the bin
                     record.end = "bin_empty"
                     record.plan_summary = f"no part in the bin ({len(poses)} seen outside it); {record.plan_summary}"
-                else:
+                elif not self._nudge(poses, plan, record):
                     record.end = "nothing_safe"
                 return record
             record.end = "failed"
@@ -499,8 +527,54 @@ class Picker:
             cause = _motion_cause(exc)
             log.warning("attempt on part %d: %s during %s (%s); recovering", grasp.part_index, cause, stage, exc)
             self._recover()
-            self._after_recovery(grasp)
+            self._after_recovery(float(grasp.T_base_lift[2, 3]))
             return _fail(attempt, cause, stage, str(exc))
+
+    def _nudge(self, poses: Sequence[Any], plan: Any, record: CycleRecord) -> bool:
+        """Nothing is safe to pick: nudge a part the planner left for a wall (``collision_bin``), if the nudger
+        finds a safe nudge and the limits allow one. True when the arm moved (``record.end`` "nudged")."""
+        cfg = self.config
+        if self.nudger is None or self._nudged_at.total >= cfg.max_nudges:
+            return False
+
+        def nudged_enough(index: int) -> bool:
+            p = (self.T_base_camera @ np.asarray(poses[index].T_camera_object))[:3, 3]
+            return self._nudged_at.count(poses[index].obj_id, p) >= cfg.max_nudges_per_part
+
+        timer = _StageTimer(record.stage_wall_s)
+        with timer("plan"):
+            nudge = self.nudger.plan(poses, self.T_base_camera, plan, self.robot.q(), self.q_observe, nudged_enough)
+        if nudge is None:
+            return False
+        record.end = "nudged"
+        record.nudge = {
+            "part_index": nudge.part_index, "obj_id": nudge.obj_id, "cause": nudge.cause,
+            "tilt_deg": nudge.tilt_deg, "distance_m": nudge.distance_m, "outcome": "done", "detail": "",
+        }  # fmt: skip
+        self._nudged_at.add(nudge.obj_id, nudge.T_base_obj[:3, 3])
+        speed = getattr(getattr(self.nudger, "config", None), "speed_m_s", cfg.approach_speed_m_s)
+        try:
+            with timer("nudge"):
+                self.gripper.close(force_n=cfg.grip_force_n)  # the pads together are the paddle
+                self.robot.move_j(nudge.q_above, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
+                self.robot.move_l(nudge.T_base_press, speed, cfg.approach_accel_m_s2)
+                self.robot.move_l(nudge.T_base_end, speed, cfg.approach_accel_m_s2)
+                self.robot.move_l(nudge.T_base_retreat, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
+        except MotionRefusedError as exc:
+            record.nudge.update(outcome="motion_refused", detail=str(exc))
+        except MotionFailedError as exc:
+            if not exc.recoverable:
+                raise
+            record.nudge.update(outcome=_motion_cause(exc), detail=str(exc))
+            log.warning("nudge of part %d: %s (%s); recovering", nudge.part_index, record.nudge["outcome"], exc)
+            self._recover()
+            self._after_recovery(float(nudge.T_base_retreat[2, 3]))
+        record.plan_summary = (
+            f"nudged part {nudge.part_index} (obj {nudge.obj_id}, {nudge.cause}) {1e3 * nudge.distance_m:.0f} mm "
+            f"({record.nudge['outcome']}); {record.plan_summary}"
+        )
+        self._to_observe()
+        return True
 
     # --- helpers ---------------------------------------------------------------------------------------------
     def _slip_reason(self, grasp: Any) -> str:
@@ -538,15 +612,15 @@ class Picker:
             self._open_to(None)
             self.robot.move_l(grasp.T_base_lift, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
 
-    def _after_recovery(self, grasp: Any) -> None:
-        """After a recovered failure the arm is at rest somewhere on the way: let go, and go straight up to the
-        lift's height (above the bin's rim) before the joint move to the observe pose."""
+    def _after_recovery(self, safe_height_m: float) -> None:
+        """After a recovered failure the arm is at rest somewhere on the way: let go, and go straight up to
+        ``safe_height_m`` (base z of a pose above the bin's rim) before the joint move to the observe pose."""
         try:
             self.gripper.open()
         except GripperError as exc:
             log.warning("the gripper did not open after recovery (%s)", exc)
         T = np.array(self.robot.T_base_tcp())
-        T[2, 3] = max(T[2, 3], grasp.T_base_lift[2, 3])
+        T[2, 3] = max(T[2, 3], safe_height_m)
         try:
             self.robot.move_l(T, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
         except MotionRefusedError as exc:
@@ -604,14 +678,8 @@ class Picker:
 
     def _count_failure(self, attempt: Attempt) -> None:
         """Adds a failed attempt to its location's count (see ``max_failures_per_part``)."""
-        if attempt.outcome not in _PART_FAILURES or attempt.T_base_obj is None:
-            return
-        p = np.asarray(attempt.T_base_obj)[:3, 3]
-        for entry in self._failed_at:
-            if entry[0] == attempt.obj_id and np.linalg.norm(entry[1] - p) < self.config.exclusion_distance_m:
-                entry[1], entry[2] = p, entry[2] + 1
-                return
-        self._failed_at.append([attempt.obj_id, p, 1])
+        if attempt.outcome in _PART_FAILURES and attempt.T_base_obj is not None:
+            self._failed_at.add(attempt.obj_id, np.asarray(attempt.T_base_obj)[:3, 3])
 
     def _split_given_up(self, poses: Sequence[Any]) -> tuple[list[Any], list[Any]]:
         """``(kept, given_up)``: ``poses`` split by ``_given_up``."""
@@ -623,12 +691,7 @@ class Picker:
     def _given_up(self, pose: Any) -> bool:
         """A part where ``max_failures_per_part`` attempts failed already (same model, within the distance)."""
         p = (self.T_base_camera @ np.asarray(pose.T_camera_object))[:3, 3]
-        return any(
-            obj_id == pose.obj_id
-            and count >= self.config.max_failures_per_part
-            and np.linalg.norm(where - p) < self.config.exclusion_distance_m
-            for obj_id, where, count in self._failed_at
-        )
+        return self._failed_at.count(pose.obj_id, p) >= self.config.max_failures_per_part
 
     def _to_observe(self) -> None:
         if np.max(np.abs(np.asarray(self.robot.q()) - self.q_observe)) > 1e-3:
@@ -654,6 +717,28 @@ class Picker:
                 log.warning("part %d (obj %d) is still in the bin after its pick", last.part_index, last.obj_id)
                 self._count_failure(last)
                 return
+
+
+class _LocationCounts:
+    """Events per part location: same model, within ``distance_m`` of where the last one at that location was."""
+
+    def __init__(self, distance_m: float) -> None:
+        self.distance_m = distance_m
+        self._entries: list[list] = []  # [obj_id, position (3,), count]
+        self.total = 0
+
+    def add(self, obj_id: int, position: np.ndarray) -> None:
+        self.total += 1
+        for entry in self._entries:
+            if entry[0] == obj_id and np.linalg.norm(entry[1] - position) < self.distance_m:
+                entry[1], entry[2] = position, entry[2] + 1
+                return
+        self._entries.append([obj_id, position, 1])
+
+    def count(self, obj_id: int, position: np.ndarray) -> int:
+        return sum(
+            n for o, where, n in self._entries if o == obj_id and np.linalg.norm(where - position) < self.distance_m
+        )
 
 
 class _StageTimer:

@@ -386,3 +386,97 @@ def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
         load_cell_setup(bad)
     with pytest.raises(ConfigError, match=r"PickerConfig\.max_cycles"):
         PickerConfig(max_cycles=0)
+
+
+# ---------------------------------------------------------------------------------------------- nudges
+
+
+class WallPlanner(FakePlanner):
+    """Nothing is safe while a part lies at x < 0 (against the wall); then one grasp per part."""
+
+    def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
+        self.nothing_safe = any(p.T_camera_object[0, 3] < 0 for p in poses)
+        return super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
+
+
+@dataclass
+class FakeNudge:
+    part_index: int
+    obj_id: int
+    T_base_obj: np.ndarray
+    cause: str = "collision_bin"
+    tilt_deg: float = 45.0
+    distance_m: float = 0.03
+
+    def __post_init__(self) -> None:
+        self.q_above = np.full(6, 7.0)
+        self.T_base_press = make_T(t=(-1.0, 0, 0.02))
+        self.T_base_end = make_T(t=(-2.0, 0, 0.02))  # the robot below drags the part when it gets here
+        self.T_base_retreat = make_T(t=(-3.0, 0, 0.1))
+
+
+class FakeNudger:
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def plan(self, poses, T_base_camera, plan, q_from, q_after, skip=None):
+        self.calls += 1
+        for i, p in enumerate(poses):
+            if p.T_camera_object[0, 3] < 0 and not (skip is not None and skip(i)):
+                return FakeNudge(i, 1, p.T_camera_object)
+        return None
+
+
+class DraggingRobot(FakeRobot):
+    def __init__(self, bin_: FakeBin, drags: bool = True, stop_at_press: bool = False) -> None:
+        super().__init__(bin_)
+        self.drags, self.stop_at_press = drags, stop_at_press
+
+    def move_l(self, T, speed_m_s=None, accel_m_s2=None):
+        if T[0, 3] == -1.0 and self.stop_at_press:
+            self.stop_at_press = False
+            raise ProtectiveStopError("contact")
+        if T[0, 3] == -2.0 and self.drags:
+            self.bin.parts = [0.1 if x < 0 else x for x in self.bin.parts]
+
+
+def _nudging_picker(bin_: FakeBin, robot: FakeRobot, config: PickerConfig | None = None) -> Picker:
+    gripper = FakeGripper(robot, bin_)
+    return Picker(
+        robot, gripper, FakeCamera(), bin_, WallPlanner(), np.eye(4), np.full(6, -1.0), config, nudger=FakeNudger()
+    )
+
+
+def test_a_part_at_the_wall_is_nudged_away_and_then_picked():
+    bin_ = FakeBin([-0.05])
+    report = _nudging_picker(bin_, DraggingRobot(bin_)).run()
+    assert report.stop_reason == "bin_empty" and report.n_picked == 1 and report.n_nudges == 1
+    first = report.cycles[0]
+    assert first.end == "nudged" and first.nudge["outcome"] == "done" and first.attempts == []
+    assert "nudged part 0" in first.plan_summary
+    assert report.to_json()["n_nudges"] == 1
+
+
+def test_a_nudge_that_moves_nothing_is_repeated_at_most_per_part_and_is_not_a_failed_cycle():
+    bin_ = FakeBin([-0.05])
+    config = PickerConfig(max_nudges_per_part=3, max_failed_cycles=1)
+    report = _nudging_picker(bin_, DraggingRobot(bin_, drags=False), config).run()
+    assert report.stop_reason == "nothing_safe" and report.n_nudges == 3
+    assert [c.end for c in report.cycles] == ["nudged"] * 3 + ["nothing_safe"]
+
+
+def test_nudges_stop_at_the_run_limit_and_none_without_a_nudger():
+    bin_ = FakeBin([-0.05])
+    report = _nudging_picker(bin_, DraggingRobot(bin_, drags=False), PickerConfig(max_nudges=1)).run()
+    assert report.stop_reason == "nothing_safe" and report.n_nudges == 1
+    picker, _ = make_picker(FakeBin([-0.05]), WallPlanner())
+    assert picker.run().n_nudges == 0
+
+
+def test_a_protective_stop_during_a_nudge_is_recovered_and_the_run_goes_on():
+    bin_ = FakeBin([-0.05])
+    robot = DraggingRobot(bin_, stop_at_press=True)
+    report = _nudging_picker(bin_, robot).run()
+    assert robot.recovered == 1
+    assert report.cycles[0].nudge["outcome"] == "protective_stop"
+    assert report.stop_reason == "bin_empty" and report.n_nudges == 2 and report.n_picked == 1

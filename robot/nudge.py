@@ -1,0 +1,279 @@
+"""Nudges: press the closed fingers on top of a part the gripper cannot take, and drag it away from the bin wall.
+
+A parallel gripper needs room beside a part for its fingers (on the simulated 2F-85-like gripper 24 mm of pad and
+finger link per side, and a 62 x 86 mm housing behind them), so a part lying within a finger's width of a wall
+cannot be grasped at all. With ground-truth poses those were most of what a pick run left in the bin (``sygrid
+bench cell``: 54 of 79 parts left over 30 bins). A nudge moves such a part instead of grasping it:
+
+1. close the fingers (the two pads together are a 16 x 22 mm paddle);
+2. tilt the tool away from the wall, leaning over the bin (the housing then clears the wall while the pad tips
+   reach the part), and come straight down onto the part until the lowest pad edge sits ``press_depth_m`` below
+   the part's highest point, somewhere on its top;
+3. drag straight along the floor, away from the walls near the part, until the part's nearest wall gap would be
+   ``target_gap_m``;
+4. go straight up; the next look decides what to do.
+
+The walls are vertical, so a gripper clear of them at the press and at the end of the drag stays clear on the way
+straight down and back up: those two poses are all the wall check needs.
+
+Friction does the work: the pads (rubber-like, friction 1.0 in the simulated cell) grip the part's top harder
+than the bin floor holds its underside. On hardware the press should be force-limited (``ur_rtde``'s force mode
+or a compliant pad); the simulated cell's stiff position control presses the 2 mm into a soft contact.
+
+Candidates (tilt, turn of the paddle about the approach, where on the part's top to press, how far back the
+straight lines start) are tried in ``NudgeConfig``'s order; the first whose gripper boxes keep ``bin_clearance_m``
+from the walls along the whole motion, whose wrist links clear the walls, whose joint moves in and out are clear
+(``GraspPlanner.transit_gap_m``, ``elbow_clear``) and whose straight lines stay on one IK branch is the nudge.
+Hand-written, like the grasp planner's checks, for the same reason: these are a few box-against-box tests per
+candidate, which the planner's numpy maths already answers.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from robot.grasp import GraspPlan, GraspPlanner, PartEstimate
+from robot.grasp_geometry import GripperGeometry, box_corners
+from sygrid.errors import ConfigError
+from sygrid.robots.kinematics import ik_nearest
+from sygrid.transforms import invert, make_T, transform_points
+
+#: The planner's causes a nudge can help with: a wall in the fingers' way. Not "approach_angle" (an L-bracket
+#: standing on its sheet edge): pressed on its edge and dragged, it slid along standing in the simulated cell; it
+#: needs a push low on its side to fall over, which is not built.
+NUDGE_CAUSES = ("collision_bin",)
+_TOP_BAND_M = 0.003  # surface points this close to a part's highest point are its top
+
+
+@dataclass(frozen=True)
+class NudgeConfig:
+    """Settings of the nudge planner; metres, degrees and m/s.
+
+    target_gap_m: drag until the part would be this far from the walls near it (its nearest point);
+    min_drag_m / max_drag_m bound the drag. near_wall_m: walls closer to the part than this set the drag direction
+    (the sum of their inward normals); with none (the housing, not the fingers, meets a wall further away), the
+    part is dragged ``min_drag_m`` toward the bin centre.
+    press_depth_m: the lowest pad edge goes this far below the part's highest point. edge_margin_m: the pressing
+    edge stays this far inside the part's top. tilts_deg / turns_deg / press_offsets / retreat_m: the candidates,
+    tried in this order (press_offsets: 0 presses the top's centre, 1 its edge farthest from the wall; retreat_m:
+    how high above the press the straight line down starts, and the line up ends). speed_m_s: the press and the
+    drag.
+    max_joint_step_rad: the largest joint change along each straight line.
+    """
+
+    target_gap_m: float = 0.04
+    min_drag_m: float = 0.015
+    max_drag_m: float = 0.05
+    near_wall_m: float = 0.035
+    press_depth_m: float = 0.002
+    edge_margin_m: float = 0.004
+    tilts_deg: tuple[float, ...] = (0.0, 15.0, 30.0, 40.0, 45.0, 50.0, 55.0, 60.0, 65.0, 70.0)
+    turns_deg: tuple[float, ...] = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0)
+    press_offsets: tuple[float, ...] = (0.0, 0.5, 1.0)
+    retreat_m: tuple[float, ...] = (0.05, 0.10, 0.15)
+    speed_m_s: float = 0.05
+    max_joint_step_rad: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("target_gap_m", "min_drag_m", "max_drag_m", "near_wall_m", "speed_m_s", "max_joint_step_rad"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"NudgeConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.min_drag_m > self.max_drag_m:
+            raise ConfigError(f"NudgeConfig.min_drag_m {self.min_drag_m} is above max_drag_m {self.max_drag_m}")
+        if self.press_depth_m < 0 or self.edge_margin_m < 0:
+            raise ConfigError("NudgeConfig.press_depth_m and edge_margin_m must be >= 0")
+        if not (self.tilts_deg and self.turns_deg and self.press_offsets and self.retreat_m):
+            raise ConfigError("NudgeConfig: tilts_deg, turns_deg, press_offsets and retreat_m need a value each")
+        if not all(0.0 <= t < 90.0 for t in self.tilts_deg) or not all(r > 0 for r in self.retreat_m):
+            raise ConfigError("NudgeConfig: tilts_deg must lie in [0, 90) and retreat_m be > 0")
+
+
+@dataclass(frozen=True, eq=False)
+class PlannedNudge:
+    """One nudge: TCP poses ``T_base_*`` (4x4) and joint solutions ``q_*`` (6,), in the order the robot visits
+    them: above (straight above the press; reached by a joint move), press, end (after the drag), retreat
+    (straight above the end). ``direction`` (3,) is the drag direction in the base frame."""
+
+    part_index: int
+    obj_id: int
+    cause: str
+    T_base_obj: np.ndarray
+    direction: np.ndarray
+    distance_m: float
+    tilt_deg: float
+    T_base_above: np.ndarray
+    T_base_press: np.ndarray
+    T_base_end: np.ndarray
+    T_base_retreat: np.ndarray
+    q_above: np.ndarray
+    q_press: np.ndarray
+    q_end: np.ndarray
+    q_retreat: np.ndarray
+
+
+class NudgePlanner:
+    """Plans nudges with a ``GraspPlanner``'s models, bin, gripper geometry and checks.
+
+    Args:
+        planner: the grasp planner (its config must have a bin: a nudge is defined by the bin's walls).
+        config: the nudge settings.
+    """
+
+    def __init__(self, planner: GraspPlanner, config: NudgeConfig | None = None) -> None:
+        if planner.config.bin is None:
+            raise ConfigError("NudgePlanner: the grasp planner has no bin (PlannerConfig.bin is None)")
+        self.planner = planner
+        self.config = config or NudgeConfig()
+
+    def plan(
+        self,
+        poses: Sequence,
+        T_base_camera: np.ndarray,
+        plan: GraspPlan,
+        q_from: np.ndarray,
+        q_after: np.ndarray,
+        skip: Callable[[int], bool] | None = None,
+    ) -> PlannedNudge | None:
+        """A nudge for one of the parts ``plan`` (made from ``poses``, camera frame) left for a ``NUDGE_CAUSES``
+        cause, the highest such part first; None when no part needs one or none can be done safely.
+
+        q_from: where the arm is (the joint move to the first pose starts there). q_after: where it goes after the
+        retreat (the observe pose). skip: part indices not to nudge (e.g. nudged often enough already)."""
+        T_base_camera = np.asarray(T_base_camera, dtype=float)
+        reports = sorted(
+            (r for r in plan.parts if r.status in NUDGE_CAUSES), key=lambda r: -np.nan_to_num(r.top_height_m, nan=-1e9)
+        )
+        for report in reports:
+            if skip is not None and skip(report.part_index):
+                continue
+            pose = poses[report.part_index]
+            part = PartEstimate(pose.obj_id, T_base_camera @ np.asarray(pose.T_camera_object, dtype=float))
+            nudge = self.plan_part(part, report.part_index, report.status, q_from, q_after)
+            if nudge is not None:
+                return nudge
+        return None
+
+    def plan_part(
+        self, part: PartEstimate, part_index: int, cause: str, q_from: np.ndarray, q_after: np.ndarray
+    ) -> PlannedNudge | None:
+        """The first safe nudge of one part (base frame), or None."""
+        cfg, planner = self.config, self.planner
+        surface = planner.surface_base(part)
+        if surface is None:
+            return None
+        b = planner.config.bin
+        T_bin_base = invert(b.T_base_bin)
+        points = transform_points(T_bin_base, surface)
+        direction, distance = self._drag(points, np.array(b.inner_size_m[:2]) / 2.0)
+        z_top = float(points[:, 2].max())
+        top = points[points[:, 2] > z_top - _TOP_BAND_M, :2]
+        centre = top.mean(axis=0)
+        reach = max(float(((top - centre) @ direction[:2]).max()) - cfg.edge_margin_m, 0.0)
+        for offset, tilt, turn in itertools.product(cfg.press_offsets, cfg.tilts_deg, cfg.turns_deg):
+            R = _paddle_rotation(direction, tilt, turn)
+            edge = np.array([*(centre + offset * reach * direction[:2]), z_top - cfg.press_depth_m])
+            T_press = make_T(R, edge - _lowest_pad_point(R, planner.config.gripper))  # bin frame
+            T_end = make_T(R, T_press[:3, 3] + distance * direction)
+            T_press, T_end = b.T_base_bin @ T_press, b.T_base_bin @ T_end
+            for back in cfg.retreat_m:
+                nudge = self._checked(part, part_index, cause, T_press, T_end, back, q_from, q_after)
+                if nudge is not None:
+                    return PlannedNudge(**{**nudge, "direction": b.T_base_bin[:3, :3] @ direction,
+                                           "distance_m": distance, "tilt_deg": float(tilt)})  # fmt: skip
+        return None
+
+    # ------------------------------------------------------------------------------------------ helpers
+
+    def _drag(self, points_bin: np.ndarray, half_xy: np.ndarray) -> tuple[np.ndarray, float]:
+        """The drag direction (bin frame, horizontal unit vector) and distance for a part's surface points."""
+        cfg = self.config
+        gaps = np.array([
+            half_xy[0] - points_bin[:, 0].max(), half_xy[0] + points_bin[:, 0].min(),
+            half_xy[1] - points_bin[:, 1].max(), half_xy[1] + points_bin[:, 1].min(),
+        ])  # fmt: skip
+        inward = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+        near = gaps < cfg.near_wall_m
+        if near.any():
+            direction = inward[near].sum(axis=0)
+            distance = float(np.clip(cfg.target_gap_m - gaps[near].min(), cfg.min_drag_m, cfg.max_drag_m))
+        else:
+            direction, distance = -points_bin[:, :2].mean(axis=0), cfg.min_drag_m
+        norm = float(np.linalg.norm(direction))
+        direction = direction / norm if norm > 1e-9 else np.array([1.0, 0.0])
+        return np.array([direction[0], direction[1], 0.0]), distance
+
+    def _checked(
+        self,
+        part: PartEstimate,
+        part_index: int,
+        cause: str,
+        T_press: np.ndarray,
+        T_end: np.ndarray,
+        back: float,
+        q_from: np.ndarray,
+        q_after: np.ndarray,
+    ) -> dict | None:
+        """The waypoints of one candidate if every check passes, else None."""
+        cfg, planner = self.config, self.planner
+        pcfg = planner.config
+        g = pcfg.gripper
+        closed = g.boxes(0.0)
+        if planner.wall_gap_m(np.stack([T_press, T_end]), np.stack([closed, closed])).min() < pcfg.bin_clearance_m:
+            return None
+        if pcfg.bin.height_above_floor_m(transform_points(T_press, box_corners(closed))).min() < 0.0:
+            return None  # the part is too thin to press: the pads would go into the floor
+        up = make_T(t=back * pcfg.bin.floor_normal)
+        T_above, T_retreat = up @ T_press, up @ T_end
+        if pcfg.workspace is not None and not np.all(
+            pcfg.workspace.contains(np.array([X[:3, 3] for X in (T_above, T_press, T_end, T_retreat)]))
+        ):
+            return None
+        limits, T_flange_tcp = planner.joint_limits_rad, g.T_flange_tcp
+        q_above = ik_nearest(T_above, planner.q_reference, T_flange_tcp, limits)
+        if q_above is None:
+            return None
+        q = [q_above]
+        for X in (T_press, T_end, T_retreat):
+            q.append(ik_nearest(X, q[-1], T_flange_tcp, limits))
+            if q[-1] is None or np.abs(q[-1] - q[-2]).max() > cfg.max_joint_step_rad:
+                return None
+        if planner.wrist_gap_m(np.stack(q)).min() < pcfg.bin_clearance_m:
+            return None
+        clearance = pcfg.transit_clearance_m or 0.0
+        for qa, qb in ((q_from, q[0]), (q[3], q_after)):
+            if planner.transit_gap_m(qa, qb, closed) < clearance or not planner.elbow_clear(qa, qb):
+                return None
+        return {
+            "part_index": part_index, "obj_id": part.obj_id, "cause": cause,
+            "T_base_obj": np.array(part.T_base_obj, dtype=float),
+            "T_base_above": T_above, "T_base_press": T_press, "T_base_end": T_end, "T_base_retreat": T_retreat,
+            "q_above": q[0], "q_press": q[1], "q_end": q[2], "q_retreat": q[3],
+        }  # fmt: skip
+
+
+def _paddle_rotation(direction: np.ndarray, tilt_deg: float, turn_deg: float) -> np.ndarray:
+    """TCP orientation (bin frame): the approach points down, tilted by ``tilt_deg`` toward the wall (the tool
+    leans along ``direction``, away from it), the pads' line first along the wall, then turned about the
+    approach by ``turn_deg``."""
+    up = np.array([0.0, 0.0, 1.0])
+    t = math.radians(tilt_deg)
+    z = -math.cos(t) * up - math.sin(t) * direction
+    x0 = np.cross(up, direction)
+    x0 /= np.linalg.norm(x0)
+    y0 = np.cross(z, x0)
+    c, s = math.cos(math.radians(turn_deg)), math.sin(math.radians(turn_deg))
+    x, y = c * x0 + s * y0, -s * x0 + c * y0
+    return np.stack([x, y, z], axis=1)
+
+
+def _lowest_pad_point(R: np.ndarray, gripper: GripperGeometry) -> np.ndarray:
+    """Where the closed pads' tip face is lowest (its lowest corner, or the middle of its lowest edge), as an
+    offset from the TCP in the frame ``R`` is given in."""
+    hx, hy, hz = gripper.pad_thickness_m, gripper.pad_width_m / 2.0, gripper.pad_length_m / 2.0
+    corners = np.array([[sx * hx, sy * hy, hz] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)]) @ R.T
+    return corners[corners[:, 2] < corners[:, 2].min() + 1e-4].mean(axis=0)

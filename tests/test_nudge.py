@@ -1,0 +1,131 @@
+"""robot.nudge on hand-made scenes in the default cell's bin: which parts get a nudge, where the fingers press and
+which way they drag, and that the whole motion keeps the gripper off the walls."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from perception.results import Detection, ObjectPose
+from robot.grasp import GraspPlanner, PartEstimate, PlannerConfig
+from robot.grasps import GraspSetParams
+from robot.nudge import NudgeConfig, NudgePlanner
+from sygrid.errors import ConfigError
+from sygrid.objects import builtin_part
+from sygrid.robots.kinematics import forward_kinematics
+from sygrid.transforms import make_T, transform_points
+
+PARAMS = GraspSetParams(n_surface_samples=150, n_dense_samples=1500)  # as tests/test_grasp.py: faster to build
+FLOOR_Z = 0.02  # the default cell's bin: inner floor centre (-0.5, 0, 0.02), 300 x 200 mm inside
+WALL_XP, WALL_YN = -0.5 + 0.15, -0.10
+GEAR = builtin_part("spur_gear")
+GEAR_RADIUS = GEAR.extents_m[0] / 2
+
+
+@pytest.fixture(scope="module")
+def nudger(tmp_path_factory: pytest.TempPathFactory) -> NudgePlanner:
+    cache = tmp_path_factory.mktemp("grasp_cache")
+    planner = GraspPlanner([GEAR, builtin_part("hex_nut")], PlannerConfig(grasp_params=PARAMS), cache_dir=cache)
+    return NudgePlanner(planner)
+
+
+def _flat_gear(x: float, y: float) -> np.ndarray:
+    return make_T(t=(x, y, FLOOR_Z + GEAR.extents_m[2] / 2))
+
+
+def _poses(*T_base_obj: np.ndarray, obj_id: int = GEAR.obj_id) -> list[ObjectPose]:
+    """The poses as the camera would give them, with the camera at the base origin (T_base_camera = I)."""
+    det = Detection(0, obj_id, 1.0, np.zeros(4))
+    return [ObjectPose(det, T, 1.0, "test") for T in T_base_obj]
+
+
+def test_a_gear_in_a_corner_is_pressed_on_its_top_and_dragged_away_from_both_walls(nudger):
+    planner = nudger.planner
+    # 5 mm from the -y wall and 24 mm from the +x wall: no grasp fits (the case a pick run in the cell left)
+    T = _flat_gear(WALL_XP - 0.024 - GEAR_RADIUS, WALL_YN + 0.005 + GEAR_RADIUS)
+    poses = _poses(T)
+    plan = planner.plan(poses, np.eye(4))
+    assert plan.nothing_safe and plan.parts[0].status == "collision_bin"
+    q_home = planner.q_reference
+    nudge = nudger.plan(poses, np.eye(4), plan, q_home, q_home)
+    assert nudge is not None and nudge.part_index == 0 and nudge.cause == "collision_bin"
+    # away from both walls (the corner's diagonal), far enough that the nearest wall is then target_gap_m away
+    np.testing.assert_allclose(nudge.direction, np.array([-1.0, 1.0, 0.0]) / np.sqrt(2), atol=1e-9)
+    assert nudge.distance_m == pytest.approx(NudgeConfig().target_gap_m - 0.005, abs=1e-3)
+    np.testing.assert_allclose(nudge.T_base_end[:3, 3] - nudge.T_base_press[:3, 3], nudge.distance_m * nudge.direction)
+    # the tool leans away from the walls (the housing clears them) and the lowest pad edge presses on the gear's top
+    assert nudge.tilt_deg > 0 and nudge.T_base_press[:3, 2] @ nudge.direction < 0
+    g = planner.config.gripper
+    pads = transform_points(nudge.T_base_press, _box_corners(g.boxes(0.0)[:2]))
+    lowest = pads[pads[:, 2] < pads[:, 2].min() + 1e-4].mean(axis=0)
+    assert lowest[2] == pytest.approx(FLOOR_Z + GEAR.extents_m[2] - NudgeConfig().press_depth_m, abs=2e-4)
+    assert np.linalg.norm(lowest[:2] - T[:2, 3]) < GEAR_RADIUS - NudgeConfig().edge_margin_m + 1e-6
+    # every pose of the motion keeps the closed gripper off the walls, and the joint solutions reach the poses
+    Ts = np.stack([nudge.T_base_above, nudge.T_base_press, nudge.T_base_end, nudge.T_base_retreat])
+    closed = np.broadcast_to(g.boxes(0.0), (4, 6, 2, 3))
+    assert planner.wall_gap_m(Ts, closed).min() >= planner.config.bin_clearance_m
+    qs = np.stack([nudge.q_above, nudge.q_press, nudge.q_end, nudge.q_retreat])
+    np.testing.assert_allclose(forward_kinematics(qs, g.T_flange_tcp), Ts, atol=1e-6)
+    # where the drag leaves the gear, the planner finds a grasp
+    moved = T.copy()
+    moved[:3, 3] += nudge.distance_m * nudge.direction
+    assert not planner.plan(_poses(moved), np.eye(4)).nothing_safe
+
+
+def test_only_parts_left_for_a_wall_or_the_cone_are_nudged_and_skip_is_honoured(nudger):
+    planner = nudger.planner
+    q = planner.q_reference
+    middle = _poses(_flat_gear(-0.5, 0.0))
+    plan = planner.plan(middle, np.eye(4))
+    assert not plan.nothing_safe and nudger.plan(middle, np.eye(4), plan, q, q) is None
+    corner = _poses(_flat_gear(WALL_XP - 0.024 - GEAR_RADIUS, WALL_YN + 0.005 + GEAR_RADIUS))
+    plan = planner.plan(corner, np.eye(4))
+    assert nudger.plan(corner, np.eye(4), plan, q, q, skip=lambda i: i == 0) is None
+
+
+def test_a_nut_near_the_middle_of_a_wall_is_dragged_straight_out_but_not_one_flush_against_it(nudger):
+    planner = nudger.planner
+    q = planner.q_reference
+    nut = builtin_part("hex_nut")
+
+    def nut_at(gap_m: float) -> list[ObjectPose]:
+        return _poses(make_T(t=(-0.5, WALL_YN + gap_m + nut.extents_m[1] / 2, FLOOR_Z + nut.extents_m[2] / 2)),
+                      obj_id=nut.obj_id)  # fmt: skip
+
+    near, flush = nut_at(0.008), nut_at(0.001)
+    plan = planner.plan(near, np.eye(4))
+    assert plan.parts[0].status == "collision_bin"
+    nudge = nudger.plan(near, np.eye(4), plan, q, q)
+    assert nudge is not None
+    np.testing.assert_allclose(nudge.direction, [0.0, 1.0, 0.0], atol=1e-9)
+    assert nudge.distance_m == pytest.approx(NudgeConfig().target_gap_m - 0.008, abs=1e-3)
+    # flush against the wall, the pads cannot reach the nut's top without touching the wall: no nudge
+    plan = planner.plan(flush, np.eye(4))
+    assert plan.parts[0].status == "collision_bin" and nudger.plan(flush, np.eye(4), plan, q, q) is None
+
+
+def test_bad_nudge_settings_name_the_field(nudger):
+    with pytest.raises(ConfigError, match="min_drag_m"):
+        NudgeConfig(min_drag_m=0.1, max_drag_m=0.05)
+    with pytest.raises(ConfigError, match="speed_m_s"):
+        NudgeConfig(speed_m_s=0.0)
+    with pytest.raises(ConfigError, match="tilts_deg"):
+        NudgeConfig(tilts_deg=(95.0,))
+    with pytest.raises(ConfigError, match="no bin"):
+        NudgePlanner(GraspPlanner([GEAR], PlannerConfig(grasp_params=PARAMS, bin=None),
+                                  cache_dir=nudger.planner.cache_dir))  # fmt: skip
+
+
+def _box_corners(boxes: np.ndarray) -> np.ndarray:
+    lo, hi = boxes[:, 0], boxes[:, 1]
+    return np.array([[x, y, z] for k in range(len(boxes)) for x in (lo[k, 0], hi[k, 0])
+                     for y in (lo[k, 1], hi[k, 1]) for z in (lo[k, 2], hi[k, 2])])  # fmt: skip
+
+
+def test_part_estimate_is_what_the_nudger_plans_from(nudger):
+    """``plan_part`` takes a base-frame estimate directly (what ``plan`` builds from each pose)."""
+    planner = nudger.planner
+    q = planner.q_reference
+    part = PartEstimate(GEAR.obj_id, _flat_gear(WALL_XP - 0.024 - GEAR_RADIUS, WALL_YN + 0.005 + GEAR_RADIUS))
+    nudge = nudger.plan_part(part, 3, "collision_bin", q, q)
+    assert nudge is not None and nudge.part_index == 3 and nudge.obj_id == GEAR.obj_id
