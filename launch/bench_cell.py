@@ -74,7 +74,11 @@ VARIANTS: dict[str, Variant] = {
     "oracle_cone30": Variant(
         "oracle", "ground-truth poses; approach within 30 deg of vertical", {"approach_cone_deg": 30.0}
     ),
+    "oracle_no_nudge": Variant("oracle", "ground-truth poses; no nudges away from the walls", picker={"max_nudges": 0}),
     "models": Variant("models", "trained detector + pose net, the cell file's settings"),
+    "models_no_nudge": Variant(
+        "models", "the cell file's models; no nudges away from the walls", picker={"max_nudges": 0}
+    ),
     "models_refine": Variant("models", "trained models, with depth refinement", refine=True),
     "models_norefine": Variant("models", "trained models, without depth refinement", refine=False),
     "models_480": Variant("models", "trained models, detector at its training size 480 px", detector_input_size=480),
@@ -238,6 +242,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "n_picked": report.n_picked,
         "n_tried": sum(a.outcome != "motion_refused" for a in report.attempts),
         "failures": report.failures_by_cause(),
+        "nudges": [c.nudge["outcome"] for c in cycles if c.nudge is not None],
         "failed_attempts": [
             {"part": obj_kind.get(a.obj_id, a.obj_id), "outcome": a.outcome, "stage": a.stage, "detail": a.detail}
             for a in report.attempts
@@ -270,10 +275,11 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
     n_picked, n_tried = sum(b["n_picked"] for b in bins), sum(b["n_tried"] for b in bins)
     cycle = [t for b in bins for t in b["cycle_s"]]
     pp = [t for b in bins for t in b["perceive_plan_ms"]]
-    failures, stops, left_why = Counter(), Counter(), Counter()
+    failures, stops, left_why, nudges = Counter(), Counter(), Counter(), Counter()
     by_kind_total, by_kind_left = Counter(), Counter()
     for b in bins:
         failures.update(b["failures"])
+        nudges.update(b.get("nudges", []))
         stops[b["stop_reason"]] += 1
         left_why.update(b["left_why"])
         by_kind_total.update(b["parts_by_kind"])
@@ -292,6 +298,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "perceive_median_ms": median([t for b in bins for t in b["perceive_ms"]]),
         "plan_median_ms": median([t for b in bins for t in b["plan_ms"]]),
         "failures_by_cause": dict(failures),
+        "nudges_by_outcome": dict(nudges),
         "stop_reasons": dict(stops),
         "left_by_cause": dict(left_why.most_common()),
         "false_detections_last_plan": sum(b.get("false_detections_last_plan", 0) for b in bins),
@@ -315,7 +322,10 @@ def format_results(results: dict[str, Any]) -> str:
             f"{r['perceive_plan_p90_ms']:>8.0f}ms"
         )
     for name, r in results["variants"].items():
-        lines.append(f"{name}: failures {r['failures_by_cause'] or 'none'}; stops {r['stop_reasons']}")
+        lines.append(
+            f"{name}: failures {r['failures_by_cause'] or 'none'}; nudges {r.get('nudges_by_outcome') or 'none'}; "
+            f"stops {r['stop_reasons']}"
+        )
         lines.append(f"{name}: cleared by kind {r['cleared_by_kind']}")
         lines.append(f"{name}: left in the bin {r['left_by_cause'] or 'nothing'}")
     return "\n".join(lines)
