@@ -735,6 +735,10 @@ class _LocationCounts:
                 return
         self._entries.append([obj_id, position, 1])
 
+    def clear(self) -> None:
+        self._entries.clear()
+        self.total = 0
+
     def count(self, obj_id: int, position: np.ndarray) -> int:
         return sum(
             n for o, where, n in self._entries if o == obj_id and np.linalg.norm(where - position) < self.distance_m

@@ -26,6 +26,7 @@ pytest.importorskip("rtde_control")
 from launch.pick import open_cell
 from robot.cell_setup import load_cell_setup
 from sim.cell_config import CellConfig
+from sygrid.objects import builtin_part
 from sygrid.transforms import invert, make_T
 
 HOST = "127.0.0.70"
@@ -72,6 +73,7 @@ def fresh(cell):
     picker._to_observe()
     process.place_parts(start)
     picker._failed_at.clear()
+    picker._nudged_at.clear()
     picker._last_picked = None
     time.sleep(0.2)  # a few hundred physics steps: the parts are at rest where they were
     return picker, process, start
@@ -123,6 +125,26 @@ def test_an_empty_bin_stops_at_once(fresh):
     report = picker.run()
     assert report.stop_reason == "bin_empty" and "no parts" in report.stop_detail
     assert len(report.cycles) == 1 and report.cycles[0].n_detections == 0 and report.attempts == []
+
+
+def test_a_gear_in_a_corner_is_nudged_out_and_then_picked(fresh):
+    picker, process, start = fresh
+    gear = next(i for i, name in enumerate(process.part_names()) if name.endswith("spur_gear"))
+    cfg = CellConfig()
+    extents = builtin_part("spur_gear").extents_m
+    radius, height = extents[0] / 2, extents[2]
+    # 24 mm from the +x wall and 5 mm from the -y wall (bin frame): no grasp fits beside it
+    half_x, half_y = cfg.bin_inner_size_m[0] / 2, cfg.bin_inner_size_m[1] / 2
+    T_bin_gear = make_T(t=(half_x - 0.024 - radius, -half_y + 0.005 + radius, height / 2 + 0.0005))
+    _keep_only(process, start, gear, cfg.T_world_bin @ T_bin_gear)
+    time.sleep(0.3)
+    report = picker.run(max_cycles=5)
+    first = report.cycles[0]
+    assert first.end == "nudged" and first.nudge["cause"] == "collision_bin", first.plan_summary
+    assert first.nudge["outcome"] == "done" and first.attempts == []
+    assert report.stop_reason == "bin_empty", report.stop_detail
+    assert report.n_picked == 1 and report.n_nudges == 1 and not _in_bin(process.part_poses()).any()
+    assert not picker.robot.is_protective_stopped()
 
 
 def test_an_unreachable_part_is_refused_with_the_reason(fresh):
