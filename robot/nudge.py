@@ -1,9 +1,12 @@
-"""Nudges: press the closed fingers on top of a part the gripper cannot take, and drag it away from the bin wall.
+"""Nudges: move a part the gripper cannot take with the closed fingers, so that the next look finds a grasp.
 
 A parallel gripper needs room beside a part for its fingers (on the simulated 2F-85-like gripper 24 mm of pad and
 finger link per side, and a 62 x 86 mm housing behind them), so a part lying within a finger's width of a wall
-cannot be grasped at all. With ground-truth poses those were most of what a pick run left in the bin (``sygrid
-bench cell``: 54 of 79 parts left over 30 bins). A nudge moves such a part instead of grasping it:
+cannot be grasped at all, and an L-bracket standing on its sheet edges offers no grasp inside the approach cone
+(only across the 2 mm sheet, which the gripper cannot tell from air). With ground-truth poses those were nearly all
+of what a pick run left in the bin (``sygrid bench cell``, 30 bins: 54 and 21 of 79 parts left). Two nudges:
+
+**Drag** (a part the planner left for ``collision_bin``):
 
 1. close the fingers (the two pads together are a 16 x 22 mm paddle);
 2. tilt the tool away from the wall, leaning over the bin (the housing then clears the wall while the pad tips
@@ -12,6 +15,11 @@ bench cell``: 54 of 79 parts left over 30 bins). A nudge moves such a part inste
 3. drag straight along the floor, away from the walls near the part, until the part's nearest wall gap would be
    ``target_gap_m``;
 4. go straight up; the next look decides what to do.
+
+**Topple** (a part left for ``approach_angle``): the paddle, upright, comes down beside the part to half its
+height on the far side of the footprint edge nearest the part's centre (the edge it tips over most easily) and
+pushes across it, until the part falls onto a face that offers a grasp. An L-bracket pressed on its top edge and
+dragged only slid along, standing.
 
 The walls are vertical, so a gripper clear of them at the press and at the end of the drag stays clear on the way
 straight down and back up: those two poses are all the wall check needs.
@@ -32,10 +40,11 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
 from robot.grasp import GraspPlan, GraspPlanner, PartEstimate
 from robot.grasp_geometry import GripperGeometry, box_corners
@@ -43,11 +52,10 @@ from sygrid.errors import ConfigError
 from sygrid.robots.kinematics import ik_nearest
 from sygrid.transforms import invert, make_T, transform_points
 
-#: The planner's causes a nudge can help with: a wall in the fingers' way. Not "approach_angle" (an L-bracket
-#: standing on its sheet edge): pressed on its edge and dragged, it slid along standing in the simulated cell; it
-#: needs a push low on its side to fall over, which is not built.
-NUDGE_CAUSES = ("collision_bin",)
+#: The planner's causes a nudge can help with: a wall in the fingers' way (drag), no grasp inside the cone (topple).
+NUDGE_CAUSES = ("collision_bin", "approach_angle")
 _TOP_BAND_M = 0.003  # surface points this close to a part's highest point are its top
+_FOOT_BAND_M = 0.002  # and this close to its lowest, what it stands on
 
 
 @dataclass(frozen=True)
@@ -63,7 +71,10 @@ class NudgeConfig:
     tried in this order (press_offsets: 0 presses the top's centre, 1 its edge farthest from the wall; retreat_m:
     how high above the press the straight line down starts, and the line up ends). speed_m_s: the press and the
     drag.
-    max_joint_step_rad: the largest joint change along each straight line.
+    max_joint_step_rad: the largest joint change along each straight line. Topples: the pad tips go down to
+    ``topple_height_ratio`` of the part's height, ``topple_clearance_m`` from its far side, and push until the
+    paddle is ``topple_overtravel_m`` past the footprint edge it tips over; the ``topple_edges`` edges nearest the
+    centre are tried.
     """
 
     target_gap_m: float = 0.04
@@ -78,6 +89,10 @@ class NudgeConfig:
     retreat_m: tuple[float, ...] = (0.05, 0.10, 0.15)
     speed_m_s: float = 0.05
     max_joint_step_rad: float = 1.0
+    topple_height_ratio: float = 0.5
+    topple_clearance_m: float = 0.005
+    topple_overtravel_m: float = 0.015
+    topple_edges: int = 2
 
     def __post_init__(self) -> None:
         for name in ("target_gap_m", "min_drag_m", "max_drag_m", "near_wall_m", "speed_m_s", "max_joint_step_rad"):
@@ -96,12 +111,14 @@ class NudgeConfig:
 @dataclass(frozen=True, eq=False)
 class PlannedNudge:
     """One nudge: TCP poses ``T_base_*`` (4x4) and joint solutions ``q_*`` (6,), in the order the robot visits
-    them: above (straight above the press; reached by a joint move), press, end (after the drag), retreat
-    (straight above the end). ``direction`` (3,) is the drag direction in the base frame."""
+    them: above (straight above the press; reached by a joint move), press (where the paddle meets the part or,
+    for a topple, stands beside it), end (after the drag or push), retreat (straight above the end).
+    ``direction`` (3,) is the drag or push direction in the base frame."""
 
     part_index: int
     obj_id: int
     cause: str
+    kind: str  # "drag" (away from a wall) or "topple" (over the footprint's edge)
     T_base_obj: np.ndarray
     direction: np.ndarray
     distance_m: float
@@ -161,15 +178,27 @@ class NudgePlanner:
     def plan_part(
         self, part: PartEstimate, part_index: int, cause: str, q_from: np.ndarray, q_after: np.ndarray
     ) -> PlannedNudge | None:
-        """The first safe nudge of one part (base frame), or None."""
-        cfg, planner = self.config, self.planner
-        surface = planner.surface_base(part)
-        if surface is None:
+        """The first safe nudge of one part (base frame) left for ``cause``, or None."""
+        surface = self.planner.surface_base(part)
+        if surface is None or cause not in NUDGE_CAUSES:
             return None
-        b = planner.config.bin
-        T_bin_base = invert(b.T_base_bin)
-        points = transform_points(T_bin_base, surface)
-        direction, distance = self._drag(points, np.array(b.inner_size_m[:2]) / 2.0)
+        b = self.planner.config.bin
+        points = transform_points(invert(b.T_base_bin), surface)
+        candidates = self._drags(points) if cause == "collision_bin" else self._topples(points)
+        for kind, T_start, T_end, direction, distance, tilt in candidates:
+            T_start, T_end = b.T_base_bin @ T_start, b.T_base_bin @ T_end
+            for back in self.config.retreat_m:
+                nudge = self._checked(part, part_index, cause, T_start, T_end, back, q_from, q_after)
+                if nudge is not None:
+                    return PlannedNudge(**nudge, kind=kind, direction=b.T_base_bin[:3, :3] @ direction,
+                                        distance_m=distance, tilt_deg=tilt)  # fmt: skip
+        return None
+
+    def _drags(self, points: np.ndarray) -> Iterator[tuple]:
+        """Drag candidates for a part near a wall (surface points in the bin frame), in the order to try them:
+        ``("drag", T_press, T_end, direction, distance, tilt)`` with TCP poses in the bin frame."""
+        cfg, g = self.config, self.planner.config.gripper
+        direction, distance = self._drag(points, np.array(self.planner.config.bin.inner_size_m[:2]) / 2.0)
         z_top = float(points[:, 2].max())
         top = points[points[:, 2] > z_top - _TOP_BAND_M, :2]
         centre = top.mean(axis=0)
@@ -177,15 +206,39 @@ class NudgePlanner:
         for offset, tilt, turn in itertools.product(cfg.press_offsets, cfg.tilts_deg, cfg.turns_deg):
             R = _paddle_rotation(direction, tilt, turn)
             edge = np.array([*(centre + offset * reach * direction[:2]), z_top - cfg.press_depth_m])
-            T_press = make_T(R, edge - _lowest_pad_point(R, planner.config.gripper))  # bin frame
-            T_end = make_T(R, T_press[:3, 3] + distance * direction)
-            T_press, T_end = b.T_base_bin @ T_press, b.T_base_bin @ T_end
-            for back in cfg.retreat_m:
-                nudge = self._checked(part, part_index, cause, T_press, T_end, back, q_from, q_after)
-                if nudge is not None:
-                    return PlannedNudge(**{**nudge, "direction": b.T_base_bin[:3, :3] @ direction,
-                                           "distance_m": distance, "tilt_deg": float(tilt)})  # fmt: skip
-        return None
+            T_press = make_T(R, edge - _lowest_pad_point(R, g))
+            yield "drag", T_press, make_T(R, T_press[:3, 3] + distance * direction), direction, distance, float(tilt)
+
+    def _topples(self, points: np.ndarray) -> Iterator[tuple]:
+        """Topple candidates for a part with no grasp inside the cone (surface points in the bin frame): push it
+        over the edge of its footprint nearest its centre (the least tilt before it falls), with the paddle upright
+        against its upper half, from the other side; ``("topple", T_start, T_end, direction, distance, 0.0)``.
+
+        The centre is the surface samples' mean: the centre of mass for thin-walled parts (sheet metal, tubes)."""
+        cfg, g = self.config, self.planner.config.gripper
+        z_low, z_top = float(points[:, 2].min()), float(points[:, 2].max())
+        foot = points[points[:, 2] < z_low + _FOOT_BAND_M, :2]
+        centre = points[:, :2].mean(axis=0)
+        try:
+            hull = foot[ConvexHull(foot).vertices]  # counter-clockwise
+        except QhullError:  # a footprint on a line: the part already rests on an edge
+            return
+        edges = np.roll(hull, -1, axis=0) - hull
+        outward = np.stack([edges[:, 1], -edges[:, 0]], axis=1) / np.linalg.norm(edges, axis=1)[:, None]
+        inside = np.einsum("ij,ij->i", hull - centre, outward)  # centre to each edge
+        order = np.argsort(inside)
+        along = points[:, :2]
+        half_face = g.pad_width_m / 2.0
+        tip_z = z_low + cfg.topple_height_ratio * (z_top - z_low)
+        for k in order[: cfg.topple_edges]:
+            d = np.array([*outward[k], 0.0])
+            face_start = float((along @ outward[k]).min()) - cfg.topple_clearance_m
+            face_end = float(hull[k] @ outward[k]) + cfg.topple_overtravel_m
+            lateral = centre - (centre @ outward[k]) * outward[k]
+            R = np.stack([np.cross(d, [0.0, 0.0, -1.0]), d, [0.0, 0.0, -1.0]], axis=1)  # pads' wide face pushes
+            start = np.array([*(lateral + (face_start - half_face) * outward[k]), tip_z + g.pad_length_m / 2.0])
+            distance = face_end - face_start
+            yield "topple", make_T(R, start), make_T(R, start + distance * d), d, distance, 0.0
 
     # ------------------------------------------------------------------------------------------ helpers
 

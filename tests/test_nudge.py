@@ -25,7 +25,8 @@ GEAR_RADIUS = GEAR.extents_m[0] / 2
 @pytest.fixture(scope="module")
 def nudger(tmp_path_factory: pytest.TempPathFactory) -> NudgePlanner:
     cache = tmp_path_factory.mktemp("grasp_cache")
-    planner = GraspPlanner([GEAR, builtin_part("hex_nut")], PlannerConfig(grasp_params=PARAMS), cache_dir=cache)
+    models = [GEAR, builtin_part("hex_nut"), builtin_part("l_bracket")]
+    planner = GraspPlanner(models, PlannerConfig(grasp_params=PARAMS), cache_dir=cache)
     return NudgePlanner(planner)
 
 
@@ -102,6 +103,30 @@ def test_a_nut_near_the_middle_of_a_wall_is_dragged_straight_out_but_not_one_flu
     # flush against the wall, the pads cannot reach the nut's top without touching the wall: no nudge
     plan = planner.plan(flush, np.eye(4))
     assert plan.parts[0].status == "collision_bin" and nudger.plan(flush, np.eye(4), plan, q, q) is None
+
+
+def test_an_l_bracket_standing_on_its_sheet_edges_is_pushed_over_a_footprint_edge(nudger):
+    planner = nudger.planner
+    q = planner.q_reference
+    bracket = builtin_part("l_bracket")
+    # the sheet's 20 mm width upright: both legs stand on their edges, the only grasps pinch the 2 mm sheet
+    R = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    T = make_T(R, (-0.5, 0.0, FLOOR_Z + bracket.extents_m[1] / 2))
+    poses = _poses(T, obj_id=bracket.obj_id)
+    plan = planner.plan(poses, np.eye(4))
+    assert plan.parts[0].status == "approach_angle"
+    nudge = nudger.plan(poses, np.eye(4), plan, q, q)
+    assert nudge is not None and nudge.kind == "topple" and nudge.tilt_deg == 0.0
+    # upright paddle, pad tips at half the part's height, pushing horizontally across one leg (legs at +-45 deg)
+    np.testing.assert_allclose(nudge.T_base_press[:3, 2], [0.0, 0.0, -1.0], atol=1e-9)
+    tip_z = nudge.T_base_press[2, 3] - planner.config.gripper.pad_length_m / 2  # the tool z points down
+    assert tip_z == pytest.approx(FLOOR_Z + bracket.extents_m[1] / 2, abs=1e-3)
+    assert abs(nudge.direction[2]) < 1e-9 and abs(abs(nudge.direction[0]) - np.sqrt(0.5)) < 1e-6
+    # the paddle starts clear of the part on the far side and ends past the footprint edge it pushes it over
+    surface = planner.surface_base(PartEstimate(bracket.obj_id, T))
+    along = (surface - T[:3, 3]) @ nudge.direction
+    face = lambda X: (X[:3, 3] - T[:3, 3]) @ nudge.direction + planner.config.gripper.pad_width_m / 2  # noqa: E731
+    assert face(nudge.T_base_press) < along.min() and face(nudge.T_base_end) > along.max()
 
 
 def test_bad_nudge_settings_name_the_field(nudger):
