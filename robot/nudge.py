@@ -106,6 +106,10 @@ class NudgeConfig:
             raise ConfigError("NudgeConfig: tilts_deg, turns_deg, press_offsets and retreat_m need a value each")
         if not all(0.0 <= t < 90.0 for t in self.tilts_deg) or not all(r > 0 for r in self.retreat_m):
             raise ConfigError("NudgeConfig: tilts_deg must lie in [0, 90) and retreat_m be > 0")
+        if not 0.0 < self.topple_height_ratio <= 1.0:
+            raise ConfigError(f"NudgeConfig.topple_height_ratio must be in (0, 1], got {self.topple_height_ratio}")
+        if self.topple_clearance_m < 0 or self.topple_overtravel_m < 0 or self.topple_edges < 1:
+            raise ConfigError("NudgeConfig: topple_clearance_m and topple_overtravel_m must be >= 0, topple_edges >= 1")
 
 
 @dataclass(frozen=True, eq=False)

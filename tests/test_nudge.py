@@ -136,6 +136,8 @@ def test_bad_nudge_settings_name_the_field(nudger):
         NudgeConfig(speed_m_s=0.0)
     with pytest.raises(ConfigError, match="tilts_deg"):
         NudgeConfig(tilts_deg=(95.0,))
+    with pytest.raises(ConfigError, match="topple_height_ratio"):
+        NudgeConfig(topple_height_ratio=1.5)
     with pytest.raises(ConfigError, match="no bin"):
         NudgePlanner(GraspPlanner([GEAR], PlannerConfig(grasp_params=PARAMS, bin=None),
                                   cache_dir=nudger.planner.cache_dir))  # fmt: skip
