@@ -6,14 +6,14 @@ cannot be grasped at all, and an L-bracket standing on its sheet edges offers no
 (only across the 2 mm sheet, which the gripper cannot tell from air). With ground-truth poses those were nearly all
 of what a pick run left in the bin (``sygrid bench cell``, 30 bins: 54 and 21 of 79 parts left). Two nudges:
 
-**Drag** (a part the planner left for ``collision_bin``):
+**Drag** (a part the planner left for ``collision_bin`` or ``collision_parts``):
 
 1. close the fingers (the two pads together are a 16 x 22 mm paddle);
 2. tilt the tool away from the wall, leaning over the bin (the housing then clears the wall while the pad tips
    reach the part), and come straight down onto the part until the lowest pad edge sits ``press_depth_m`` below
    the part's highest point, somewhere on its top;
-3. drag straight along the floor, away from the walls near the part, until the part's nearest wall gap would be
-   ``target_gap_m``;
+3. drag straight along the floor, away from the walls and the neighbour near the part, until the nearest of them
+   would be ``target_gap_m`` away;
 4. go straight up; the next look decides what to do.
 
 **Topple** (a part left for ``approach_angle``): the paddle, upright, comes down beside the part to half its
@@ -44,7 +44,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from robot.grasp import GraspPlan, GraspPlanner, PartEstimate
 from robot.grasp_geometry import GripperGeometry, box_corners
@@ -52,8 +52,9 @@ from sygrid.errors import ConfigError
 from sygrid.robots.kinematics import ik_nearest
 from sygrid.transforms import invert, make_T, transform_points
 
-#: The planner's causes a nudge can help with: a wall in the fingers' way (drag), no grasp inside the cone (topple).
-NUDGE_CAUSES = ("collision_bin", "approach_angle")
+#: The planner's causes a nudge can help with: a wall or a neighbour in the fingers' way (drag), no grasp inside the
+#: cone (topple).
+NUDGE_CAUSES = ("collision_bin", "collision_parts", "approach_angle")
 _TOP_BAND_M = 0.003  # surface points this close to a part's highest point are its top
 _FOOT_BAND_M = 0.002  # and this close to its lowest, what it stands on
 
@@ -62,10 +63,10 @@ _FOOT_BAND_M = 0.002  # and this close to its lowest, what it stands on
 class NudgeConfig:
     """Settings of the nudge planner; metres, degrees and m/s.
 
-    target_gap_m: drag until the part would be this far from the walls near it (its nearest point);
-    min_drag_m / max_drag_m bound the drag. near_wall_m: walls closer to the part than this set the drag direction
-    (the sum of their inward normals); with none (the housing, not the fingers, meets a wall further away), the
-    part is dragged ``min_drag_m`` toward the bin centre.
+    target_gap_m: drag until the part would be this far from the walls and the neighbour near it (its nearest
+    point); min_drag_m / max_drag_m bound the drag. near_m: walls and the nearest neighbour closer to the part than
+    this set the drag direction (the sum of the directions away from them); with none (the housing, not the
+    fingers, meets a wall further away), the part is dragged ``min_drag_m`` toward the bin centre.
     press_depth_m: the lowest pad edge goes this far below the part's highest point. edge_margin_m: the pressing
     edge stays this far inside the part's top. tilts_deg / turns_deg / press_offsets / retreat_m: the candidates,
     tried in this order (press_offsets: 0 presses the top's centre, 1 its edge farthest from the wall; retreat_m:
@@ -80,7 +81,7 @@ class NudgeConfig:
     target_gap_m: float = 0.04
     min_drag_m: float = 0.015
     max_drag_m: float = 0.05
-    near_wall_m: float = 0.035
+    near_m: float = 0.035
     press_depth_m: float = 0.002
     edge_margin_m: float = 0.004
     tilts_deg: tuple[float, ...] = (0.0, 15.0, 30.0, 40.0, 45.0, 50.0, 55.0, 60.0, 65.0, 70.0)
@@ -95,7 +96,7 @@ class NudgeConfig:
     topple_edges: int = 2
 
     def __post_init__(self) -> None:
-        for name in ("target_gap_m", "min_drag_m", "max_drag_m", "near_wall_m", "speed_m_s", "max_joint_step_rad"):
+        for name in ("target_gap_m", "min_drag_m", "max_drag_m", "near_m", "speed_m_s", "max_joint_step_rad"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"NudgeConfig.{name} must be > 0, got {getattr(self, name)}")
         if self.min_drag_m > self.max_drag_m:
@@ -166,29 +167,47 @@ class NudgePlanner:
         q_from: where the arm is (the joint move to the first pose starts there). q_after: where it goes after the
         retreat (the observe pose). skip: part indices not to nudge (e.g. nudged often enough already)."""
         T_base_camera = np.asarray(T_base_camera, dtype=float)
+        parts = [PartEstimate(p.obj_id, T_base_camera @ np.asarray(p.T_camera_object, dtype=float)) for p in poses]
+        surfaces = [
+            self.planner.surface_base(p) if r.status != "outside_bin" else None
+            for p, r in zip(parts, plan.parts, strict=True)
+        ]
         reports = sorted(
             (r for r in plan.parts if r.status in NUDGE_CAUSES), key=lambda r: -np.nan_to_num(r.top_height_m, nan=-1e9)
         )
         for report in reports:
-            if skip is not None and skip(report.part_index):
+            i = report.part_index
+            if skip is not None and skip(i):
                 continue
-            pose = poses[report.part_index]
-            part = PartEstimate(pose.obj_id, T_base_camera @ np.asarray(pose.T_camera_object, dtype=float))
-            nudge = self.plan_part(part, report.part_index, report.status, q_from, q_after)
+            others = [s for k, s in enumerate(surfaces) if k != i and s is not None]
+            neighbours = np.concatenate(others) if others else None
+            nudge = self.plan_part(parts[i], i, report.status, q_from, q_after, neighbours)
             if nudge is not None:
                 return nudge
         return None
 
     def plan_part(
-        self, part: PartEstimate, part_index: int, cause: str, q_from: np.ndarray, q_after: np.ndarray
+        self,
+        part: PartEstimate,
+        part_index: int,
+        cause: str,
+        q_from: np.ndarray,
+        q_after: np.ndarray,
+        neighbours_base: np.ndarray | None = None,
     ) -> PlannedNudge | None:
-        """The first safe nudge of one part (base frame) left for ``cause``, or None."""
+        """The first safe nudge of one part (base frame) left for ``cause``, or None. ``neighbours_base``: the
+        other parts' surface points ``(n, 3)`` (base frame), which a drag also moves the part away from."""
         surface = self.planner.surface_base(part)
         if surface is None or cause not in NUDGE_CAUSES:
             return None
         b = self.planner.config.bin
-        points = transform_points(invert(b.T_base_bin), surface)
-        candidates = self._drags(points) if cause == "collision_bin" else self._topples(points)
+        T_bin_base = invert(b.T_base_bin)
+        points = transform_points(T_bin_base, surface)
+        if cause == "approach_angle":
+            candidates = self._topples(points)
+        else:
+            neighbours = None if neighbours_base is None else transform_points(T_bin_base, neighbours_base)
+            candidates = self._drags(points, neighbours)
         for kind, T_start, T_end, direction, distance, tilt in candidates:
             T_start, T_end = b.T_base_bin @ T_start, b.T_base_bin @ T_end
             for back in self.config.retreat_m:
@@ -198,11 +217,12 @@ class NudgePlanner:
                                         distance_m=distance, tilt_deg=tilt)  # fmt: skip
         return None
 
-    def _drags(self, points: np.ndarray) -> Iterator[tuple]:
-        """Drag candidates for a part near a wall (surface points in the bin frame), in the order to try them:
-        ``("drag", T_press, T_end, direction, distance, tilt)`` with TCP poses in the bin frame."""
+    def _drags(self, points: np.ndarray, neighbours: np.ndarray | None) -> Iterator[tuple]:
+        """Drag candidates for a part near a wall or a neighbour (surface points in the bin frame), in the order to
+        try them: ``("drag", T_press, T_end, direction, distance, tilt)`` with TCP poses in the bin frame."""
         cfg, g = self.config, self.planner.config.gripper
-        direction, distance = self._drag(points, np.array(self.planner.config.bin.inner_size_m[:2]) / 2.0)
+        half_xy = np.array(self.planner.config.bin.inner_size_m[:2]) / 2.0
+        direction, distance = self._drag(points, half_xy, neighbours)
         z_top = float(points[:, 2].max())
         top = points[points[:, 2] > z_top - _TOP_BAND_M, :2]
         centre = top.mean(axis=0)
@@ -246,15 +266,27 @@ class NudgePlanner:
 
     # ------------------------------------------------------------------------------------------ helpers
 
-    def _drag(self, points_bin: np.ndarray, half_xy: np.ndarray) -> tuple[np.ndarray, float]:
-        """The drag direction (bin frame, horizontal unit vector) and distance for a part's surface points."""
+    def _drag(
+        self, points_bin: np.ndarray, half_xy: np.ndarray, neighbours_bin: np.ndarray | None
+    ) -> tuple[np.ndarray, float]:
+        """The drag direction (bin frame, horizontal unit vector) and distance for a part's surface points: away
+        from the walls and the nearest neighbour closer than ``near_m`` (the sum of those directions), until
+        the nearest of them would be ``target_gap_m`` away."""
         cfg = self.config
-        gaps = np.array([
+        gaps = [
             half_xy[0] - points_bin[:, 0].max(), half_xy[0] + points_bin[:, 0].min(),
             half_xy[1] - points_bin[:, 1].max(), half_xy[1] + points_bin[:, 1].min(),
-        ])  # fmt: skip
-        inward = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
-        near = gaps < cfg.near_wall_m
+        ]  # fmt: skip
+        away = [[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]]  # from each wall, inwards
+        if neighbours_bin is not None and len(neighbours_bin):
+            dist, nearest = cKDTree(points_bin[:, :2]).query(neighbours_bin[:, :2])
+            k = int(np.argmin(dist))
+            step = points_bin[nearest[k], :2] - neighbours_bin[k, :2]
+            if np.linalg.norm(step) > 1e-9:
+                gaps.append(float(dist[k]))
+                away.append(list(step / np.linalg.norm(step)))
+        gaps, inward = np.array(gaps), np.array(away)
+        near = gaps < cfg.near_m
         if near.any():
             direction = inward[near].sum(axis=0)
             distance = float(np.clip(cfg.target_gap_m - gaps[near].min(), cfg.min_drag_m, cfg.max_drag_m))

@@ -23,17 +23,16 @@ One cycle (``Picker.cycle``) takes one frame, estimates the parts, plans, and tr
 
 Retries: a refused motion (``MotionRefusedError``: checked, nothing sent) moves on to the next candidate; a grasp
 that fails verification, a protective stop or a dropped connection (after ``robot.recover()``) end the cycle, and
-the next cycle looks again (the pile has changed). When nothing is safe to pick but a part lies too close to a
-wall for the fingers or offers no grasp inside the approach cone, the picker nudges it (``robot.nudge``: drags it
-away from the wall, or pushes it over, with the closed fingers) and looks again: at most ``max_nudges`` per run
-and ``max_nudges_per_part`` at one location. A part whose location has seen ``max_failures_per_part``
-failed attempts (within ``exclusion_distance_m``: a part that moved is a new chance) is left out of planning, so
-one stubborn part cannot make the run loop. The run stops cleanly when the camera sees no parts ("bin_empty"),
-when no safe grasp is left ("nothing_safe", with the planner's reasons), when every part left has been given up
-("gave_up"), when the fingers cannot be freed ("gripper_blocked"), after ``max_cycles``, after
-``max_failed_cycles`` cycles in a row without a pick, or when a stop cannot be released by the cell itself (an
-emergency stop, a protective stop that does not release: "needs_operator", nothing more is sent, the cycles so far
-are kept in the report).
+the next cycle looks again (the pile has changed). When nothing is safe to pick but a part lies too close to a wall
+or a neighbour for the fingers, or offers no grasp inside the approach cone, the picker nudges it (``robot.nudge``:
+drags it away from them, or pushes it over, with the closed fingers) and looks again: at most ``max_nudges`` per run
+and ``max_nudges_per_part`` at one location. A part whose location has seen ``max_failures_per_part`` failed
+attempts (within ``exclusion_distance_m``: a part that moved is a new chance) is left out of planning, so one
+stubborn part cannot make the run loop. The run stops cleanly when the camera sees no parts ("bin_empty"), when no
+safe grasp is left ("nothing_safe", with the planner's reasons), when every part left has been given up ("gave_up"),
+when the fingers cannot be freed ("gripper_blocked"), after ``max_cycles``, after ``max_failed_cycles`` cycles in a
+row without a pick, or when a stop cannot be released by the cell itself (an emergency stop, a protective stop that
+does not release: "needs_operator", nothing more is sent, the cycles so far are kept in the report).
 
 Times: stage timings are wall seconds; ``sim_time_s`` is the camera's timestamp (simulated seconds in the
 simulated cell, the device clock on hardware), so a cycle's robot time is the difference between two captures.
@@ -531,8 +530,8 @@ class Picker:
             return _fail(attempt, cause, stage, str(exc))
 
     def _nudge(self, poses: Sequence[Any], plan: Any, record: CycleRecord) -> bool:
-        """Nothing is safe to pick: nudge a part the planner left for a wall or the approach cone, if the nudger
-        finds a safe nudge and the limits allow one. True when the arm moved (``record.end`` "nudged")."""
+        """Nothing is safe to pick: nudge a part the planner left for a wall, a neighbour or the approach cone, if
+        the nudger finds a safe nudge and the limits allow one. True when the arm moved (``record.end`` "nudged")."""
         cfg = self.config
         if self.nudger is None or self._nudged_at.total >= cfg.max_nudges:
             return False

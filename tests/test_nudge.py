@@ -129,6 +129,20 @@ def test_an_l_bracket_standing_on_its_sheet_edges_is_pushed_over_a_footprint_edg
     assert face(nudge.T_base_press) < along.min() and face(nudge.T_base_end) > along.max()
 
 
+def test_a_part_pressed_against_a_neighbour_is_dragged_away_from_it(nudger):
+    planner = nudger.planner
+    q = planner.q_reference
+    nut = builtin_part("hex_nut")
+    T_nut = make_T(t=(-0.5, 0.0, FLOOR_Z + nut.extents_m[2] / 2))
+    # the gear 3 mm beyond the nut's +x side (the nut is 20.8 mm across its corners along x)
+    T_gear = _flat_gear(-0.5 + nut.extents_m[0] / 2 + 0.003 + GEAR_RADIUS, 0.0)
+    neighbours = planner.surface_base(PartEstimate(GEAR.obj_id, T_gear))
+    nudge = nudger.plan_part(PartEstimate(nut.obj_id, T_nut), 0, "collision_parts", q, q, neighbours)
+    assert nudge is not None and nudge.kind == "drag"
+    assert nudge.direction @ np.array([-1.0, 0.0, 0.0]) > 0.95  # straight away from the gear
+    assert nudge.distance_m == pytest.approx(NudgeConfig().target_gap_m - 0.003, abs=1.5e-3)
+
+
 def test_bad_nudge_settings_name_the_field(nudger):
     with pytest.raises(ConfigError, match="min_drag_m"):
         NudgeConfig(min_drag_m=0.1, max_drag_m=0.05)
