@@ -1,12 +1,11 @@
-"""Nudges: move a part the gripper cannot take with the closed fingers, so that the next look finds a grasp.
+"""Nudges: drag a part the gripper cannot take away from what is in the fingers' way, with the closed fingers, so
+that the next look finds a grasp.
 
 A parallel gripper needs room beside a part for its fingers (on the simulated 2F-85-like gripper 24 mm of pad and
-finger link per side, and a 62 x 86 mm housing behind them), so a part lying within a finger's width of a wall
-cannot be grasped at all, and an L-bracket standing on its sheet edges offers no grasp inside the approach cone
-(only across the 2 mm sheet, which the gripper cannot tell from air). With ground-truth poses those were nearly all
-of what a pick run left in the bin (``sygrid bench cell``, 30 bins: 54 and 21 of 79 parts left). Two nudges:
-
-**Drag** (a part the planner left for ``collision_bin`` or ``collision_parts``):
+finger link per side, and a 62 x 86 mm housing behind them), so a part lying within a finger's width of a wall, or
+pressed against a neighbour that cannot be picked either, cannot be grasped at all. With ground-truth poses parts
+at the walls were most of what a pick run left in the bin (``sygrid bench cell``, 30 bins: 54 of 79 parts left).
+A nudge (for a part the planner left for ``collision_bin`` or ``collision_parts``):
 
 1. close the fingers (the two pads together are a 16 x 22 mm paddle);
 2. tilt the tool away from the wall, leaning over the bin (the housing then clears the wall while the pad tips
@@ -16,10 +15,11 @@ of what a pick run left in the bin (``sygrid bench cell``, 30 bins: 54 and 21 of
    would be ``target_gap_m`` away;
 4. go straight up; the next look decides what to do.
 
-**Topple** (a part left for ``approach_angle``): the paddle, upright, comes down beside the part to half its
-height on the far side of the footprint edge nearest the part's centre (the edge it tips over most easily) and
-pushes across it, until the part falls onto a face that offers a grasp. An L-bracket pressed on its top edge and
-dragged only slid along, standing.
+Not nudged: an L-bracket standing on its sheet edges (``approach_angle``: its only grasps pinch the 2 mm sheet).
+Pressed on its top edge and dragged, or pushed on its side at half its height, it slid along standing in the
+simulated cell, as statics says: its centre lies about 10 mm inside its footprint and it is 20 mm tall, so a push
+at its top tips it only with a force of half its weight, which is what the floor's friction (0.5) already
+yields to.
 
 The walls are vertical, so a gripper clear of them at the press and at the end of the drag stays clear on the way
 straight down and back up: those two poses are all the wall check needs.
@@ -44,7 +44,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+from scipy.spatial import cKDTree
 
 from robot.grasp import GraspPlan, GraspPlanner, PartEstimate
 from robot.grasp_geometry import GripperGeometry, box_corners
@@ -52,11 +52,9 @@ from sygrid.errors import ConfigError
 from sygrid.robots.kinematics import ik_nearest
 from sygrid.transforms import invert, make_T, transform_points
 
-#: The planner's causes a nudge can help with: a wall or a neighbour in the fingers' way (drag), no grasp inside the
-#: cone (topple).
-NUDGE_CAUSES = ("collision_bin", "collision_parts", "approach_angle")
+#: The planner's causes a nudge can help with: a wall or a neighbour in the fingers' way.
+NUDGE_CAUSES = ("collision_bin", "collision_parts")
 _TOP_BAND_M = 0.003  # surface points this close to a part's highest point are its top
-_FOOT_BAND_M = 0.002  # and this close to its lowest, what it stands on
 
 
 @dataclass(frozen=True)
@@ -72,10 +70,7 @@ class NudgeConfig:
     tried in this order (press_offsets: 0 presses the top's centre, 1 its edge farthest from the wall; retreat_m:
     how high above the press the straight line down starts, and the line up ends). speed_m_s: the press and the
     drag.
-    max_joint_step_rad: the largest joint change along each straight line. Topples: the pad tips go down to
-    ``topple_height_ratio`` of the part's height, ``topple_clearance_m`` from its far side, and push until the
-    paddle is ``topple_overtravel_m`` past the footprint edge it tips over; the ``topple_edges`` edges nearest the
-    centre are tried.
+    max_joint_step_rad: the largest joint change along each straight line.
     """
 
     target_gap_m: float = 0.04
@@ -90,10 +85,6 @@ class NudgeConfig:
     retreat_m: tuple[float, ...] = (0.05, 0.10, 0.15)
     speed_m_s: float = 0.05
     max_joint_step_rad: float = 1.0
-    topple_height_ratio: float = 0.5
-    topple_clearance_m: float = 0.005
-    topple_overtravel_m: float = 0.015
-    topple_edges: int = 2
 
     def __post_init__(self) -> None:
         for name in ("target_gap_m", "min_drag_m", "max_drag_m", "near_m", "speed_m_s", "max_joint_step_rad"):
@@ -107,23 +98,18 @@ class NudgeConfig:
             raise ConfigError("NudgeConfig: tilts_deg, turns_deg, press_offsets and retreat_m need a value each")
         if not all(0.0 <= t < 90.0 for t in self.tilts_deg) or not all(r > 0 for r in self.retreat_m):
             raise ConfigError("NudgeConfig: tilts_deg must lie in [0, 90) and retreat_m be > 0")
-        if not 0.0 < self.topple_height_ratio <= 1.0:
-            raise ConfigError(f"NudgeConfig.topple_height_ratio must be in (0, 1], got {self.topple_height_ratio}")
-        if self.topple_clearance_m < 0 or self.topple_overtravel_m < 0 or self.topple_edges < 1:
-            raise ConfigError("NudgeConfig: topple_clearance_m and topple_overtravel_m must be >= 0, topple_edges >= 1")
 
 
 @dataclass(frozen=True, eq=False)
 class PlannedNudge:
     """One nudge: TCP poses ``T_base_*`` (4x4) and joint solutions ``q_*`` (6,), in the order the robot visits
-    them: above (straight above the press; reached by a joint move), press (where the paddle meets the part or,
-    for a topple, stands beside it), end (after the drag or push), retreat (straight above the end).
-    ``direction`` (3,) is the drag or push direction in the base frame."""
+    them: above (straight above the press; reached by a joint move), press (the paddle on the part's top), end
+    (after the drag), retreat (straight above the end). ``direction`` (3,) is the drag direction in the base
+    frame."""
 
     part_index: int
     obj_id: int
     cause: str
-    kind: str  # "drag" (away from a wall) or "topple" (over the footprint's edge)
     T_base_obj: np.ndarray
     direction: np.ndarray
     distance_m: float
@@ -203,23 +189,19 @@ class NudgePlanner:
         b = self.planner.config.bin
         T_bin_base = invert(b.T_base_bin)
         points = transform_points(T_bin_base, surface)
-        if cause == "approach_angle":
-            candidates = self._topples(points)
-        else:
-            neighbours = None if neighbours_base is None else transform_points(T_bin_base, neighbours_base)
-            candidates = self._drags(points, neighbours)
-        for kind, T_start, T_end, direction, distance, tilt in candidates:
+        neighbours = None if neighbours_base is None else transform_points(T_bin_base, neighbours_base)
+        for T_start, T_end, direction, distance, tilt in self._drags(points, neighbours):
             T_start, T_end = b.T_base_bin @ T_start, b.T_base_bin @ T_end
             for back in self.config.retreat_m:
                 nudge = self._checked(part, part_index, cause, T_start, T_end, back, q_from, q_after)
                 if nudge is not None:
-                    return PlannedNudge(**nudge, kind=kind, direction=b.T_base_bin[:3, :3] @ direction,
+                    return PlannedNudge(**nudge, direction=b.T_base_bin[:3, :3] @ direction,
                                         distance_m=distance, tilt_deg=tilt)  # fmt: skip
         return None
 
     def _drags(self, points: np.ndarray, neighbours: np.ndarray | None) -> Iterator[tuple]:
         """Drag candidates for a part near a wall or a neighbour (surface points in the bin frame), in the order to
-        try them: ``("drag", T_press, T_end, direction, distance, tilt)`` with TCP poses in the bin frame."""
+        try them: ``(T_press, T_end, direction, distance, tilt)`` with TCP poses in the bin frame."""
         cfg, g = self.config, self.planner.config.gripper
         half_xy = np.array(self.planner.config.bin.inner_size_m[:2]) / 2.0
         direction, distance = self._drag(points, half_xy, neighbours)
@@ -231,38 +213,7 @@ class NudgePlanner:
             R = _paddle_rotation(direction, tilt, turn)
             edge = np.array([*(centre + offset * reach * direction[:2]), z_top - cfg.press_depth_m])
             T_press = make_T(R, edge - _lowest_pad_point(R, g))
-            yield "drag", T_press, make_T(R, T_press[:3, 3] + distance * direction), direction, distance, float(tilt)
-
-    def _topples(self, points: np.ndarray) -> Iterator[tuple]:
-        """Topple candidates for a part with no grasp inside the cone (surface points in the bin frame): push it
-        over the edge of its footprint nearest its centre (the least tilt before it falls), with the paddle upright
-        against its upper half, from the other side; ``("topple", T_start, T_end, direction, distance, 0.0)``.
-
-        The centre is the surface samples' mean: the centre of mass for thin-walled parts (sheet metal, tubes)."""
-        cfg, g = self.config, self.planner.config.gripper
-        z_low, z_top = float(points[:, 2].min()), float(points[:, 2].max())
-        foot = points[points[:, 2] < z_low + _FOOT_BAND_M, :2]
-        centre = points[:, :2].mean(axis=0)
-        try:
-            hull = foot[ConvexHull(foot).vertices]  # counter-clockwise
-        except QhullError:  # a footprint on a line: the part already rests on an edge
-            return
-        edges = np.roll(hull, -1, axis=0) - hull
-        outward = np.stack([edges[:, 1], -edges[:, 0]], axis=1) / np.linalg.norm(edges, axis=1)[:, None]
-        inside = np.einsum("ij,ij->i", hull - centre, outward)  # centre to each edge
-        order = np.argsort(inside)
-        along = points[:, :2]
-        half_face = g.pad_width_m / 2.0
-        tip_z = z_low + cfg.topple_height_ratio * (z_top - z_low)
-        for k in order[: cfg.topple_edges]:
-            d = np.array([*outward[k], 0.0])
-            face_start = float((along @ outward[k]).min()) - cfg.topple_clearance_m
-            face_end = float(hull[k] @ outward[k]) + cfg.topple_overtravel_m
-            lateral = centre - (centre @ outward[k]) * outward[k]
-            R = np.stack([np.cross(d, [0.0, 0.0, -1.0]), d, [0.0, 0.0, -1.0]], axis=1)  # pads' wide face pushes
-            start = np.array([*(lateral + (face_start - half_face) * outward[k]), tip_z + g.pad_length_m / 2.0])
-            distance = face_end - face_start
-            yield "topple", make_T(R, start), make_T(R, start + distance * d), d, distance, 0.0
+            yield T_press, make_T(R, T_press[:3, 3] + distance * direction), direction, distance, float(tilt)
 
     # ------------------------------------------------------------------------------------------ helpers
 

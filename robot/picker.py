@@ -24,15 +24,15 @@ One cycle (``Picker.cycle``) takes one frame, estimates the parts, plans, and tr
 Retries: a refused motion (``MotionRefusedError``: checked, nothing sent) moves on to the next candidate; a grasp
 that fails verification, a protective stop or a dropped connection (after ``robot.recover()``) end the cycle, and
 the next cycle looks again (the pile has changed). When nothing is safe to pick but a part lies too close to a wall
-or a neighbour for the fingers, or offers no grasp inside the approach cone, the picker nudges it (``robot.nudge``:
-drags it away from them, or pushes it over, with the closed fingers) and looks again: at most ``max_nudges`` per run
-and ``max_nudges_per_part`` at one location. A part whose location has seen ``max_failures_per_part`` failed
-attempts (within ``exclusion_distance_m``: a part that moved is a new chance) is left out of planning, so one
-stubborn part cannot make the run loop. The run stops cleanly when the camera sees no parts ("bin_empty"), when no
-safe grasp is left ("nothing_safe", with the planner's reasons), when every part left has been given up ("gave_up"),
-when the fingers cannot be freed ("gripper_blocked"), after ``max_cycles``, after ``max_failed_cycles`` cycles in a
-row without a pick, or when a stop cannot be released by the cell itself (an emergency stop, a protective stop that
-does not release: "needs_operator", nothing more is sent, the cycles so far are kept in the report).
+or a neighbour for the fingers, the picker nudges it (``robot.nudge``: drags it away from them with the closed
+fingers) and looks again: at most ``max_nudges`` per run and ``max_nudges_per_part`` at one location. A part whose
+location has seen ``max_failures_per_part`` failed attempts (within ``exclusion_distance_m``: a part that moved is a
+new chance) is left out of planning, so one stubborn part cannot make the run loop. The run stops cleanly when the
+camera sees no parts ("bin_empty"), when no safe grasp is left ("nothing_safe", with the planner's reasons), when
+every part left has been given up ("gave_up"), when the fingers cannot be freed ("gripper_blocked"), after
+``max_cycles``, after ``max_failed_cycles`` cycles in a row without a pick, or when a stop cannot be released by the
+cell itself (an emergency stop, a protective stop that does not release: "needs_operator", nothing more is sent, the
+cycles so far are kept in the report).
 
 Times: stage timings are wall seconds; ``sim_time_s`` is the camera's timestamp (simulated seconds in the
 simulated cell, the device clock on hardware), so a cycle's robot time is the difference between two captures.
@@ -530,8 +530,8 @@ class Picker:
             return _fail(attempt, cause, stage, str(exc))
 
     def _nudge(self, poses: Sequence[Any], plan: Any, record: CycleRecord) -> bool:
-        """Nothing is safe to pick: nudge a part the planner left for a wall, a neighbour or the approach cone, if
-        the nudger finds a safe nudge and the limits allow one. True when the arm moved (``record.end`` "nudged")."""
+        """Nothing is safe to pick: nudge a part the planner left for a wall or a neighbour, if the nudger finds a safe
+        nudge and the limits allow one. True when the arm moved (``record.end`` "nudged")."""
         cfg = self.config
         if self.nudger is None or self._nudged_at.total >= cfg.max_nudges:
             return False
@@ -547,7 +547,7 @@ class Picker:
             return False
         record.end = "nudged"
         record.nudge = {
-            "part_index": nudge.part_index, "obj_id": nudge.obj_id, "cause": nudge.cause, "kind": nudge.kind,
+            "part_index": nudge.part_index, "obj_id": nudge.obj_id, "cause": nudge.cause,
             "tilt_deg": nudge.tilt_deg, "distance_m": nudge.distance_m, "outcome": "done", "detail": "",
         }  # fmt: skip
         self._nudged_at.add(nudge.obj_id, nudge.T_base_obj[:3, 3])
@@ -569,8 +569,8 @@ class Picker:
             self._recover()
             self._after_recovery(float(nudge.T_base_retreat[2, 3]))
         record.plan_summary = (
-            f"nudged part {nudge.part_index} (obj {nudge.obj_id}, {nudge.cause}): {nudge.kind} "
-            f"{1e3 * nudge.distance_m:.0f} mm ({record.nudge['outcome']}); {record.plan_summary}"
+            f"nudged part {nudge.part_index} (obj {nudge.obj_id}, {nudge.cause}) {1e3 * nudge.distance_m:.0f} mm "
+            f"({record.nudge['outcome']}); {record.plan_summary}"
         )
         self._to_observe()
         return True

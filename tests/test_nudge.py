@@ -25,7 +25,7 @@ GEAR_RADIUS = GEAR.extents_m[0] / 2
 @pytest.fixture(scope="module")
 def nudger(tmp_path_factory: pytest.TempPathFactory) -> NudgePlanner:
     cache = tmp_path_factory.mktemp("grasp_cache")
-    models = [GEAR, builtin_part("hex_nut"), builtin_part("l_bracket")]
+    models = [GEAR, builtin_part("hex_nut")]
     planner = GraspPlanner(models, PlannerConfig(grasp_params=PARAMS), cache_dir=cache)
     return NudgePlanner(planner)
 
@@ -105,30 +105,6 @@ def test_a_nut_near_the_middle_of_a_wall_is_dragged_straight_out_but_not_one_flu
     assert plan.parts[0].status == "collision_bin" and nudger.plan(flush, np.eye(4), plan, q, q) is None
 
 
-def test_an_l_bracket_standing_on_its_sheet_edges_is_pushed_over_a_footprint_edge(nudger):
-    planner = nudger.planner
-    q = planner.q_reference
-    bracket = builtin_part("l_bracket")
-    # the sheet's 20 mm width upright: both legs stand on their edges, the only grasps pinch the 2 mm sheet
-    R = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-    T = make_T(R, (-0.5, 0.0, FLOOR_Z + bracket.extents_m[1] / 2))
-    poses = _poses(T, obj_id=bracket.obj_id)
-    plan = planner.plan(poses, np.eye(4))
-    assert plan.parts[0].status == "approach_angle"
-    nudge = nudger.plan(poses, np.eye(4), plan, q, q)
-    assert nudge is not None and nudge.kind == "topple" and nudge.tilt_deg == 0.0
-    # upright paddle, pad tips at half the part's height, pushing horizontally across one leg (legs at +-45 deg)
-    np.testing.assert_allclose(nudge.T_base_press[:3, 2], [0.0, 0.0, -1.0], atol=1e-9)
-    tip_z = nudge.T_base_press[2, 3] - planner.config.gripper.pad_length_m / 2  # the tool z points down
-    assert tip_z == pytest.approx(FLOOR_Z + bracket.extents_m[1] / 2, abs=1e-3)
-    assert abs(nudge.direction[2]) < 1e-9 and abs(abs(nudge.direction[0]) - np.sqrt(0.5)) < 1e-6
-    # the paddle starts clear of the part on the far side and ends past the footprint edge it pushes it over
-    surface = planner.surface_base(PartEstimate(bracket.obj_id, T))
-    along = (surface - T[:3, 3]) @ nudge.direction
-    face = lambda X: (X[:3, 3] - T[:3, 3]) @ nudge.direction + planner.config.gripper.pad_width_m / 2  # noqa: E731
-    assert face(nudge.T_base_press) < along.min() and face(nudge.T_base_end) > along.max()
-
-
 def test_a_part_pressed_against_a_neighbour_is_dragged_away_from_it(nudger):
     planner = nudger.planner
     q = planner.q_reference
@@ -138,7 +114,7 @@ def test_a_part_pressed_against_a_neighbour_is_dragged_away_from_it(nudger):
     T_gear = _flat_gear(-0.5 + nut.extents_m[0] / 2 + 0.003 + GEAR_RADIUS, 0.0)
     neighbours = planner.surface_base(PartEstimate(GEAR.obj_id, T_gear))
     nudge = nudger.plan_part(PartEstimate(nut.obj_id, T_nut), 0, "collision_parts", q, q, neighbours)
-    assert nudge is not None and nudge.kind == "drag"
+    assert nudge is not None
     assert nudge.direction @ np.array([-1.0, 0.0, 0.0]) > 0.95  # straight away from the gear
     assert nudge.distance_m == pytest.approx(NudgeConfig().target_gap_m - 0.003, abs=1.5e-3)
 
@@ -150,8 +126,6 @@ def test_bad_nudge_settings_name_the_field(nudger):
         NudgeConfig(speed_m_s=0.0)
     with pytest.raises(ConfigError, match="tilts_deg"):
         NudgeConfig(tilts_deg=(95.0,))
-    with pytest.raises(ConfigError, match="topple_height_ratio"):
-        NudgeConfig(topple_height_ratio=1.5)
     with pytest.raises(ConfigError, match="no bin"):
         NudgePlanner(GraspPlanner([GEAR], PlannerConfig(grasp_params=PARAMS, bin=None),
                                   cache_dir=nudger.planner.cache_dir))  # fmt: skip

@@ -413,7 +413,6 @@ class FakeNudge:
         self.T_base_press = make_T(t=(-1.0, 0, 0.02))
         self.T_base_end = make_T(t=(-2.0, 0, 0.02))  # the robot below drags the part when it gets here
         self.T_base_retreat = make_T(t=(-3.0, 0, 0.1))
-        self.kind = "drag"
 
 
 class FakeNudger:
