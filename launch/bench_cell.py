@@ -10,7 +10,8 @@ stock ur_rtde client) runs until it stops. Per variant it reports:
   left because nothing was safe to pick, not only because an attempt failed);
 - cycle time: median and p90 of the robot (simulated) seconds from one look to the next, over the picks;
 - perception + planning wall time per cycle: median and p90 (ms, on this machine, as it is loaded);
-- failures by cause, stop reasons, and which parts were left in the bin with the planner's reason.
+- failures by cause, nudges by outcome (and the robot time of a nudge cycle), stop reasons, and which parts were
+  left in the bin with the planner's reason.
 
 Targets (issue 6): success >= 95 %, median cycle <= 8 s simulated, perception + planning <= 300 ms wall.
 Writes ``bench/results/cell.json`` and ``cell.png`` (``cell_quick.*`` with ``--quick``, ``NAME.*`` with ``--name``,
@@ -255,6 +256,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "left_why": dict(left_why),
         "false_detections_last_plan": false_detections,
         "cycle_s": report.sim_cycle_times_s(),
+        "nudge_cycle_s": [c.sim_cycle_s for c in cycles if c.nudge is not None and c.sim_cycle_s is not None],
         "perceive_plan_ms": [1e3 * (c.stage_wall_s["perceive"] + c.stage_wall_s["plan"]) for c in cycles if c.n_poses],
         "perceive_ms": [1e3 * c.stage_wall_s["perceive"] for c in cycles if c.n_poses],
         "plan_ms": [1e3 * c.stage_wall_s["plan"] for c in cycles if c.n_planned or c.end == "nothing_safe"],
@@ -299,6 +301,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "plan_median_ms": median([t for b in bins for t in b["plan_ms"]]),
         "failures_by_cause": dict(failures),
         "nudges_by_outcome": dict(nudges),
+        "nudge_cycle_median_s": median([t for b in bins for t in b.get("nudge_cycle_s", [])]),
         "stop_reasons": dict(stops),
         "left_by_cause": dict(left_why.most_common()),
         "false_detections_last_plan": sum(b.get("false_detections_last_plan", 0) for b in bins),

@@ -1,5 +1,5 @@
 """The pick cycle as an explicit state machine: capture -> perceive -> plan -> approach -> grasp -> verify ->
-place -> next.
+place -> next, or plan -> nudge -> next when nothing is safe to pick but a part can be dragged clear.
 
 Every part is injected (``Picker(robot, gripper, camera, perception, planner, ...)``), each through a small
 protocol below, so the same cycle drives the simulated cell (the emulator through ur_rtde, a rendered camera) and
