@@ -77,6 +77,9 @@ VARIANTS: dict[str, Variant] = {
     ),
     "oracle_no_nudge": Variant("oracle", "ground-truth poses; no nudges away from the walls", picker={"max_nudges": 0}),
     "models": Variant("models", "trained detector + pose net, the cell file's settings"),
+    "models_floor2": Variant(
+        "models", "the cell file's models; pad tips 2 mm above the bin floor (not 1 mm)", {"floor_clearance_m": 0.002}
+    ),
     "models_no_nudge": Variant(
         "models", "the cell file's models; no nudges away from the walls", picker={"max_nudges": 0}
     ),
