@@ -35,8 +35,9 @@ from typing import Any
 import numpy as np
 
 from robot.cell_setup import CellSetup, load_cell_setup
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_chart, save_results
 from sygrid.errors import ConfigError
+from sygrid.fileio import read_json
 
 log = logging.getLogger(__name__)
 
@@ -113,9 +114,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--quick", action="store_true", help=f"{QUICK_SEEDS} seeds, variants {', '.join(QUICK_VARIANTS)}"
     )
+    parser.add_argument("--replot", action="store_true", help="only redraw NAME.png from the saved NAME.json")
+    parser.add_argument(
+        "--merge", default=None, metavar="A,B,...",
+        help="run nothing: put the variants of the saved results A, B, ... (same seeds) into one NAME.json/png, "
+        "each named 'A: variant'",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
+    if args.replot or args.merge:
+        return _from_saved(args, out_dir)
     names = _chosen_variants(args)
     base = load_cell_setup(args.config)
     if not base.is_sim:
@@ -149,6 +158,40 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     json_path, png_path = save_results(name_out, results, chart(results), out_dir)
     print(f"wrote {json_path} and {png_path}")
     return 0
+
+
+def _from_saved(args: argparse.Namespace, out_dir: Path) -> int:
+    """``--replot`` and ``--merge``: charts from saved results, no bins run."""
+    name_out = args.name or "cell"
+    if not args.merge:
+        saved = read_json(out_dir / f"{name_out}.json", "cell benchmark results")
+        print(f"redrew {save_chart(name_out, chart(saved), out_dir)} from {out_dir / f'{name_out}.json'}")
+        return 0
+    sources = [n.strip() for n in args.merge.split(",") if n.strip()]
+    merged = merge_results({n: read_json(out_dir / f"{n}.json", "cell benchmark results") for n in sources})
+    print(format_results(merged))
+    json_path, png_path = save_results(name_out, merged, chart(merged), out_dir)
+    print(f"wrote {json_path} and {png_path}")
+    return 0
+
+
+def merge_results(saved: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """One result set from several saved runs over the same bins: variants renamed ``"<run>: <variant>"``.
+
+    Raises:
+        ConfigError: the runs did not measure the same seeds, or the same scene.
+    """
+    first_name, first = next(iter(saved.items()))
+    seeds, scene = first.get("seeds_done", first["seeds"]), first["scene"]
+    variants: dict[str, Any] = {}
+    for name, run in saved.items():
+        if run.get("seeds_done", run["seeds"]) != seeds or run["scene"] != scene:
+            raise ConfigError(
+                f"bench results '{name}' measured seeds {run.get('seeds_done', run['seeds'])} of {run['scene']}, "
+                f"'{first_name}' seeds {seeds} of {scene}: only runs over the same bins can be merged"
+            )
+        variants.update({f"{name}: {v}": r for v, r in run["variants"].items()})
+    return {"targets": first["targets"], "seeds": seeds, "seeds_done": seeds, "scene": scene, "variants": variants}
 
 
 def _chosen_variants(args: argparse.Namespace) -> list[str]:
@@ -361,9 +404,10 @@ def chart(results: dict[str, Any]):
     causes = sorted({c for r in variants.values() for c in r["left_by_cause"]})
     names = list(variants)
     bottom = np.zeros(len(names))
-    for cause in causes:
+    colours = matplotlib.colormaps["tab20"].colors  # more causes than tab10's colours: no two alike
+    for k, cause in enumerate(causes):
         vals = np.array([variants[n]["left_by_cause"].get(cause, 0) / max(variants[n]["n_parts"], 1) for n in names])
-        ax_left.barh(names, 100 * vals, left=100 * bottom, label=cause)
+        ax_left.barh(names, 100 * vals, left=100 * bottom, label=cause, color=colours[k % len(colours)])
         bottom += vals
     ax_left.set(xlabel="% of the parts left in the bin, by part and planner reason", title="what was left")
     if causes:

@@ -7,7 +7,10 @@ import math
 
 import pytest
 
-from launch.bench_cell import TARGETS, chart, format_results, summarize
+from launch.bench_cell import TARGETS, chart, format_results, merge_results, run, summarize
+from launch.cli import build_parser
+from sygrid.errors import ConfigError
+from sygrid.fileio import write_json_atomic
 
 
 def _bin(seed: int, n_left: int, picked: int, tried: int, cycles: list[float], stop: str, left_why: dict) -> dict:
@@ -69,3 +72,26 @@ def test_cell_detector_recall_and_precision_on_hand_made_detections():
     results["sizes"] = [{**row, "models": "builtin"}, {**row, "models": "sim_cell", "size": 800}]
     legend = detector_chart(results).axes[0].get_legend()
     assert [t.get_text() for t in legend.get_texts()] == ["builtin", "sim_cell"]
+
+
+def test_saved_runs_over_the_same_bins_merge_and_others_are_refused(tmp_path):
+    def saved(variant: str, seeds: list[int], cleared_left: int) -> dict:
+        bins = [_bin(s, cleared_left, 10 - cleared_left, 10 - cleared_left, [5.0], "nothing_safe", {}) for s in seeds]
+        return {"targets": TARGETS, "seeds": seeds, "seeds_done": seeds, "scene": "bin.json",
+                "variants": {variant: {"description": variant, **summarize(bins)}}}  # fmt: skip
+
+    before, after = saved("models", [0, 1], 5), saved("models", [0, 1], 3)
+    merged = merge_results({"before": before, "after": after})
+    assert list(merged["variants"]) == ["before: models", "after: models"]
+    assert merged["variants"]["after: models"]["parts_cleared"] == pytest.approx(0.7)
+    with pytest.raises(ConfigError, match="'other' measured seeds"):
+        merge_results({"before": before, "other": saved("models", [0, 1, 2], 3)})
+    # through the command: --merge writes NAME.json/png, --replot redraws NAME.png
+    write_json_atomic(tmp_path / "before.json", before)
+    write_json_atomic(tmp_path / "after.json", after)
+    args = build_parser("bench").parse_args(["bench", "cell", "--merge", "before,after", "--name", "both"])
+    assert run(args, out_dir=tmp_path) == 0
+    assert (tmp_path / "both.json").is_file() and (tmp_path / "both.png").is_file()
+    (tmp_path / "both.png").unlink()
+    args = build_parser("bench").parse_args(["bench", "cell", "--replot", "--name", "both"])
+    assert run(args, out_dir=tmp_path) == 0 and (tmp_path / "both.png").is_file()
