@@ -568,7 +568,7 @@ def test_the_early_wall_check_only_refuses_grasps_that_hit_a_wall_at_every_backo
                 back = make_T(t=(0.0, 0.0, -d))
                 swept = boxes[k].copy()
                 swept[:, 0, 2] -= sweep
-                assert planner._wall_gap((T[k] @ back)[None], swept[None])[0] < cfg.bin_clearance_m
+                assert planner.wall_gap_m((T[k] @ back)[None], swept[None])[0] < cfg.bin_clearance_m
             refused += 1
     assert refused > 10
 

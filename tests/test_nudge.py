@@ -8,6 +8,7 @@ import pytest
 
 from perception.results import Detection, ObjectPose
 from robot.grasp import GraspPlanner, PartEstimate, PlannerConfig
+from robot.grasp_geometry import box_corners
 from robot.grasps import GraspSetParams
 from robot.nudge import NudgeConfig, NudgePlanner
 from sygrid.errors import ConfigError
@@ -57,7 +58,7 @@ def test_a_gear_in_a_corner_is_pressed_on_its_top_and_dragged_away_from_both_wal
     # the tool leans away from the walls (the housing clears them) and the lowest pad edge presses on the gear's top
     assert nudge.tilt_deg > 0 and nudge.T_base_press[:3, 2] @ nudge.direction < 0
     g = planner.config.gripper
-    pads = transform_points(nudge.T_base_press, _box_corners(g.boxes(0.0)[:2]))
+    pads = transform_points(nudge.T_base_press, box_corners(g.boxes(0.0)[:2]))
     lowest = pads[pads[:, 2] < pads[:, 2].min() + 1e-4].mean(axis=0)
     assert lowest[2] == pytest.approx(FLOOR_Z + GEAR.extents_m[2] - NudgeConfig().press_depth_m, abs=2e-4)
     assert np.linalg.norm(lowest[:2] - T[:2, 3]) < GEAR_RADIUS - NudgeConfig().edge_margin_m + 1e-6
@@ -129,12 +130,6 @@ def test_bad_nudge_settings_name_the_field(nudger):
     with pytest.raises(ConfigError, match="no bin"):
         NudgePlanner(GraspPlanner([GEAR], PlannerConfig(grasp_params=PARAMS, bin=None),
                                   cache_dir=nudger.planner.cache_dir))  # fmt: skip
-
-
-def _box_corners(boxes: np.ndarray) -> np.ndarray:
-    lo, hi = boxes[:, 0], boxes[:, 1]
-    return np.array([[x, y, z] for k in range(len(boxes)) for x in (lo[k, 0], hi[k, 0])
-                     for y in (lo[k, 1], hi[k, 1]) for z in (lo[k, 2], hi[k, 2])])  # fmt: skip
 
 
 def test_part_estimate_is_what_the_nudger_plans_from(nudger):
