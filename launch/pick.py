@@ -159,7 +159,7 @@ def print_summary(report: RunReport, wall_s: float) -> None:
         f"picked {report.n_picked} part(s) in {len(report.attempts)} attempt(s) over {len(report.cycles)} cycle(s): "
         f"success rate {100 * rate:.0f}%"
         + (f", failures {report.failures_by_cause()}" if report.failures_by_cause() else "")
-        + (f"; {report.n_nudges} nudge(s) away from the walls" if report.n_nudges else "")
+        + (f"; {report.n_nudges} nudge(s)" if report.n_nudges else "")
     )
     if times:
         print(
