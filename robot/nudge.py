@@ -190,7 +190,8 @@ class NudgePlanner:
         T_bin_base = invert(b.T_base_bin)
         points = transform_points(T_bin_base, surface)
         neighbours = None if neighbours_base is None else transform_points(T_bin_base, neighbours_base)
-        for T_start, T_end, direction, distance, tilt in self._drags(points, neighbours):
+        direction, distance = self._drag(points, np.array(b.inner_size_m[:2]) / 2.0, neighbours)
+        for T_start, T_end, tilt in self._drag_poses(points, direction, distance):
             T_start, T_end = b.T_base_bin @ T_start, b.T_base_bin @ T_end
             for back in self.config.retreat_m:
                 nudge = self._checked(part, part_index, cause, T_start, T_end, back, q_from, q_after)
@@ -199,12 +200,12 @@ class NudgePlanner:
                                         distance_m=distance, tilt_deg=tilt)  # fmt: skip
         return None
 
-    def _drags(self, points: np.ndarray, neighbours: np.ndarray | None) -> Iterator[tuple]:
-        """Drag candidates for a part near a wall or a neighbour (surface points in the bin frame), in the order to
-        try them: ``(T_press, T_end, direction, distance, tilt)`` with TCP poses in the bin frame."""
+    def _drag_poses(
+        self, points: np.ndarray, direction: np.ndarray, distance: float
+    ) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
+        """The candidate ``(T_press, T_end, tilt_deg)`` of a drag of a part (surface points in the bin frame) along
+        ``direction`` by ``distance``, in the order to try them; TCP poses in the bin frame."""
         cfg, g = self.config, self.planner.config.gripper
-        half_xy = np.array(self.planner.config.bin.inner_size_m[:2]) / 2.0
-        direction, distance = self._drag(points, half_xy, neighbours)
         z_top = float(points[:, 2].max())
         top = points[points[:, 2] > z_top - _TOP_BAND_M, :2]
         centre = top.mean(axis=0)
@@ -213,7 +214,7 @@ class NudgePlanner:
             R = _paddle_rotation(direction, tilt, turn)
             edge = np.array([*(centre + offset * reach * direction[:2]), z_top - cfg.press_depth_m])
             T_press = make_T(R, edge - _lowest_pad_point(R, g))
-            yield T_press, make_T(R, T_press[:3, 3] + distance * direction), direction, distance, float(tilt)
+            yield T_press, make_T(R, T_press[:3, 3] + distance * direction), float(tilt)
 
     # ------------------------------------------------------------------------------------------ helpers
 
