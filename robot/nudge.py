@@ -105,7 +105,7 @@ class PlannedNudge:
     """One nudge: TCP poses ``T_base_*`` (4x4) and joint solutions ``q_*`` (6,), in the order the robot visits
     them: above (straight above the press; reached by a joint move), press (the paddle on the part's top), end
     (after the drag), retreat (straight above the end). ``direction`` (3,) is the drag direction in the base
-    frame."""
+    frame; ``speed_m_s`` the speed of the press and the drag."""
 
     part_index: int
     obj_id: int
@@ -122,6 +122,7 @@ class PlannedNudge:
     q_press: np.ndarray
     q_end: np.ndarray
     q_retreat: np.ndarray
+    speed_m_s: float
 
 
 class NudgePlanner:
@@ -193,11 +194,16 @@ class NudgePlanner:
         direction, distance = self._drag(points, np.array(b.inner_size_m[:2]) / 2.0, neighbours)
         for T_start, T_end, tilt in self._drag_poses(points, direction, distance):
             T_start, T_end = b.T_base_bin @ T_start, b.T_base_bin @ T_end
+            if not self._clear_of_bin(T_start, T_end):
+                continue
             for back in self.config.retreat_m:
-                nudge = self._checked(part, part_index, cause, T_start, T_end, back, q_from, q_after)
-                if nudge is not None:
-                    return PlannedNudge(**nudge, direction=b.T_base_bin[:3, :3] @ direction,
-                                        distance_m=distance, tilt_deg=tilt)  # fmt: skip
+                waypoints = self._waypoints(T_start, T_end, back, q_from, q_after)
+                if waypoints is not None:
+                    return PlannedNudge(
+                        part_index=part_index, obj_id=part.obj_id, cause=cause,
+                        T_base_obj=np.array(part.T_base_obj, dtype=float), direction=b.T_base_bin[:3, :3] @ direction,
+                        distance_m=distance, tilt_deg=tilt, speed_m_s=self.config.speed_m_s, **waypoints,
+                    )  # fmt: skip
         return None
 
     def _drag_poses(
@@ -248,26 +254,24 @@ class NudgePlanner:
         direction = direction / norm if norm > 1e-9 else np.array([1.0, 0.0])
         return np.array([direction[0], direction[1], 0.0]), distance
 
-    def _checked(
-        self,
-        part: PartEstimate,
-        part_index: int,
-        cause: str,
-        T_press: np.ndarray,
-        T_end: np.ndarray,
-        back: float,
-        q_from: np.ndarray,
-        q_after: np.ndarray,
+    def _clear_of_bin(self, T_press: np.ndarray, T_end: np.ndarray) -> bool:
+        """The closed gripper keeps ``bin_clearance_m`` from the walls at the press and the end of the drag, and
+        stays above the floor at the press (the part is not too thin to press)."""
+        pcfg = self.planner.config
+        closed = pcfg.gripper.boxes(0.0)
+        if self.planner.wall_gap_m(np.stack([T_press, T_end]), np.stack([closed, closed])).min() < pcfg.bin_clearance_m:
+            return False
+        return bool(pcfg.bin.height_above_floor_m(transform_points(T_press, box_corners(closed))).min() >= 0.0)
+
+    def _waypoints(
+        self, T_press: np.ndarray, T_end: np.ndarray, back: float, q_from: np.ndarray, q_after: np.ndarray
     ) -> dict | None:
-        """The waypoints of one candidate if every check passes, else None."""
+        """The poses and joint solutions of a candidate that ``_clear_of_bin`` passed, coming down from and going
+        back up to ``back`` above it, if the rest of the checks pass; else None."""
         cfg, planner = self.config, self.planner
         pcfg = planner.config
         g = pcfg.gripper
         closed = g.boxes(0.0)
-        if planner.wall_gap_m(np.stack([T_press, T_end]), np.stack([closed, closed])).min() < pcfg.bin_clearance_m:
-            return None
-        if pcfg.bin.height_above_floor_m(transform_points(T_press, box_corners(closed))).min() < 0.0:
-            return None  # the part is too thin to press: the pads would go into the floor
         up = make_T(t=back * pcfg.bin.floor_normal)
         T_above, T_retreat = up @ T_press, up @ T_end
         if pcfg.workspace is not None and not np.all(
@@ -290,8 +294,6 @@ class NudgePlanner:
             if planner.transit_gap_m(qa, qb, closed) < clearance or not planner.elbow_clear(qa, qb):
                 return None
         return {
-            "part_index": part_index, "obj_id": part.obj_id, "cause": cause,
-            "T_base_obj": np.array(part.T_base_obj, dtype=float),
             "T_base_above": T_above, "T_base_press": T_press, "T_base_end": T_end, "T_base_retreat": T_retreat,
             "q_above": q[0], "q_press": q[1], "q_end": q[2], "q_retreat": q[3],
         }  # fmt: skip

@@ -537,8 +537,8 @@ class Picker:
             return False
 
         def nudged_enough(index: int) -> bool:
-            p = (self.T_base_camera @ np.asarray(poses[index].T_camera_object))[:3, 3]
-            return self._nudged_at.count(poses[index].obj_id, p) >= cfg.max_nudges_per_part
+            pose = poses[index]
+            return self._nudged_at.count(pose.obj_id, self._position_base(pose)) >= cfg.max_nudges_per_part
 
         timer = _StageTimer(record.stage_wall_s)
         with timer("plan"):
@@ -551,13 +551,12 @@ class Picker:
             "tilt_deg": nudge.tilt_deg, "distance_m": nudge.distance_m, "outcome": "done", "detail": "",
         }  # fmt: skip
         self._nudged_at.add(nudge.obj_id, nudge.T_base_obj[:3, 3])
-        speed = getattr(getattr(self.nudger, "config", None), "speed_m_s", cfg.approach_speed_m_s)
         try:
             with timer("nudge"):
                 self.gripper.close(force_n=cfg.grip_force_n)  # the pads together are the paddle
                 self.robot.move_j(nudge.q_above, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
-                self.robot.move_l(nudge.T_base_press, speed, cfg.approach_accel_m_s2)
-                self.robot.move_l(nudge.T_base_end, speed, cfg.approach_accel_m_s2)
+                self.robot.move_l(nudge.T_base_press, nudge.speed_m_s, cfg.approach_accel_m_s2)
+                self.robot.move_l(nudge.T_base_end, nudge.speed_m_s, cfg.approach_accel_m_s2)
                 self.robot.move_l(nudge.T_base_retreat, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
         except MotionRefusedError as exc:
             record.nudge.update(outcome="motion_refused", detail=str(exc))
@@ -689,8 +688,11 @@ class Picker:
 
     def _given_up(self, pose: Any) -> bool:
         """A part where ``max_failures_per_part`` attempts failed already (same model, within the distance)."""
-        p = (self.T_base_camera @ np.asarray(pose.T_camera_object))[:3, 3]
-        return self._failed_at.count(pose.obj_id, p) >= self.config.max_failures_per_part
+        return self._failed_at.count(pose.obj_id, self._position_base(pose)) >= self.config.max_failures_per_part
+
+    def _position_base(self, pose: Any) -> np.ndarray:
+        """(3,) where a pose (camera frame) puts its part's origin in the base frame."""
+        return (self.T_base_camera @ np.asarray(pose.T_camera_object))[:3, 3]
 
     def _to_observe(self) -> None:
         if np.max(np.abs(np.asarray(self.robot.q()) - self.q_observe)) > 1e-3:
@@ -739,8 +741,10 @@ class _LocationCounts:
         self.total = 0
 
     def count(self, obj_id: int, position: np.ndarray) -> int:
-        return sum(
-            n for o, where, n in self._entries if o == obj_id and np.linalg.norm(where - position) < self.distance_m
+        """The count of the location ``position`` lies at (the largest, where it lies within two)."""
+        return max(
+            (n for o, where, n in self._entries if o == obj_id and np.linalg.norm(where - position) < self.distance_m),
+            default=0,
         )
 
 

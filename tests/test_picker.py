@@ -407,6 +407,7 @@ class FakeNudge:
     cause: str = "collision_bin"
     tilt_deg: float = 45.0
     distance_m: float = 0.03
+    speed_m_s: float = 0.05
 
     def __post_init__(self) -> None:
         self.q_above = np.full(6, 7.0)
