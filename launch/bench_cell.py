@@ -76,14 +76,12 @@ VARIANTS: dict[str, Variant] = {
     "oracle_cone30": Variant(
         "oracle", "ground-truth poses; approach within 30 deg of vertical", {"approach_cone_deg": 30.0}
     ),
-    "oracle_no_nudge": Variant("oracle", "ground-truth poses; no nudges away from the walls", picker={"max_nudges": 0}),
+    "oracle_no_nudge": Variant("oracle", "ground-truth poses; no nudges", picker={"max_nudges": 0}),
     "models": Variant("models", "trained detector + pose net, the cell file's settings"),
     "models_floor2": Variant(
         "models", "the cell file's models; pad tips 2 mm above the bin floor (not 1 mm)", {"floor_clearance_m": 0.002}
     ),
-    "models_no_nudge": Variant(
-        "models", "the cell file's models; no nudges away from the walls", picker={"max_nudges": 0}
-    ),
+    "models_no_nudge": Variant("models", "the cell file's models; no nudges", picker={"max_nudges": 0}),
     "models_refine": Variant("models", "trained models, with depth refinement", refine=True),
     "models_norefine": Variant("models", "trained models, without depth refinement", refine=False),
     "models_480": Variant("models", "trained models, detector at its training size 480 px", detector_input_size=480),
@@ -182,16 +180,21 @@ def merge_results(saved: dict[str, dict[str, Any]]) -> dict[str, Any]:
         ConfigError: the runs did not measure the same seeds, or the same scene.
     """
     first_name, first = next(iter(saved.items()))
-    seeds, scene = first.get("seeds_done", first["seeds"]), first["scene"]
+    seeds, scene = _seeds_measured(first), first["scene"]
     variants: dict[str, Any] = {}
     for name, run in saved.items():
-        if run.get("seeds_done", run["seeds"]) != seeds or run["scene"] != scene:
+        if _seeds_measured(run) != seeds or run["scene"] != scene:
             raise ConfigError(
-                f"bench results '{name}' measured seeds {run.get('seeds_done', run['seeds'])} of {run['scene']}, "
+                f"bench results '{name}' measured seeds {_seeds_measured(run)} of {run['scene']}, "
                 f"'{first_name}' seeds {seeds} of {scene}: only runs over the same bins can be merged"
             )
         variants.update({f"{name}: {v}": r for v, r in run["variants"].items()})
     return {"targets": first["targets"], "seeds": seeds, "seeds_done": seeds, "scene": scene, "variants": variants}
+
+
+def _seeds_measured(results: dict[str, Any]) -> list[int]:
+    """The seeds a (possibly stopped) run measured."""
+    return results.get("seeds_done", results["seeds"])
 
 
 def _chosen_variants(args: argparse.Namespace) -> list[str]:
@@ -398,7 +401,7 @@ def chart(results: dict[str, Any]):
     ax.scatter([], [], marker="s", color="C0", label="parts cleared (ground truth)")
     ax.scatter([], [], marker="o", facecolors="none", edgecolors="k", label="pick success rate (picks / attempts)")
     ax.set(xlabel="median cycle time [simulated s]", ylabel="%", ylim=(0, 105),
-           title=f"{len(results.get('seeds_done', results['seeds']))} bin(s) per variant")  # fmt: skip
+           title=f"{len(_seeds_measured(results))} bin(s) per variant")  # fmt: skip
     ax.legend(fontsize=8, loc="lower left")
     ax.grid(alpha=0.3)
     causes = sorted({c for r in variants.values() for c in r["left_by_cause"]})
