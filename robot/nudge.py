@@ -16,9 +16,9 @@ A nudge (for a part the planner left for ``collision_bin`` or ``collision_parts`
 4. go straight up; the next look decides what to do.
 
 Not nudged: an L-bracket standing on its sheet edges (``approach_angle``: its only grasps pinch the 2 mm sheet).
-Pressed on its top edge and dragged, or pushed on its side at half its height, it slid along standing in the
-simulated cell, as statics says: its centre lies about 10 mm inside its footprint and it is 20 mm tall, so a push
-at its top tips it only with a force of half its weight, which is what the floor's friction (0.5) already
+Pressed on its top edge and dragged, or pushed on its side at half its height, it moved along but stayed standing in
+the simulated cell, as statics says: its centre lies about 10 mm inside its footprint and it is 20 mm tall, so a
+push at its top tips it only with a force of half its weight, which is what the floor's friction (0.5) already
 yields to.
 
 The walls are vertical, so a gripper clear of them at the press and at the end of the drag stays clear on the way
