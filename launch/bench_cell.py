@@ -59,9 +59,11 @@ class Variant:
     refine: bool | None = None
     detector_input_size: int | None = None
     models_dir: str | None = None  # another model folder than the cell file's
+    detect_in_bin: bool | None = None
 
 
 _BUILTIN_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "builtin")
+_SIM_CELL_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "sim_cell")
 
 _FAST = {
     "approach_speed_m_s": 0.5,
@@ -91,6 +93,15 @@ VARIANTS: dict[str, Variant] = {
         "the general built-in models at 800 px (their best size on the cell's frames)",
         models_dir=_BUILTIN_MODELS,
         detector_input_size=800,
+    ),
+    "models_full_frame": Variant(
+        "models", "the cell file's models; the detector on the whole frame, not the bin's box", detect_in_bin=False
+    ),
+    "models_sim_cell": Variant(
+        "models",
+        "models/sim_cell (detector fine-tuned on the cell's views) at 960 px (its best size on the cell's frames)",
+        models_dir=_SIM_CELL_MODELS,
+        detector_input_size=960,
     ),
 }
 QUICK_VARIANTS = ("oracle", "oracle_fast", "models")
@@ -230,6 +241,7 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
         "refine": variant.refine,
         "detector_input_size": variant.detector_input_size,
         "models_dir": variant.models_dir,
+        "detect_in_bin": variant.detect_in_bin,
     }
     perception = d.perception.model_copy(
         update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}

@@ -5,14 +5,18 @@ input size that the test set prefers is not the cell's. For each seed the cell's
 scene, dropped with the seed) and the first overhead frame is taken; the detector runs at each input size on the
 same frames. Ground truth is the simulator's: the parts whose centre the camera sees (``sim.oracle_perception``'s
 visibility test) with the box of their projected 3D bounds. A detection is right when it has a part's class and
-its box centre lies in that part's box (the projected 3D box is loose, so no IoU threshold). Reports per size:
-recall (parts found) and precision at the model folder's confidence threshold, the recall over thresholds, and
-the median detector time per frame (this machine, onnxruntime CPU). Writes ``bench/results/cell_detector.{json,png}``.
+its box centre lies in that part's box (the projected 3D box is loose, so no IoU threshold). Each size runs on the
+whole frame and on the bin's box only (``perception.pipeline.region_of_interest`` of the planner's bin, as the
+picking runtime does with ``detect_in_bin``; same scale, so ``size`` is the whole frame's input size either way).
+Reports per size and region: recall (parts found) and precision at the model folder's confidence threshold, the
+recall over thresholds, and the median detector time per frame (this machine, onnxruntime CPU). Writes
+``bench/results/cell_detector.{json,png}``.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 from pathlib import Path
 from typing import Any
@@ -23,8 +27,10 @@ from launch.bench_cell import CELL_FILE
 from robot.cell_setup import load_cell_setup
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, save_results
 from sygrid.errors import ConfigError
+from sygrid.transforms import invert, transform_points
 
 SIZES = (480, 640, 800, 960)
+REGIONS = ("frame", "bin")
 THRESHOLDS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 _FLOOR_CONF = 0.05  # detections kept for the threshold sweep
 
@@ -51,31 +57,31 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     folders = [setup.resolve(setup.data.perception.models_dir), *args.models]
     conf = setup.data.perception.conf_threshold or load_manifest(folders[0]).detector.conf_threshold
     frames = [first_frame(setup.resolve(setup.data.sim.scene), seed) for seed in range(args.seeds)]
-    truth_ids = np.array([obj_id for _, truth in frames for obj_id, _ in truth])
+    truth_ids = np.array([obj_id for _, _, truth in frames for obj_id, _ in truth])
     rows = []
     for models_dir in folders:
         manifest = load_manifest(models_dir)
-        for size in args.sizes:
+        for size, region in itertools.product(args.sizes, REGIONS):
             detector = YoloSegDetector(models_dir / manifest.detector.onnx, conf_threshold=_FLOOR_CONF,
                                        iou_threshold=manifest.detector.iou_threshold, input_size=size)  # fmt: skip
-            detector.detect(frames[0][0])  # warm-up
+            detector.detect(frames[0][0], frames[0][1] if region == "bin" else None)  # warm-up
             names = dict(zip(detector.class_obj_ids, detector.class_names, strict=True))
             times, found, kept = [], [], []
-            for rgb, truth in frames:
+            for rgb, roi, truth in frames:
                 for _ in range(args.repeats):
                     start = time.perf_counter()
-                    detections = detector.detect(rgb)
+                    detections = detector.detect(rgb, roi if region == "bin" else None)
                     times.append(time.perf_counter() - start)
                 found += best_scores(truth, detections)
                 kept += [(d.score, is_right(d, truth)) for d in detections]
             found = np.array(found)
-            row = {"models": models_dir.name, **size_row(size, times, found, kept, conf)}
+            row = {"models": models_dir.name, "region": region, **size_row(size, times, found, kept, conf)}
             row["recall_by_part"] = {
                 names.get(int(k), str(k)): float((found[truth_ids == k] >= conf).mean()) for k in np.unique(truth_ids)
             }
             rows.append(row)
-            print(f"{models_dir.name} @ {size:4d} px: {row['ms_median']:6.1f} ms, recall {row['recall']:.2f}, "
-                  f"precision {row['precision']:.2f} at confidence {conf}; "
+            print(f"{models_dir.name} @ {size:4d} px, {region:>5}: {row['ms_median']:6.1f} ms, recall "
+                  f"{row['recall']:.2f}, precision {row['precision']:.2f} at confidence {conf}; "
                   f"by part {row['recall_by_part']}")  # fmt: skip
     results = {"config": {"cell": str(args.config), "seeds": args.seeds, "conf_threshold": conf,
                           "models": [str(f) for f in folders], "parts_seen": len(truth_ids)},
@@ -85,8 +91,10 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     return 0
 
 
-def first_frame(scene: Path, seed: int) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
-    """The overhead RGB frame of a fresh bin and its visible parts as (obj_id, box xyxy)."""
+def first_frame(scene: Path, seed: int) -> tuple[np.ndarray, tuple[int, int, int, int], list[tuple[int, np.ndarray]]]:
+    """The overhead RGB frame of a fresh bin, the bin's image box, and its visible parts as (obj_id, box xyxy)."""
+    from perception.pipeline import region_of_interest
+    from robot.grasp import PlannerConfig
     from sim.camera import SimCamera
     from sim.cell import build_cell_world
     from sim.oracle_perception import OraclePerception
@@ -98,7 +106,9 @@ def first_frame(scene: Path, seed: int) -> tuple[np.ndarray, list[tuple[int, np.
     finally:
         camera.close()
     oracle = OraclePerception(world, world.config.T_world_base, frame.T_base_camera)
-    return frame.rgb, [(d.obj_id, d.bbox_xyxy) for d in oracle.run(frame).detections]
+    corners = transform_points(invert(frame.T_base_camera), PlannerConfig().bin.inner_corners_base())
+    roi = region_of_interest(corners, frame.intrinsics)
+    return frame.rgb, roi, [(d.obj_id, d.bbox_xyxy) for d in oracle.run(frame).detections]
 
 
 def _centre_in(detection: Any, obj_id: int, box: np.ndarray) -> bool:
@@ -143,20 +153,21 @@ def chart(results: dict):
 
     fig, (ax_time, ax_pr) = plt.subplots(1, 2, figsize=(11, 4.2))
     rows, conf = results["sizes"], results["config"]["conf_threshold"]
-    folders = list(dict.fromkeys(r.get("models", "") for r in rows))
-    for folder in folders:
-        mine = [r for r in rows if r.get("models", "") == folder]
-        ax_time.plot([r["ms_median"] for r in mine], [r["recall"] for r in mine], "o-", label=folder or None)
+    lines = list(dict.fromkeys((r.get("models", ""), r.get("region", "frame")) for r in rows))
+    for folder, region in lines:
+        mine = [r for r in rows if (r.get("models", ""), r.get("region", "frame")) == (folder, region)]
+        ax_time.plot([r["ms_median"] for r in mine], [r["recall"] for r in mine], "o-" if region == "frame" else "s--",
+                     label=f"{folder}, {region}".strip(", "))  # fmt: skip
     for r in rows:
         ax_time.annotate(f"{r['size']} px", (r["ms_median"], r["recall"]), textcoords="offset points", xytext=(5, -10))
-        ax_pr.plot([b["recall"] for b in r["by_threshold"]], [b["precision"] for b in r["by_threshold"]], "o-",
-                   label=" @ ".join(x for x in (r.get("models", ""), f"{r['size']} px") if x))  # fmt: skip
-    if len(folders) > 1:
-        ax_time.legend(fontsize=8)
+        label = " @ ".join(x for x in (r.get("models", ""), f"{r['size']} px") if x) + f", {r.get('region', 'frame')}"
+        ax_pr.plot([b["recall"] for b in r["by_threshold"]], [b["precision"] for b in r["by_threshold"]],
+                   "o-" if r.get("region", "frame") == "frame" else "s--", label=label)  # fmt: skip
+    ax_time.legend(fontsize=8)
     ax_time.set(xlabel="detector ms per frame (median)", ylabel=f"parts found at confidence {conf}",
                 title="Cell camera: recall against time")  # fmt: skip
     ax_pr.set(xlabel="recall", ylabel="precision", title=f"Thresholds {THRESHOLDS[0]}-{THRESHOLDS[-1]}")
-    ax_pr.legend(fontsize=7)
+    ax_pr.legend(fontsize=6, ncol=2)
     for ax in (ax_time, ax_pr):
         ax.grid(alpha=0.3)
     n = results["config"]["parts_seen"]

@@ -24,6 +24,7 @@ import numpy as np
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.picker import STAGES, Picker, RunReport
 from sygrid.errors import ConfigError
+from sygrid.transforms import transform_points
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +87,10 @@ def open_cell(
             from robot.calibration import load_calibration
 
             T_base_camera = load_calibration(setup.resolve(d.calibration.file)).T_base_camera
+        try:
+            planner_config = PlannerConfig(**{"workspace": setup.robot.workspace, **setup.planner_overrides})
+        except (TypeError, ConfigError) as exc:
+            raise ConfigError(f"{setup.path}: [planner]: {exc}") from None
         if kind == "oracle":
             if process is None:
                 raise ConfigError(f"{setup.path}: perception 'oracle' exists only in the simulated cell")
@@ -104,12 +109,11 @@ def open_cell(
                 detector_input_size=d.perception.detector_input_size, conf_threshold=d.perception.conf_threshold,
                 refine=d.perception.refine, max_refined=d.perception.max_refined, num_threads=d.perception.num_threads,
             )  # fmt: skip
-            perception = PerceptionPipeline.from_folder(models_dir, overrides)
+            region = None
+            if d.perception.detect_in_bin and planner_config.bin is not None:
+                region = transform_points(np.linalg.inv(T_base_camera), planner_config.bin.inner_corners_base())
+            perception = PerceptionPipeline.from_folder(models_dir, overrides, region_camera_m=region)
             models = perception.models
-        try:
-            planner_config = PlannerConfig(**{"workspace": setup.robot.workspace, **setup.planner_overrides})
-        except (TypeError, ConfigError) as exc:
-            raise ConfigError(f"{setup.path}: [planner]: {exc}") from None
         planner = GraspPlanner(models, planner_config)
         robot = stack.enter_context(URRobot(setup.robot))
         gripper = stack.enter_context(make_gripper(setup.gripper, io=robot))

@@ -36,7 +36,7 @@ from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
 
 from perception.results import Detection
 from sygrid.errors import ModelError
-from sygrid.letterbox import Letterbox, letterbox_geometry
+from sygrid.letterbox import Letterbox, letterbox_at_scale, letterbox_geometry
 from sygrid.letterbox import letterbox as letterbox
 
 log = logging.getLogger(__name__)
@@ -161,6 +161,18 @@ def assemble_mask(
 
 
 # ---------------------------------------------------------------------------------------------------- metadata
+def _to_frame(detection: Detection, offset_xy: tuple[int, int], frame_hw: tuple[int, int]) -> Detection:
+    """A detection made in a region of the frame, in the frame's pixels."""
+    x0, y0 = offset_xy
+    mask = None
+    if detection.mask is not None:
+        mask = np.zeros(frame_hw, dtype=bool)
+        h, w = detection.mask.shape
+        mask[y0 : y0 + h, x0 : x0 + w] = detection.mask
+    box = detection.bbox_xyxy + np.array([x0, y0, x0, y0], dtype=np.float64)
+    return Detection(detection.class_index, detection.obj_id, detection.score, box, mask)
+
+
 def _literal(value: str, key: str, path: Path) -> object:
     try:
         return ast.literal_eval(value)
@@ -404,18 +416,22 @@ class YoloSegDetector:
                 f"{shapes} at run time (expected {expected_c} channels for {self.num_classes} classes)"
             )
 
-    def detect(self, rgb: np.ndarray) -> list[Detection]:
+    def detect(self, rgb: np.ndarray, roi_xyxy: Sequence[int] | None = None) -> list[Detection]:
         """Detections in an RGB frame, highest score first; an empty list when there is nothing to detect.
 
         Args:
             rgb: (H, W, 3) uint8 RGB image.
+            roi_xyxy: ``[x0, y0, x1, y1]`` integer pixels: look only there (a bin's region of the image). A model
+                with a dynamic input sees the region at the scale it would see the whole frame at (so ``input_size``
+                keeps its meaning and the parts their size in pixels), which costs the region's share of the
+                frame's area; a fixed input is filled by the region. None: the whole frame.
 
         Returns:
-            ``perception.results.Detection`` per kept box, with ``bbox_xyxy`` in image pixels (clipped to the image)
-            and, for a segmentation model, the (H, W) bool mask in image pixels.
+            ``perception.results.Detection`` per kept box, with ``bbox_xyxy`` in image pixels (clipped to the image,
+            or to the region) and, for a segmentation model, the (H, W) bool mask in image pixels.
 
         Raises:
-            ValueError: ``rgb`` is not an (H, W, 3) uint8 array.
+            ValueError: ``rgb`` is not an (H, W, 3) uint8 array, or the region is not a non-empty box in the image.
             ModelError: inference fails or the outputs do not have the layout the model declared.
         """
         if not isinstance(rgb, np.ndarray) or rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
@@ -424,13 +440,21 @@ class YoloSegDetector:
         if rgb.shape[0] < 1 or rgb.shape[1] < 1:
             raise ValueError(f"rgb: expected a non-empty image, got shape {rgb.shape}")
         t0 = time.perf_counter()
-        geometry = letterbox_geometry(rgb.shape[:2], self.input_hw, self.stride if self.dynamic_input else None)
-        blob = to_blob(letterbox(np.ascontiguousarray(rgb), geometry), self.input_dtype)
+        x0, y0, x1, y1 = self._region(rgb.shape[:2], roi_xyxy)
+        image = rgb[y0:y1, x0:x1]
+        if self.dynamic_input and image.shape[:2] != rgb.shape[:2]:
+            full = letterbox_geometry(rgb.shape[:2], self.input_hw, self.stride)
+            geometry = letterbox_at_scale(image.shape[:2], full.scale_x, self.stride)
+        else:
+            geometry = letterbox_geometry(image.shape[:2], self.input_hw, self.stride if self.dynamic_input else None)
+        blob = to_blob(letterbox(np.ascontiguousarray(image), geometry), self.input_dtype)
         t1 = time.perf_counter()
         outputs = self._run(blob)
         t2 = time.perf_counter()
         self._check_run_outputs(outputs)
         detections = self._postprocess(outputs, geometry)
+        if image.shape[:2] != rgb.shape[:2]:
+            detections = [_to_frame(d, (x0, y0), rgb.shape[:2]) for d in detections]
         t3 = time.perf_counter()
         self.last_timings_ms = {
             "preprocess": (t1 - t0) * 1e3,
@@ -438,6 +462,19 @@ class YoloSegDetector:
             "postprocess": (t3 - t2) * 1e3,
         }
         return detections
+
+    @staticmethod
+    def _region(image_hw: tuple[int, int], roi_xyxy: Sequence[int] | None) -> tuple[int, int, int, int]:
+        h, w = image_hw
+        if roi_xyxy is None:
+            return 0, 0, w, h
+        if len(roi_xyxy) != 4:
+            raise ValueError(f"roi_xyxy: expected [x0, y0, x1, y1] pixels, got {list(roi_xyxy)!r}")
+        x0, y0, x1, y1 = (int(v) for v in roi_xyxy)
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+        if x1 <= x0 or y1 <= y0:
+            raise ValueError(f"roi_xyxy: {list(roi_xyxy)} leaves nothing of a {w}x{h} image")
+        return x0, y0, x1, y1
 
     def _postprocess(self, outputs: list[np.ndarray], geometry: Letterbox) -> list[Detection]:
         pred = outputs[0].astype(np.float32, copy=False)

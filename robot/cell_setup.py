@@ -10,7 +10,7 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps)
     [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
-                  conf_threshold, detector_input_size
+                  conf_threshold, detector_input_size, detect_in_bin
     [planner]     robot.grasp.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
     [picker]      robot.picker.PickerConfig fields
 
@@ -66,6 +66,7 @@ class PerceptionSection(_Strict):
     max_refined: int | None = Field(default=None, ge=1)
     conf_threshold: float | None = Field(default=None, gt=0, lt=1)
     detector_input_size: int | None = Field(default=None, ge=32, le=4096)
+    detect_in_bin: bool = True  # the detector looks only at the bin's image box (the planner's bin, calibration)
     num_threads: int = Field(default=2, ge=1)
 
 

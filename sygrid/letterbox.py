@@ -66,6 +66,16 @@ def letterbox_geometry(image_hw: tuple[int, int], input_hw: tuple[int, int], str
     return Letterbox((h, w), (new_h + pad_h, new_w + pad_w), (new_h, new_w), int(left), int(top))
 
 
+def letterbox_at_scale(image_hw: tuple[int, int], scale: float, stride: int) -> Letterbox:
+    """An ``image_hw`` image resized by ``scale`` and padded (centred) up to the next multiple of ``stride``: how a
+    model with a dynamic input sees a region of a frame at the scale it sees the whole frame at."""
+    h, w = image_hw
+    new_h, new_w = max(1, round(h * scale)), max(1, round(w * scale))
+    pad_h, pad_w = -new_h % stride, -new_w % stride
+    top, left = round(pad_h / 2 - 0.1), round(pad_w / 2 - 0.1)  # the same tie-break as letterbox_geometry
+    return Letterbox((h, w), (new_h + pad_h, new_w + pad_w), (new_h, new_w), int(left), int(top))
+
+
 def letterbox(image: np.ndarray, geometry: Letterbox, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
     """Resize + pad an (h, w[, c]) image to ``geometry.input_hw`` (grey 114 for colour images, 0 for id maps)."""
     new_h, new_w = geometry.resized_hw

@@ -68,10 +68,12 @@ def test_cell_detector_recall_and_precision_on_hand_made_detections():
     assert at_02["recall"] == 1.0 and at_02["precision"] == pytest.approx(2 / 3)
     results = {"config": {"conf_threshold": 0.4, "seeds": 1, "parts_seen": 2}, "sizes": [row]}
     assert detector_chart(results).axes[0].get_xlabel() == "detector ms per frame (median)"
-    # two model folders compared: one recall-against-time line each, named in the legend
-    results["sizes"] = [{**row, "models": "builtin"}, {**row, "models": "sim_cell", "size": 800}]
+    # two model folders, each on the whole frame and on the bin's box: one recall-against-time line each
+    results["sizes"] = [{**row, "models": m, "region": r} for m in ("builtin", "sim_cell") for r in ("frame", "bin")]
     legend = detector_chart(results).axes[0].get_legend()
-    assert [t.get_text() for t in legend.get_texts()] == ["builtin", "sim_cell"]
+    assert [t.get_text() for t in legend.get_texts()] == [
+        "builtin, frame", "builtin, bin", "sim_cell, frame", "sim_cell, bin"
+    ]  # fmt: skip
 
 
 def test_saved_runs_over_the_same_bins_merge_and_others_are_refused(tmp_path):
