@@ -23,16 +23,17 @@ One cycle (``Picker.cycle``) takes one frame, estimates the parts, plans, and tr
 
 Retries: a refused motion (``MotionRefusedError``: checked, nothing sent) moves on to the next candidate; a grasp
 that fails verification, a protective stop or a dropped connection (after ``robot.recover()``) end the cycle, and
-the next cycle looks again (the pile has changed). When nothing is safe to pick but a part lies too close to a wall
-or a neighbour for the fingers, the picker nudges it (``robot.nudge``: drags it away from them with the closed
-fingers) and looks again: at most ``max_nudges`` per run and ``max_nudges_per_part`` at one location. A part whose
-location has seen ``max_failures_per_part`` failed attempts (within ``exclusion_distance_m``: a part that moved is a
-new chance) is left out of planning, so one stubborn part cannot make the run loop. The run stops cleanly when the
-camera sees no parts ("bin_empty"), when no safe grasp is left ("nothing_safe", with the planner's reasons), when
-every part left has been given up ("gave_up"), when the fingers cannot be freed ("gripper_blocked"), after
-``max_cycles``, after ``max_failed_cycles`` cycles in a row without a pick, or when a stop cannot be released by the
-cell itself (an emergency stop, a protective stop that does not release: "needs_operator", nothing more is sent, the
-cycles so far are kept in the report).
+the next cycle looks again (the pile has changed); one on the joint move back to the observe pose is recovered once
+(straight up to the observe pose's height, then the move again). When nothing is safe to pick but a part lies too
+close to a wall or a neighbour for the fingers, the picker nudges it (``robot.nudge``: drags it away from them with
+the closed fingers) and looks again: at most ``max_nudges`` per run and ``max_nudges_per_part`` at one location. A
+part whose location has seen ``max_failures_per_part`` failed attempts (within ``exclusion_distance_m``: a part that
+moved is a new chance) is left out of planning, so one stubborn part cannot make the run loop. The run stops cleanly
+when the camera sees no parts ("bin_empty"), when no safe grasp is left ("nothing_safe", with the planner's
+reasons), when every part left has been given up ("gave_up"), when the fingers cannot be freed ("gripper_blocked"),
+after ``max_cycles``, after ``max_failed_cycles`` cycles in a row without a pick, or when a stop cannot be released
+by the cell itself (an emergency stop, a protective stop that does not release: "needs_operator", nothing more is
+sent, the cycles so far are kept in the report).
 
 Times: stage timings are wall seconds; ``sim_time_s`` is the camera's timestamp (simulated seconds in the
 simulated cell, the device clock on hardware), so a cycle's robot time is the difference between two captures.
@@ -347,6 +348,7 @@ class Picker:
         self._last_picked: Attempt | None = None
         self._failed_at = _LocationCounts(self.config.exclusion_distance_m)  # failed attempts per location
         self._nudged_at = _LocationCounts(self.config.exclusion_distance_m)
+        self._observe_height_m: float | None = None  # base z of the TCP at the observe pose, once it was there
 
     # --- the run ---------------------------------------------------------------------------------------------
     def run(self, max_cycles: int | None = None) -> RunReport:
@@ -695,8 +697,22 @@ class Picker:
         return (self.T_base_camera @ np.asarray(pose.T_camera_object))[:3, 3]
 
     def _to_observe(self) -> None:
-        if np.max(np.abs(np.asarray(self.robot.q()) - self.q_observe)) > 1e-3:
-            self.robot.move_j(self.q_observe, self.config.transit_speed_rad_s, self.config.transit_accel_rad_s2)
+        """The joint move to the observe pose. A protective stop on the way (the arm met a wall or a part leaving the
+        bin) is recovered once: let go, straight up to the observe pose's height, and the joint move again; a
+        second one needs an operator."""
+        cfg = self.config
+        try:
+            if np.max(np.abs(np.asarray(self.robot.q()) - self.q_observe)) > 1e-3:
+                self.robot.move_j(self.q_observe, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
+        except MotionFailedError as exc:
+            if not exc.recoverable or self._observe_height_m is None:
+                raise
+            log.warning("%s on the way to the observe pose (%s); recovering", _motion_cause(exc), exc)
+            self._recover()
+            self._after_recovery(self._observe_height_m)
+            self.robot.move_j(self.q_observe, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
+        if self._observe_height_m is None:
+            self._observe_height_m = float(np.asarray(self.robot.T_base_tcp())[2, 3])
 
     def _stroke(self) -> float:
         config = getattr(self.gripper, "config", None)

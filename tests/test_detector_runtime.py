@@ -277,3 +277,31 @@ def test_bad_images(seg_model: Path):
             detector.detect(bad)
     with pytest.raises(ValueError, match="non-empty"):
         detector.detect(np.zeros((0, 10, 3), np.uint8))
+
+
+def test_a_region_is_seen_at_the_whole_frames_scale(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    output0, output1 = anchors()
+    path = save_model(tmp_path / "dyn.onnx", {"output0": output0, "output1": output1}, None, [1, 3, "h", "w"])
+    detector = YoloSegDetector(path, input_size=IN)  # the 64 x 128 frame is seen at scale 0.5
+    inputs = []
+    run = detector._run
+    monkeypatch.setattr(detector, "_run", lambda blob: inputs.append(blob.shape) or run(blob))
+    image = np.zeros((IMAGE_H, IMAGE_W, 3), np.uint8)
+    full = detector.detect(image)
+    dets = detector.detect(image, roi_xyxy=(32, 16, 96, 48))
+    # the 64 x 32 region at scale 0.5 is 32 x 16, padded to the stride (32): 8 rows on top, none on the sides
+    assert inputs == [(1, 3, 32, 64), (1, 3, 32, 32)]
+    # the same network box [8, 20, 40, 32] (input pixels): x 16..80, y (20 - 8) / 0.5 = 24..48 in the region,
+    # clipped to the region (64 x 32) and moved by its corner
+    np.testing.assert_allclose(dets[0].bbox_xyxy, [48, 40, 96, 48], atol=1e-4)
+    assert len(dets) == len(full)
+    for d in dets:
+        assert d.mask.shape == (IMAGE_H, IMAGE_W)  # frame pixels, nothing outside the region
+        assert not d.mask[:16].any() and not d.mask[48:].any() and not d.mask[:, :32].any() and not d.mask[:, 96:].any()
+    # a region reaching out of the image is clipped to it; one that leaves nothing is an error
+    detector.detect(image, roi_xyxy=(-10, -10, 40, 30))
+    assert inputs[-1] == (1, 3, 32, 32)  # 40 x 30 at scale 0.5 = 20 x 15, padded to 32 x 32
+    with pytest.raises(ValueError, match=r"roi_xyxy: \[130, 0, 140, 10\] leaves nothing of a 128x64 image"):
+        detector.detect(image, roi_xyxy=(130, 0, 140, 10))
+    with pytest.raises(ValueError, match=r"roi_xyxy: expected \[x0, y0, x1, y1\]"):
+        detector.detect(image, roi_xyxy=(0, 0, 10))

@@ -481,3 +481,43 @@ def test_a_protective_stop_during_a_nudge_is_recovered_and_the_run_goes_on():
     assert robot.recovered == 1
     assert report.cycles[0].nudge["outcome"] == "protective_stop"
     assert report.stop_reason == "bin_empty" and report.n_nudges == 2 and report.n_picked == 1
+
+
+def test_a_protective_stop_on_the_way_to_the_observe_pose_is_recovered_once():
+    class StopsOnTheWayBack(FakeRobot):
+        """After its first move to the observe pose, stops on the next ``stops`` joint moves back to it."""
+
+        def __init__(self, bin_: FakeBin, stops: int) -> None:
+            super().__init__(bin_)
+            self.stops, self.been_there, self.moves_l = stops, False, []
+
+        def move_l(self, T, speed_m_s=None, accel_m_s2=None):
+            self.moves_l.append(np.array(T))
+
+        def recover(self, timeout_s=None):
+            super().recover(timeout_s)
+            self.moves_l = []  # the moves from here on
+
+        def move_j(self, q, speed_rad_s=None, accel_rad_s2=None):
+            if np.allclose(q, -1.0):
+                if self.been_there and self.stops:
+                    self.stops -= 1
+                    raise ProtectiveStopError("contact")
+                self.been_there = True
+            self.q_now = np.asarray(q)
+
+    def run(stops: int):
+        bin_ = FakeBin([0.0])
+        robot = StopsOnTheWayBack(bin_, stops)
+        gripper = FakeGripper(robot, bin_, empty_once=True)  # the first close meets nothing: back to observe
+        picker = Picker(robot, gripper, FakeCamera(), bin_, FakePlanner(), np.eye(4), np.full(6, -1.0))
+        return picker.run(), robot
+
+    report, robot = run(stops=1)
+    assert [a.outcome for a in report.attempts] == ["gripper_empty", "picked"] and robot.recovered == 1
+    assert report.stop_reason == "bin_empty"
+    assert robot.moves_l[0][2, 3] == pytest.approx(0.05)  # straight up to the observe pose's height first
+    # a second stop on the retried move: the cell needs an operator, nothing more is sent
+    report, robot = run(stops=2)
+    assert report.stop_reason == "needs_operator" and "contact" in report.stop_detail and robot.recovered == 1
+    assert len(robot.moves_l) == 1  # the move straight up, then nothing after the second stop

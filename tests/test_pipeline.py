@@ -18,6 +18,8 @@ from sygrid.bench.common import save_results
 from sygrid.errors import ConfigError
 from sygrid.writers import load_bop_item
 
+ROOT = Path(__file__).resolve().parents[1]
+
 pytestmark = [pytest.mark.slow, pytest.mark.filterwarnings("ignore:__array__ implementation:DeprecationWarning")]
 
 MANIFEST = {
@@ -178,3 +180,50 @@ def test_max_refined_refines_the_nearest_parts_until_enough_are_refined():
     assert pipeline.refine_more(more, frame) is None
     with pytest.raises(ConfigError, match="max_refined must be >= 1"):
         PerceptionPipeline(None, None, {}, refiner, max_refined=0)  # type: ignore[arg-type]
+
+
+def test_region_of_interest_is_the_box_of_the_projected_points():
+    from perception.pipeline import region_of_interest
+    from sygrid.camera import CameraIntrinsics
+
+    K = CameraIntrinsics(100.0, 100.0, 50.0, 40.0, 100, 80)
+    points = np.array([[-0.1, -0.1, 1.0], [0.1, 0.05, 1.0], [0.0, 0.0, 0.5]])  # u 40..60, v 30..45
+    assert region_of_interest(points, K, margin_px=2) == (38, 28, 62, 47)
+    assert region_of_interest(points * [5.0, 8.0, 1.0], K, margin_px=2) == (0, 0, 100, 80)  # clipped to the image
+    assert region_of_interest(points + np.array([2.0, 0.0, 0.0]), K) is None  # all of it right of the image
+
+
+def test_the_bin_box_finds_what_the_whole_frame_finds():
+    """The shipped detector on the simulated cell's first frame (seed 0): looking only at the bin's box at the same
+    scale finds the same parts, in the same places, with about the same scores."""
+    from launch.bench_cell_detector import first_frame
+    from perception.detector import YoloSegDetector
+
+    rgb, roi, _ = first_frame(ROOT / "launch" / "scenes" / "pick_bin_10_grippable.json", 0)
+    x0, y0, x1, y1 = roi
+    assert 0 < x0 < x1 < rgb.shape[1] and 0 < y0 < y1 < rgb.shape[0]
+    assert (x1 - x0) * (y1 - y0) < 0.2 * rgb.shape[0] * rgb.shape[1]  # the bin is a small part of the frame
+    detector = YoloSegDetector(ROOT / "models" / "builtin" / "detector.onnx", conf_threshold=0.4, input_size=800)
+    whole, in_bin = detector.detect(rgb), detector.detect(rgb, roi)
+    assert len(in_bin) >= 6 and abs(len(in_bin) - len(whole)) <= 1
+    matched = 0
+    for d in whole:
+        twins = [b for b in in_bin if b.obj_id == d.obj_id and np.abs(b.bbox_xyxy - d.bbox_xyxy).max() < 3.0]
+        matched += bool(twins) and abs(twins[0].score - d.score) < 0.15
+    assert matched >= len(whole) - 1
+    for d in in_bin:
+        ys, xs = np.nonzero(d.mask)
+        assert xs.min() >= x0 and xs.max() < x1 and ys.min() >= y0 and ys.max() < y1
+
+
+def test_a_region_outside_the_image_is_a_configuration_error():
+    from sygrid.camera import CameraIntrinsics
+
+    K = CameraIntrinsics(100.0, 100.0, 30.0, 20.0, 60, 40)
+    behind_the_image = np.array([[5.0, 0.0, 1.0], [6.0, 1.0, 1.0]])
+    pipeline = PerceptionPipeline(None, None, {}, None, region_camera_m=behind_the_image)  # type: ignore[arg-type]
+    frame = Frame(np.zeros((40, 60, 3), np.uint8), np.zeros((40, 60), np.float32), K, 0.0)
+    with pytest.raises(ConfigError, match=r"region of interest .* lies outside the 60x40 image; check the camera"):
+        pipeline.run(frame)
+    with pytest.raises(ConfigError, match="in front of the camera"):
+        PerceptionPipeline(None, None, {}, None, region_camera_m=-behind_the_image)  # type: ignore[arg-type]
