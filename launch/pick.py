@@ -53,7 +53,7 @@ def open_cell(
 ) -> Iterator[tuple[Picker, Any]]:
     """Starts (sim) or connects to (hardware) everything the cell file names; yields ``(picker, process)``
     (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit."""
-    from robot.grasp import GraspPlanner, PlannerConfig
+    from robot.grasp import GraspPlanner
     from robot.gripper import make_gripper
     from robot.nudge import NudgePlanner
     from robot.ur import URRobot
@@ -87,10 +87,7 @@ def open_cell(
             from robot.calibration import load_calibration
 
             T_base_camera = load_calibration(setup.resolve(d.calibration.file)).T_base_camera
-        try:
-            planner_config = PlannerConfig(**{"workspace": setup.robot.workspace, **setup.planner_overrides})
-        except (TypeError, ConfigError) as exc:
-            raise ConfigError(f"{setup.path}: [planner]: {exc}") from None
+        planner_config = setup.planner_config()
         if kind == "oracle":
             if process is None:
                 raise ConfigError(f"{setup.path}: perception 'oracle' exists only in the simulated cell")

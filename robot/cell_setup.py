@@ -11,6 +11,8 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
                   conf_threshold, detector_input_size, detect_in_bin
+    [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
+    [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
     [planner]     robot.grasp.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
     [picker]      robot.picker.PickerConfig fields
 
@@ -20,8 +22,9 @@ Relative paths are taken from the configuration file's folder. Errors name the f
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
+import numpy as np
 import tomllib
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -29,6 +32,9 @@ from robot.picker import PickerConfig
 from robot.ur_config import URConfig
 from sygrid.errors import ConfigError
 from sygrid.scene import validation_message
+
+if TYPE_CHECKING:
+    from robot.grasp import PlannerConfig
 
 
 class _Strict(BaseModel):
@@ -70,6 +76,28 @@ class PerceptionSection(_Strict):
     num_threads: int = Field(default=2, ge=1)
 
 
+Matrix4 = tuple[
+    tuple[float, float, float, float],
+    tuple[float, float, float, float],
+    tuple[float, float, float, float],
+    tuple[float, float, float, float],
+]
+
+
+class BinSection(_Strict):
+    """The bin as measured in the cell (``robot.grasp_scene.BinGeometry``): the pose of its inner floor's centre in
+    the robot base frame (z up, out of the bin) and its inner size, metres."""
+
+    T_base_bin: Matrix4
+    inner_size_m: tuple[float, float, float]
+    wall_thickness_m: float = Field(default=0.01, gt=0)
+    floor_thickness_m: float = Field(default=0.02, gt=0)
+
+
+class PlaceSection(_Strict):
+    T_base_place: Matrix4  # the TCP pose where parts are let go (tool pointing down), also where the camera looks
+
+
 class CellFile(_Strict):
     cell: CellSection
     sim: SimSection | None = None
@@ -78,6 +106,8 @@ class CellFile(_Strict):
     camera: CameraSection
     calibration: CalibrationSection
     perception: PerceptionSection = PerceptionSection()
+    bin: BinSection | None = None  # None: the simulated cell's bin
+    place: PlaceSection | None = None  # None: above the simulated cell's tray
     planner: dict[str, float | int | bool] = Field(default_factory=dict)
     picker: dict[str, float | int | None] = Field(default_factory=dict)
 
@@ -112,6 +142,26 @@ class CellSetup:
         except (TypeError, ConfigError) as exc:
             raise ConfigError(f"{where}: [picker]: {exc}") from None
         self.planner_overrides = dict(data.planner)
+        self.planner_config()  # bad [bin], [place] or [planner] fields fail here, before anything starts
+
+    def planner_config(self) -> PlannerConfig:
+        """``robot.grasp.PlannerConfig`` from [bin], [place], [planner] and the robot's workspace."""
+        from robot.grasp import PlannerConfig
+        from robot.grasp_scene import BinGeometry
+
+        d, fields = self.data, {"workspace": self.robot.workspace, **self.planner_overrides}
+        if d.bin is not None:
+            try:
+                fields["bin"] = BinGeometry(**{**d.bin.model_dump(), "T_base_bin": np.array(d.bin.T_base_bin)})
+            except ConfigError as exc:
+                raise ConfigError(f"{self.path}: [bin]: {exc}") from None
+        if d.place is not None:
+            fields["T_base_place"] = np.array(d.place.T_base_place)
+        try:
+            return PlannerConfig(**fields)
+        except (TypeError, ConfigError) as exc:
+            section = "[place]" if "T_base_place" in str(exc) else "[planner]"
+            raise ConfigError(f"{self.path}: {section}: {exc}") from None
 
     @property
     def is_sim(self) -> bool:

@@ -388,6 +388,32 @@ def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
         PickerConfig(max_cycles=0)
 
 
+def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
+    from robot.grasp import PlannerConfig
+
+    hw = load_cell_setup("launch/cells/ur5e_oak.toml").planner_config()
+    default = PlannerConfig()  # the simulated cell's bin and tray, which the hardware file starts from
+    np.testing.assert_allclose(hw.bin.T_base_bin, default.bin.T_base_bin)
+    np.testing.assert_allclose(hw.T_base_place, default.T_base_place)
+    assert hw.floor_clearance_m == 0.002 and hw.bin.inner_size_m == (0.30, 0.20, 0.12)
+    text = Path("launch/cells/ur5e_oak.toml").read_text()
+    moved = tmp_path / "moved.toml"
+    moved.write_text(text.replace("inner_size_m = [0.30, 0.20, 0.12]", "inner_size_m = [0.40, 0.30, 0.15]")
+                     .replace("[1, 0, 0, -0.5]", "[1, 0, 0, -0.45]"))  # fmt: skip
+    config = load_cell_setup(moved).planner_config()
+    assert config.bin.inner_size_m == (0.40, 0.30, 0.15) and config.bin.T_base_bin[0, 3] == -0.45
+    for old, new, where in [
+        ("[0, 0, 1, 0.02]", "[0, 0, 2, 0.02]", r"bad\.toml: \[bin\]: BinGeometry\.T_base_bin must be a 4x4 rigid"),
+        ("[0, -1, 0, -0.42]", "[0, -1, 0, -0.42, 1]", r"bad\.toml.*place\.T_base_place"),
+        ("wall_thickness_m = 0.01", "wall_thickness_m = -0.01", r"bad\.toml.*bin\.wall_thickness_m"),
+        ("floor_clearance_m = 0.002", "floor_clearance = 0.002", r"bad\.toml: \[planner\]: .*floor_clearance"),
+    ]:
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text.replace(old, new, 1))
+        with pytest.raises(ConfigError, match=where):
+            load_cell_setup(bad)
+
+
 # ---------------------------------------------------------------------------------------------- nudges
 
 
