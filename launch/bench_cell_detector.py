@@ -160,14 +160,17 @@ def chart(results: dict):
                      label=f"{folder}, {region}".strip(", "))  # fmt: skip
     for r in rows:
         ax_time.annotate(f"{r['size']} px", (r["ms_median"], r["recall"]), textcoords="offset points", xytext=(5, -10))
-        label = " @ ".join(x for x in (r.get("models", ""), f"{r['size']} px") if x) + f", {r.get('region', 'frame')}"
-        ax_pr.plot([b["recall"] for b in r["by_threshold"]], [b["precision"] for b in r["by_threshold"]],
-                   "o-" if r.get("region", "frame") == "frame" else "s--", label=label)  # fmt: skip
+    # precision against recall where the runtime detects: the bin's box (the whole frame for older results)
+    shown = [r for r in rows if r.get("region", "bin") == "bin"]
+    for r in shown:
+        ax_pr.plot([b["recall"] for b in r["by_threshold"]], [b["precision"] for b in r["by_threshold"]], "o-",
+                   label=" @ ".join(x for x in (r.get("models", ""), f"{r['size']} px") if x))  # fmt: skip
     ax_time.legend(fontsize=8)
     ax_time.set(xlabel="detector ms per frame (median)", ylabel=f"parts found at confidence {conf}",
                 title="Cell camera: recall against time")  # fmt: skip
-    ax_pr.set(xlabel="recall", ylabel="precision", title=f"Thresholds {THRESHOLDS[0]}-{THRESHOLDS[-1]}")
-    ax_pr.legend(fontsize=6, ncol=2)
+    where = ", bin box" if any("region" in r for r in shown) else ""
+    ax_pr.set(xlabel="recall", ylabel="precision", title=f"Thresholds {THRESHOLDS[0]}-{THRESHOLDS[-1]}{where}")
+    ax_pr.legend(fontsize=7)
     for ax in (ax_time, ax_pr):
         ax.grid(alpha=0.3)
     n = results["config"]["parts_seen"]
