@@ -25,6 +25,7 @@ import numpy as np
 
 from launch.bench_cell import CELL_FILE
 from robot.cell_setup import load_cell_setup
+from robot.grasp_scene import BinGeometry
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, save_results
 from sygrid.errors import ConfigError
 from sygrid.transforms import invert, transform_points
@@ -56,7 +57,8 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         raise ConfigError("--seeds >= 1, --repeats >= 1 and every --size >= 32 expected")
     folders = [setup.resolve(setup.data.perception.models_dir), *args.models]
     conf = setup.data.perception.conf_threshold or load_manifest(folders[0]).detector.conf_threshold
-    frames = [first_frame(setup.resolve(setup.data.sim.scene), seed) for seed in range(args.seeds)]
+    bin_ = setup.planner_config().bin
+    frames = [first_frame(setup.resolve(setup.data.sim.scene), seed, bin_) for seed in range(args.seeds)]
     truth_ids = np.array([obj_id for _, _, truth in frames for obj_id, _ in truth])
     rows = []
     for models_dir in folders:
@@ -91,10 +93,11 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     return 0
 
 
-def first_frame(scene: Path, seed: int) -> tuple[np.ndarray, tuple[int, int, int, int], list[tuple[int, np.ndarray]]]:
+def first_frame(
+    scene: Path, seed: int, bin_: BinGeometry
+) -> tuple[np.ndarray, tuple[int, int, int, int] | None, list[tuple[int, np.ndarray]]]:
     """The overhead RGB frame of a fresh bin, the bin's image box, and its visible parts as (obj_id, box xyxy)."""
     from perception.pipeline import region_of_interest
-    from robot.grasp import PlannerConfig
     from sim.camera import SimCamera
     from sim.cell import build_cell_world
     from sim.oracle_perception import OraclePerception
@@ -106,7 +109,7 @@ def first_frame(scene: Path, seed: int) -> tuple[np.ndarray, tuple[int, int, int
     finally:
         camera.close()
     oracle = OraclePerception(world, world.config.T_world_base, frame.T_base_camera)
-    corners = transform_points(invert(frame.T_base_camera), PlannerConfig().bin.inner_corners_base())
+    corners = transform_points(invert(frame.T_base_camera), bin_.inner_corners_base())
     roi = region_of_interest(corners, frame.intrinsics)
     return frame.rgb, roi, [(d.obj_id, d.bbox_xyxy) for d in oracle.run(frame).detections]
 

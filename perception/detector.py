@@ -160,7 +160,6 @@ def assemble_mask(
     return mask
 
 
-# ---------------------------------------------------------------------------------------------------- metadata
 def _to_frame(detection: Detection, offset_xy: tuple[int, int], frame_hw: tuple[int, int]) -> Detection:
     """A detection made in a region of the frame, in the frame's pixels."""
     x0, y0 = offset_xy
@@ -173,6 +172,7 @@ def _to_frame(detection: Detection, offset_xy: tuple[int, int], frame_hw: tuple[
     return Detection(detection.class_index, detection.obj_id, detection.score, box, mask)
 
 
+# ---------------------------------------------------------------------------------------------------- metadata
 def _literal(value: str, key: str, path: Path) -> object:
     try:
         return ast.literal_eval(value)

@@ -198,8 +198,10 @@ def test_the_bin_box_finds_what_the_whole_frame_finds():
     scale finds the same parts, in the same places, with about the same scores."""
     from launch.bench_cell_detector import first_frame
     from perception.detector import YoloSegDetector
+    from robot.cell_setup import load_cell_setup
 
-    rgb, roi, _ = first_frame(ROOT / "launch" / "scenes" / "pick_bin_10_grippable.json", 0)
+    bin_ = load_cell_setup(ROOT / "launch" / "cells" / "sim.toml").planner_config().bin
+    rgb, roi, _ = first_frame(ROOT / "launch" / "scenes" / "pick_bin_10_grippable.json", 0, bin_)
     x0, y0, x1, y1 = roi
     assert 0 < x0 < x1 < rgb.shape[1] and 0 < y0 < y1 < rgb.shape[0]
     assert (x1 - x0) * (y1 - y0) < 0.2 * rgb.shape[0] * rgb.shape[1]  # the bin is a small part of the frame
