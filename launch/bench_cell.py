@@ -419,10 +419,11 @@ def chart(results: dict[str, Any]):
     causes = sorted({c for r in variants.values() for c in r["left_by_cause"]})
     names = list(variants)
     bottom = np.zeros(len(names))
-    colours = matplotlib.colormaps["tab20"].colors  # more causes than tab10's colours: no two alike
+    colours = matplotlib.colormaps["tab20"].colors  # more causes than tab10's colours
     for k, cause in enumerate(causes):
         vals = np.array([variants[n]["left_by_cause"].get(cause, 0) / max(variants[n]["n_parts"], 1) for n in names])
-        ax_left.barh(names, 100 * vals, left=100 * bottom, label=cause, color=colours[k % len(colours)])
+        hatch = (None, "//", "..")[k // len(colours) % 3]  # past 20 causes the colours come back hatched
+        ax_left.barh(names, 100 * vals, left=100 * bottom, label=cause, color=colours[k % len(colours)], hatch=hatch)
         bottom += vals
     ax_left.set(xlabel="% of the parts left in the bin, by part and planner reason", title="what was left")
     if causes:

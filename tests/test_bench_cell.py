@@ -47,6 +47,15 @@ def test_report_and_chart_from_partial_results():
     assert figure.axes[0].get_title() == "1 bin(s) per variant"  # what was measured, not what was asked for
 
 
+def test_every_cause_left_in_the_bin_has_its_own_look_in_the_chart():
+    causes = {f"part_{k}: why_{k}": 1 for k in range(25)}  # more than tab20's colours
+    variants = {"models": {"description": "", **summarize([_bin(0, 10, 0, 0, [], "nothing_safe", causes)])}}
+    figure = chart({"targets": TARGETS, "seeds": [0], "seeds_done": [0], "variants": variants})
+    bars = next(a for a in figure.axes if a.get_legend() and len(a.get_legend().get_texts()) == 25)
+    looks = {(tuple(h.get_facecolor()), h.get_hatch()) for h in bars.get_legend().legend_handles}
+    assert len(looks) == 25
+
+
 def test_cell_detector_recall_and_precision_on_hand_made_detections():
     import numpy as np
 
