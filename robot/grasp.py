@@ -1039,10 +1039,30 @@ class GraspPlanner:
         cfg = self.config
         if cfg.bin is None:
             return depth_points(depth_m, intrinsics, T_base_camera, cfg.depth_stride_px)
+        return transform_points(cfg.bin.T_base_bin, self._pile_points_bin(depth_m, intrinsics, T_base_camera))
+
+    def _pile_points_bin(
+        self, depth_m: np.ndarray, intrinsics: CameraIntrinsics | np.ndarray, T_base_camera: np.ndarray
+    ) -> np.ndarray:
+        cfg = self.config
+        assert cfg.bin is not None
         T_bin_camera = invert(cfg.bin.T_base_bin) @ T_base_camera
         points_bin = depth_points(depth_m, intrinsics, T_bin_camera, cfg.depth_stride_px)
-        points_bin = points_bin[cfg.bin.in_pile_bin_frame(points_bin, cfg.bin_surface_tolerance_m)]
-        return transform_points(cfg.bin.T_base_bin, points_bin)
+        return points_bin[cfg.bin.in_pile_bin_frame(points_bin, cfg.bin_surface_tolerance_m)]
+
+    def pile_area_m2(
+        self, depth_m: np.ndarray, intrinsics: CameraIntrinsics | np.ndarray, T_base_camera: np.ndarray
+    ) -> float:
+        """How much of the bin the depth frame shows covered by something above its floor (m2: the footprints of
+        the depth pixels more than ``bin_surface_tolerance_m`` off the floor and walls, at their distance from the
+        camera). What tells an empty bin from one holding parts the detector does not find; 0 without a bin."""
+        if self.config.bin is None:
+            return 0.0
+        points_bin = self._pile_points_bin(depth_m, intrinsics, T_base_camera)
+        K = intrinsics.K if isinstance(intrinsics, CameraIntrinsics) else np.asarray(intrinsics, dtype=float)
+        camera_bin = (invert(self.config.bin.T_base_bin) @ T_base_camera)[:3, 3]
+        distance2 = np.sum((points_bin - camera_bin) ** 2, axis=1)
+        return float(distance2.sum() * self.config.depth_stride_px**2 / (K[0, 0] * K[1, 1]))
 
     def surface_base(self, part: PartEstimate) -> np.ndarray | None:
         """``(n, 3)`` a sample of the part's surface in the base frame (None: no model for its id)."""

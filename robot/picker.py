@@ -29,11 +29,11 @@ close to a wall or a neighbour for the fingers, the picker nudges it (``robot.nu
 the closed fingers) and looks again: at most ``max_nudges`` per run and ``max_nudges_per_part`` at one location. A
 part whose location has seen ``max_failures_per_part`` failed attempts (within ``exclusion_distance_m``: a part that
 moved is a new chance) is left out of planning, so one stubborn part cannot make the run loop. The run stops cleanly
-when the camera sees no parts ("bin_empty"), when no safe grasp is left ("nothing_safe", with the planner's
-reasons), when every part left has been given up ("gave_up"), when the fingers cannot be freed ("gripper_blocked"),
-after ``max_cycles``, after ``max_failed_cycles`` cycles in a row without a pick, or when a stop cannot be released
-by the cell itself (an emergency stop, a protective stop that does not release: "needs_operator", nothing more is
-sent, the cycles so far are kept in the report).
+when the camera sees no parts ("bin_empty"; "parts_unseen" when the depth shows the bin is not empty), when no safe
+grasp is left ("nothing_safe", with the planner's reasons), when every part left has been given up ("gave_up"), when
+the fingers cannot be freed ("gripper_blocked"), after ``max_cycles``, after ``max_failed_cycles`` cycles in a row
+without a pick, or when a stop cannot be released by the cell itself (an emergency stop, a protective stop that does
+not release: "needs_operator", nothing more is sent, the cycles so far are kept in the report).
 
 Times: stage timings are wall seconds; ``sim_time_s`` is the camera's timestamp (simulated seconds in the
 simulated cell, the device clock on hardware), so a cycle's robot time is the difference between two captures.
@@ -67,6 +67,7 @@ STAGES = ("capture", "perceive", "plan", "approach", "grasp", "verify", "place",
 #: Why a run stopped.
 STOP_REASONS = (
     "bin_empty",
+    "parts_unseen",  # no detections, but the depth shows something in the bin
     "nothing_safe",
     "gave_up",
     "gripper_blocked",
@@ -153,6 +154,8 @@ class PlannerLike(Protocol):
         q_seed: np.ndarray | None = None,
     ) -> Any: ...
 
+    def pile_area_m2(self, depth_m: np.ndarray, intrinsics: Any, T_base_camera: np.ndarray) -> float: ...
+
 
 # ---------------------------------------------------------------------------------------------- config & records
 
@@ -175,6 +178,9 @@ class PickerConfig:
     the place pose before the part counts as stuck. reconnect_timeout_s: how long recovery keeps trying to reach a
     controller that does not answer (a network link that is down). max_nudges / max_nudges_per_part: nudges per
     run (0: never nudge) and per location (within ``exclusion_distance_m``); a nudge is not a failed cycle.
+    min_unseen_area_m2: with no detections, a bin whose depth shows at least this much of it covered (something
+    above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find: the run stops with
+    "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top seen from above.
     """
 
     max_cycles: int = 50
@@ -197,6 +203,7 @@ class PickerConfig:
     reconnect_timeout_s: float = 30.0
     max_nudges: int = 8
     max_nudges_per_part: int = 2
+    min_unseen_area_m2: float = 1e-4
 
     def __post_init__(self) -> None:
         for name in (
@@ -213,7 +220,7 @@ class PickerConfig:
             raise ConfigError(f"PickerConfig.max_nudges must be an integer >= 0, got {self.max_nudges!r}")
         for name in (
             "slip_width_tolerance_m", "still_there_distance_m", "exclusion_distance_m", "open_tolerance_m",
-            "open_timeout_s", "slip_settle_s", "reconnect_timeout_s",
+            "open_timeout_s", "slip_settle_s", "reconnect_timeout_s", "min_unseen_area_m2",
         ):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"PickerConfig.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -369,7 +376,7 @@ class Picker:
             if cycles and cycles[-1].sim_cycle_s is None:
                 cycles[-1].sim_cycle_s = record.sim_time_s - cycles[-1].sim_time_s
             cycles.append(record)
-            if record.end in ("bin_empty", "nothing_safe", "gave_up", "gripper_blocked"):
+            if record.end in ("bin_empty", "parts_unseen", "nothing_safe", "gave_up", "gripper_blocked"):
                 return self._finish(cycles, record.end, record.plan_summary)
             if record.end != "nudged":  # a nudge is neither a pick nor a failure
                 failed_in_row = 0 if record.picked else failed_in_row + 1
@@ -388,8 +395,8 @@ class Picker:
     # --- one cycle -------------------------------------------------------------------------------------------
     def cycle(self, index: int = 0) -> CycleRecord:
         """capture -> perceive -> plan -> (approach -> grasp -> verify -> place) per planned grasp until one
-        picks; returns the record (``end``: "picked", "failed", or a stop reason: "bin_empty", "nothing_safe",
-        "gave_up", "gripper_blocked")."""
+        picks; returns the record (``end``: "picked", "failed", "nudged", or a stop reason: "bin_empty",
+        "parts_unseen", "nothing_safe", "gave_up", "gripper_blocked")."""
         t = time.perf_counter()
         frame = self.camera.capture()
         record = CycleRecord(index=index, sim_time_s=float(frame.timestamp_s))
@@ -405,7 +412,15 @@ class Picker:
 
         try:
             if not result.poses:
-                record.end, record.plan_summary = "bin_empty", "the camera sees no parts (no detections)"
+                covered = self.planner.pile_area_m2(frame.depth_m, frame.intrinsics, self.T_base_camera)
+                if covered >= self.config.min_unseen_area_m2:
+                    record.end = "parts_unseen"
+                    record.plan_summary = (
+                        f"the camera sees no parts, but the depth shows {1e4 * covered:.1f} cm2 of the bin covered: "
+                        "parts the detector does not find"
+                    )
+                else:
+                    record.end, record.plan_summary = "bin_empty", "the camera sees no parts (no detections)"
                 return record
             poses, excluded = self._split_given_up(result.poses)
             if not poses:

@@ -692,3 +692,16 @@ def test_a_pose_whose_depth_refinement_was_refused_is_not_picked(planner):
     detection = Detection(0, 1, 0.9, np.array([0.0, 0.0, 10.0, 10.0]))
     kept = ObjectPose(detection, np.eye(4), 0.9, "direct", {"icp": {"status": "kept_initial"}})
     assert not planner.plan([kept], T_base_nut).grasps  # the status travels from the pose into the plan
+
+
+def test_the_covered_area_of_the_bin_tells_an_empty_bin_from_unseen_parts(planner):
+    """``pile_area_m2`` (the picker's check when nothing is detected): the top of a gear lying flat, seen from
+    above, against the empty bin's floor."""
+    T_base_camera = make_T(np.diag([1.0, -1.0, -1.0]), (-0.5, 0.0, 0.52))
+    K = CameraIntrinsics.from_fov(160, 120, 40.0)
+    empty = _render_depth([], K, T_base_camera)
+    assert planner.pile_area_m2(empty, K, T_base_camera) == 0.0
+    gear = builtin_part("spur_gear")
+    with_gear = _render_depth([(gear, _flat("spur_gear", -0.52, 0.01))], K, T_base_camera)
+    disc_m2 = np.pi * (max(gear.mesh.extents) / 2) ** 2  # lying flat, its outline is about its tip circle
+    assert planner.pile_area_m2(with_gear, K, T_base_camera) == pytest.approx(disc_m2, rel=0.15)  # 7.8 / 8.5 cm2

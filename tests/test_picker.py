@@ -68,6 +68,9 @@ class FakePlanner:
         summary = "nothing safe: part 0: unreachable" if self.nothing_safe else f"{len(grasps)} grasps"
         return type("P", (), {"grasps": grasps, "nothing_safe": not grasps, "summary": lambda self: summary})()
 
+    def pile_area_m2(self, depth_m, intrinsics, T_base_camera):
+        return 0.0  # the fake camera's depth shows an empty bin
+
 
 class FakeRobot:
     def __init__(self, bin_: FakeBin, refuse_x: float | None = None, stop_once_x: float | None = None) -> None:
@@ -547,3 +550,16 @@ def test_a_protective_stop_on_the_way_to_the_observe_pose_is_recovered_once():
     report, robot = run(stops=2)
     assert report.stop_reason == "needs_operator" and "contact" in report.stop_detail and robot.recovered == 1
     assert len(robot.moves_l) == 1  # the move straight up, then nothing after the second stop
+
+
+def test_no_detections_in_a_bin_the_depth_shows_is_not_empty_stops_as_parts_unseen():
+    class CoveredBin(FakePlanner):
+        def pile_area_m2(self, depth_m, intrinsics, T_base_camera):
+            return 3e-4  # a nut's top
+
+    bin_ = FakeBin([])
+    picker, _ = make_picker(bin_, CoveredBin())
+    report = picker.run()
+    assert report.stop_reason == "parts_unseen" and "3.0 cm2 of the bin covered" in report.stop_detail
+    picker, _ = make_picker(FakeBin([]), CoveredBin(), PickerConfig(min_unseen_area_m2=5e-4))
+    assert picker.run().stop_reason == "bin_empty"
