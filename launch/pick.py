@@ -186,6 +186,16 @@ def write_report(
 
 
 def save_report_picture(report: RunReport, shot: SceneShot, models: Any, path: Path) -> Path:
+    """``report_figure`` saved as a PNG."""
+    fig = report_figure(report, shot, models)  # selects the Agg backend before pyplot is imported here
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def report_figure(report: RunReport, shot: SceneShot, models: Any) -> Any:
     """Per-cycle stage timeline (wall s, stacked bars) beside the first frame with the estimated poses drawn."""
     import matplotlib
 
@@ -205,6 +215,7 @@ def save_report_picture(report: RunReport, shot: SceneShot, models: Any, path: P
         mark = "ok" if c.picked else c.end.replace("_", " ")
         ax_t.text(c.index, bottom[c.index], mark, ha="center", va="bottom", fontsize=7, rotation=90)
     ax_t.set(xlabel="cycle", ylabel="wall time [s]", title=f"pick cycles ({report.stop_reason})")
+    ax_t.set_ylim(0.0, 1.2 * max(float(bottom.max(initial=0.0)), 1e-3))  # room for the labels above the bars
     ax_t.legend(fontsize=7, ncols=2)
     if shot.frame is not None:
         img = shot.frame.rgb.copy()
@@ -220,6 +231,4 @@ def save_report_picture(report: RunReport, shot: SceneShot, models: Any, path: P
         ax_i.set_title(f"first frame: {len(shot.poses)} estimated pose(s)")
     ax_i.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig

@@ -563,3 +563,14 @@ def test_no_detections_in_a_bin_the_depth_shows_is_not_empty_stops_as_parts_unse
     assert report.stop_reason == "parts_unseen" and "3.0 cm2 of the bin covered" in report.stop_detail
     picker, _ = make_picker(FakeBin([]), CoveredBin(), PickerConfig(min_unseen_area_m2=5e-4))
     assert picker.run().stop_reason == "bin_empty"
+
+
+def test_the_report_picture_keeps_the_cycle_labels_inside_the_axes(tmp_path):
+    from launch.pick import SceneShot, report_figure, save_report_picture
+    from robot.picker import CycleRecord, RunReport
+
+    cycles = [CycleRecord(k, 5.0 * k, {"approach": 3.0 + 4.0 * (k == 1), "place": 1.0}, end="failed") for k in range(3)]
+    report = RunReport(cycles, "nothing_safe", "")
+    timeline = report_figure(report, SceneShot(), {}).axes[0]
+    assert timeline.get_ylim()[1] >= 1.2 * 8.0  # the tallest bar (8 s) with room for its label
+    assert save_report_picture(report, SceneShot(), {}, tmp_path / "report.png").stat().st_size > 0
