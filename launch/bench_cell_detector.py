@@ -28,7 +28,6 @@ from robot.cell_setup import load_cell_setup
 from robot.grasp_scene import BinGeometry
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, save_results
 from sygrid.errors import ConfigError
-from sygrid.transforms import invert, transform_points
 
 SIZES = (480, 640, 800, 960)
 REGIONS = ("frame", "bin")
@@ -109,8 +108,7 @@ def first_frame(
     finally:
         camera.close()
     oracle = OraclePerception(world, world.config.T_world_base, frame.T_base_camera)
-    corners = transform_points(invert(frame.T_base_camera), bin_.inner_corners_base())
-    roi = region_of_interest(corners, frame.intrinsics)
+    roi = region_of_interest(bin_.inner_corners_camera(frame.T_base_camera), frame.intrinsics)
     return frame.rgb, roi, [(d.obj_id, d.bbox_xyxy) for d in oracle.run(frame).detections]
 
 

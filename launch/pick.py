@@ -24,7 +24,6 @@ import numpy as np
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.picker import STAGES, Picker, RunReport
 from sygrid.errors import ConfigError
-from sygrid.transforms import transform_points
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +107,7 @@ def open_cell(
             )  # fmt: skip
             region = None
             if d.perception.detect_in_bin and planner_config.bin is not None:
-                region = transform_points(np.linalg.inv(T_base_camera), planner_config.bin.inner_corners_base())
+                region = planner_config.bin.inner_corners_camera(T_base_camera)
             perception = PerceptionPipeline.from_folder(models_dir, overrides, region_camera_m=region)
             models = perception.models
         planner = GraspPlanner(models, planner_config)

@@ -68,11 +68,11 @@ class BinGeometry:
         halves = np.array([h for _, h in walls], dtype=float)
         return centres, np.broadcast_to(self.T_base_bin[:3, :3], (4, 3, 3)).copy(), halves
 
-    def inner_corners_base(self) -> np.ndarray:
-        """(8, 3) the corners of the inner volume (floor and rim) in the base frame: where parts can be."""
+    def inner_corners_camera(self, T_base_camera: np.ndarray) -> np.ndarray:
+        """(8, 3) the corners of the inner volume (floor and rim), where parts can be, in the camera frame."""
         hx, hy, hz = np.asarray(self.inner_size_m) / 2.0
         corners = np.array([(x, y, z) for x in (-hx, hx) for y in (-hy, hy) for z in (0.0, 2.0 * hz)])
-        return transform_points(self.T_base_bin, corners)
+        return transform_points(invert(T_base_camera) @ self.T_base_bin, corners)
 
     def height_above_floor_m(self, points_base: np.ndarray) -> np.ndarray:
         """(...,) signed height of points ``(..., 3)`` above the inner floor's plane."""
