@@ -61,9 +61,7 @@ def letterbox_geometry(image_hw: tuple[int, int], input_hw: tuple[int, int], str
     pad_h, pad_w = in_h - new_h, in_w - new_w
     if stride is not None:
         pad_h, pad_w = pad_h % stride, pad_w % stride
-    # Centre the image; the 0.1 breaks ties so that an odd padding puts the extra pixel at the bottom/right.
-    top, left = round(pad_h / 2 - 0.1), round(pad_w / 2 - 0.1)
-    return Letterbox((h, w), (new_h + pad_h, new_w + pad_w), (new_h, new_w), int(left), int(top))
+    return _centred((h, w), (new_h, new_w), (pad_h, pad_w))
 
 
 def letterbox_at_scale(image_hw: tuple[int, int], scale: float, stride: int) -> Letterbox:
@@ -71,9 +69,15 @@ def letterbox_at_scale(image_hw: tuple[int, int], scale: float, stride: int) -> 
     model with a dynamic input sees a region of a frame at the scale it sees the whole frame at."""
     h, w = image_hw
     new_h, new_w = max(1, round(h * scale)), max(1, round(w * scale))
-    pad_h, pad_w = -new_h % stride, -new_w % stride
-    top, left = round(pad_h / 2 - 0.1), round(pad_w / 2 - 0.1)  # the same tie-break as letterbox_geometry
-    return Letterbox((h, w), (new_h + pad_h, new_w + pad_w), (new_h, new_w), int(left), int(top))
+    return _centred((h, w), (new_h, new_w), (-new_h % stride, -new_w % stride))
+
+
+def _centred(image_hw: tuple[int, int], resized_hw: tuple[int, int], pad_hw: tuple[int, int]) -> Letterbox:
+    """The resized image centred in its padding; the 0.1 breaks ties so that an odd padding puts the extra pixel at
+    the bottom/right."""
+    (new_h, new_w), (pad_h, pad_w) = resized_hw, pad_hw
+    top, left = round(pad_h / 2 - 0.1), round(pad_w / 2 - 0.1)
+    return Letterbox(image_hw, (new_h + pad_h, new_w + pad_w), resized_hw, int(left), int(top))
 
 
 def letterbox(image: np.ndarray, geometry: Letterbox, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
