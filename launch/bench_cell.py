@@ -84,6 +84,11 @@ VARIANTS: dict[str, Variant] = {
         "models", "the cell file's models; pad tips 2 mm above the bin floor (not 1 mm)", {"floor_clearance_m": 0.002}
     ),
     "models_no_nudge": Variant("models", "the cell file's models; no nudges", picker={"max_nudges": 0}),
+    "models_planned_width": Variant(
+        "models",
+        "the cell file's models; a part held at another width than the planned one is dropped back (slipped)",
+        picker={"hold_any_width": False},
+    ),
     "models_refine": Variant("models", "trained models, with depth refinement", refine=True),
     "models_norefine": Variant("models", "trained models, without depth refinement", refine=False),
     "models_480": Variant("models", "trained models, detector at its training size 480 px", detector_input_size=480),
@@ -151,7 +156,8 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
             bins[name].append(outcome)
             print(
                 f"{name} seed {seed}: {outcome['n_parts'] - outcome['n_left']}/{outcome['n_parts']} parts out, "
-                f"{outcome['n_picked']}/{outcome['n_tried']} attempts picked, {outcome['stop_reason']} "
+                f"{outcome['n_picked']}/{outcome['n_tried']} attempts picked, {outcome['n_in_tray']} in the tray, "
+                f"{outcome['stop_reason']} "
                 f"({time.perf_counter() - start:.0f} s)",
                 flush=True,
             )
@@ -281,6 +287,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         T_end = process.part_poses()
     cell = CellConfig()
     in_start, in_end = _in_bin(T_start, cell), _in_bin(T_end, cell)
+    in_tray = _in_box(T_end, cell.T_world_tray, cell.tray_inner_size_m) & in_start
     left = Counter(k for k, inside in zip(kinds, in_end, strict=True) if inside)
     total = Counter(k for k, inside in zip(kinds, in_start, strict=True) if inside)
     left_why: Counter[str] = Counter()
@@ -302,6 +309,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "n_parts": int(in_start.sum()),
         "n_left": int(in_end.sum()),
         "n_picked": report.n_picked,
+        "n_in_tray": int(in_tray.sum()),
         "n_tried": sum(a.outcome != "motion_refused" for a in report.attempts),
         "failures": report.failures_by_cause(),
         "nudges": [c.nudge["outcome"] for c in cycles if c.nudge is not None],
@@ -327,8 +335,14 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
 
 def _in_bin(T_world_obj: np.ndarray, cell: Any) -> np.ndarray:
     """``(n,)`` which parts lie in the cell's bin (inner footprint, below twice its height)."""
-    p = (np.linalg.inv(cell.T_world_bin) @ T_world_obj)[:, :3, 3]
-    half = np.array(cell.bin_inner_size_m) / 2
+    return _in_box(T_world_obj, cell.T_world_bin, cell.bin_inner_size_m)
+
+
+def _in_box(T_world_obj: np.ndarray, T_world_box: np.ndarray, inner_size_m: tuple[float, ...]) -> np.ndarray:
+    """``(n,)`` which parts lie in an open box (a bin, the tray; pose of its inner floor's centre): inside its inner
+    footprint, below twice its height."""
+    p = (np.linalg.inv(T_world_box) @ T_world_obj)[:, :3, 3]
+    half = np.array(inner_size_m) / 2
     return (np.abs(p[:, 0]) < half[0]) & (np.abs(p[:, 1]) < half[1]) & (p[:, 2] > -0.01) & (p[:, 2] < 4 * half[2])
 
 
@@ -353,6 +367,9 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "n_parts": n_parts,
         "n_left": n_left,
         "n_picked": n_picked,
+        # ground truth: parts from the bin that lie in the tray at the end (a part the picker counts as picked that
+        # fell on the way is missing here)
+        "n_in_tray": sum(b.get("n_in_tray", 0) for b in bins),
         "n_attempts": n_tried,
         "cycle_median_s": median(cycle),
         "cycle_p90_s": percentile(cycle, 90),
@@ -390,7 +407,10 @@ def format_results(results: dict[str, Any]) -> str:
             f"{name}: failures {r['failures_by_cause'] or 'none'}; nudges {r.get('nudges_by_outcome') or 'none'}; "
             f"stops {r['stop_reasons']}"
         )
-        lines.append(f"{name}: cleared by kind {r['cleared_by_kind']}")
+        lines.append(
+            f"{name}: cleared by kind {r['cleared_by_kind']}; picked {r['n_picked']}, "
+            f"in the tray {r.get('n_in_tray', '-')}"
+        )
         lines.append(f"{name}: left in the bin {r['left_by_cause'] or 'nothing'}")
     return "\n".join(lines)
 

@@ -290,9 +290,11 @@ class PlannedGrasp:
     part_index: index of the part in the planner's input. opening_width_m: open the gripper to this before it
     reaches the pre-grasp (the approach was checked with the fingers at this opening: fully open they may hit the
     bin or a neighbour). grasp_width_m: the part's width between the pads (the gripper should stop about there when it
-    closes on the part). backoff_m: how far the grasp was moved back along the approach from the candidate to clear
-    the floor or neighbours. engagement_m: the length of pad that holds the part. clearance_m: distance from the
-    open fingers (at the grasp) to the nearest obstacle (capped at the saturation). score_terms: the score's terms.
+    closes on the part). min_hold_width_m: the narrowest of the part's candidate widths: a part that turns in the
+    closing fingers, or whose estimate was off, is held at another of its widths, not lost. backoff_m: how far the
+    grasp was moved back along the approach from the candidate to clear the floor or neighbours. engagement_m: the
+    length of pad that holds the part. clearance_m: distance from the open fingers (at the grasp) to the nearest
+    obstacle (capped at the saturation). score_terms: the score's terms.
     """
 
     part_index: int
@@ -309,6 +311,7 @@ class PlannedGrasp:
     q_place: np.ndarray
     opening_width_m: float
     grasp_width_m: float
+    min_hold_width_m: float
     approach_angle_deg: float
     backoff_m: float
     engagement_m: float
@@ -818,6 +821,7 @@ class GraspPlanner:
                     q_place=q_place,
                     opening_width_m=float(r["opening"][k]),
                     grasp_width_m=float(r["width"][k]),
+                    min_hold_width_m=float(self._models[ev.part.obj_id].grasps.width_m.min()),
                     approach_angle_deg=float(np.degrees(r["angle"][k])),
                     backoff_m=float(r["backoff"][k]),
                     engagement_m=float(r["engagement"][k]),

@@ -12,9 +12,11 @@ One cycle (``Picker.cycle``) takes one frame, estimates the parts, plans, and tr
   straight lines to the pre-grasp and the grasp;
 - ``grasp``: close; the gripper's object detection must say "held" (False: closed on air or the part slid away;
   the gripper opens and backs out along the approach to the lift);
-- ``verify``: straight line back out to the lift; the fingers must not have closed below the planned grasp width
-  less ``slip_width_tolerance_m`` (the part slipped out), and the gripper must report the object again, or its
-  fingers rest at that width, within ``slip_settle_s``;
+- ``verify``: straight line back out to the lift; the fingers must not have closed below the narrowest width the
+  part can be held at less ``slip_width_tolerance_m`` (the part slipped out), and the gripper must report the object
+  again, or its fingers rest where they are, within ``slip_settle_s``. A part held at another of its widths than the
+  planned one (it turned in the closing fingers, or its estimate was off: a nut across its faces, not its flats) is
+  in the gripper and is placed; the attempt's detail says so;
 - ``place``: joint move to the place pose, open, and check that the fingers opened: a part that keeps them from
   opening is still in the gripper (``not_released``; the run stops with "gripper_blocked" if re-opening does not
   free it). The look after lifting is the next cycle's frame (the arm is then clear of the camera): if a part of
@@ -168,7 +170,10 @@ class PickerConfig:
     transit_speed_rad_s: joint moves (to the lift,
     to the place pose). grip_force_n: closing force (None: the gripper's default). max_attempts_per_cycle: planned
     grasps tried in one cycle before looking again. slip_width_tolerance_m: after lifting, an opening smaller than
-    the planned grasp width less this means the part slipped out; slip_settle_s: how long the gripper may report
+    the narrowest width the part can be held at (``hold_any_width``; else the planned grasp width) less this means
+    the part slipped out; hold_any_width: a part held at another of its widths than the planned one is held (False:
+    only near the planned width; the fingers closing on a nut's faces instead of its flats then drop it back into
+    the bin as "slipped"); slip_settle_s: how long the gripper may report
     no object (its fingers settling) before the part counts as lost. still_there_distance_m: a part of the same model
     this close to a picked one in the next frame means the pick failed. max_failures_per_part /
     exclusion_distance_m: after this many failed attempts on parts of one model within this distance of each other,
@@ -193,6 +198,7 @@ class PickerConfig:
     transit_accel_rad_s2: float | None = 3.0
     grip_force_n: float | None = None
     slip_width_tolerance_m: float = 0.004
+    hold_any_width: bool = True
     slip_settle_s: float = 0.5
     still_there_distance_m: float = 0.01
     max_failures_per_part: int = 2
@@ -519,10 +525,15 @@ class Picker:
             stage = "verify"
             with timer("verify"):
                 self.robot.move_l(grasp.T_base_lift, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
-                why = self._slip_reason(grasp)
+                why, width = self._slip_reason(grasp)
             if why:
                 self._open_to(None)
                 return _fail(attempt, "slipped", stage, why)
+            if width is not None and width < grasp.grasp_width_m - cfg.slip_width_tolerance_m:
+                attempt.detail = (
+                    f"held at {1e3 * width:.1f} mm, not at the planned {1e3 * grasp.grasp_width_m:.1f} mm: the part "
+                    "turned in the fingers or its estimate was off"
+                )
             stage = "place"
             with timer("place"):
                 self.robot.move_j(grasp.q_place, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
@@ -592,32 +603,36 @@ class Picker:
         return True
 
     # --- helpers ---------------------------------------------------------------------------------------------
-    def _slip_reason(self, grasp: Any) -> str:
-        """Why the part is not in the gripper after lifting ("" when it is).
+    def _slip_reason(self, grasp: Any) -> tuple[str, float | None]:
+        """Why the part is not in the gripper after lifting ("" when it is), and the fingers' last width.
 
-        Fingers closed well below the part's width say so at once. Otherwise the part is held when the gripper
-        reports an object, or when the fingers rest at the part's width (no change over ``_WIDTH_STEADY_S``): the
-        emulated 2F-85 reads "moving" (no object) much of the time while its stiff pads hold a part, from the
-        jitter of the finger speed. Neither within ``slip_settle_s``: the object is lost."""
-        deadline = time.monotonic() + self.config.slip_settle_s
+        Fingers closed below the narrowest width the part can be held at (``PickerConfig.hold_any_width``) say so at
+        once. Otherwise the part is held when the gripper reports an object, or when the fingers rest where they
+        are (no change over ``_WIDTH_STEADY_S``): the emulated 2F-85 reads "moving" (no object) much of the time
+        while its stiff pads hold a part, from the jitter of the finger speed. Neither within ``slip_settle_s``:
+        the object is lost."""
+        cfg = self.config
+        narrowest = min(grasp.min_hold_width_m, grasp.grasp_width_m) if cfg.hold_any_width else grasp.grasp_width_m
+        deadline = time.monotonic() + cfg.slip_settle_s
         steady_since, last_width = time.monotonic(), None
         while True:
             detected = self.gripper.object_detected()
             width = self.gripper.width_m()
             now = time.monotonic()
-            if width is not None and width < grasp.grasp_width_m - self.config.slip_width_tolerance_m:
-                return (
-                    f"the fingers closed to {1e3 * width:.1f} mm, the part is {1e3 * grasp.grasp_width_m:.1f} mm wide"
-                )
+            if width is not None and width < narrowest - cfg.slip_width_tolerance_m:
+                why = f"the fingers closed to {1e3 * width:.1f} mm, the part is {1e3 * grasp.grasp_width_m:.1f} mm wide"
+                if narrowest < grasp.grasp_width_m:
+                    why += f" ({1e3 * narrowest:.1f} mm at its narrowest hold)"
+                return why, width
             if detected is not False:
-                return ""
+                return "", width
             if width is not None and last_width is not None and abs(width - last_width) > _WIDTH_STEADY_M:
                 steady_since = now
             last_width = width
             if width is not None and now - steady_since >= _WIDTH_STEADY_S:
-                return ""
+                return "", width
             if now > deadline:
-                return "the gripper no longer reports an object after lifting"
+                return "the gripper no longer reports an object after lifting", width
             time.sleep(0.02)
 
     def _back_out(self, grasp: Any, timer: _StageTimer) -> None:

@@ -15,7 +15,7 @@ from sygrid.fileio import write_json_atomic
 
 def _bin(seed: int, n_left: int, picked: int, tried: int, cycles: list[float], stop: str, left_why: dict) -> dict:
     return {
-        "seed": seed, "n_parts": 10, "n_left": n_left, "n_picked": picked, "n_tried": tried,
+        "seed": seed, "n_parts": 10, "n_left": n_left, "n_picked": picked, "n_tried": tried, "n_in_tray": picked - 1,
         "failures": {"gripper_empty": tried - picked} if tried > picked else {}, "stop_reason": stop,
         "parts_by_kind": {"hex_nut": 6, "pipe": 4}, "left_by_kind": {"hex_nut": n_left},
         "left_why": left_why, "cycle_s": cycles, "perceive_plan_ms": [100.0 * (k + 1) for k in range(len(cycles))],
@@ -31,12 +31,30 @@ def test_summary_counts_parts_picks_cycles_and_causes():
     s = summarize(bins)
     assert s["parts_cleared"] == pytest.approx(18 / 20) and s["pick_success_rate"] == pytest.approx(18 / 19)
     assert s["cycle_median_s"] == pytest.approx(5.5) and s["perceive_plan_median_ms"] == pytest.approx(150.0)
-    assert s["failures_by_cause"] == {"gripper_empty": 1}
+    assert s["failures_by_cause"] == {"gripper_empty": 1} and s["n_in_tray"] == 16
     assert s["stop_reasons"] == {"nothing_safe": 1, "bin_empty": 1}
     assert s["cleared_by_kind"] == {"hex_nut": "10/12", "pipe": "8/8"}
     assert s["left_by_cause"] == {"hex_nut: collision_bin": 2}
     empty = summarize([_bin(2, 10, 0, 0, [], "nothing_safe", {})])
     assert math.isnan(empty["pick_success_rate"]) and math.isnan(empty["cycle_median_s"])
+
+
+def test_parts_in_the_tray_are_those_inside_its_inner_footprint():
+    import numpy as np
+
+    from launch.bench_cell import _in_box
+    from sim.cell_config import CellConfig
+    from sygrid.transforms import make_T
+
+    cell = CellConfig()
+    T_tray = cell.T_world_tray
+    poses = np.stack([
+        T_tray @ make_T(t=(0.0, 0.0, 0.01)),  # on the tray's floor
+        T_tray @ make_T(t=(0.11, 0.07, 0.01)),  # in a corner (inner size 0.24 x 0.16)
+        T_tray @ make_T(t=(0.13, 0.0, 0.01)),  # beyond the wall
+        T_tray @ make_T(t=(0.0, 0.0, -0.05)),  # under it: fell past it onto the table
+    ])  # fmt: skip
+    assert _in_box(poses, T_tray, cell.tray_inner_size_m).tolist() == [True, True, False, False]
 
 
 def test_report_and_chart_from_partial_results():

@@ -49,6 +49,7 @@ class FakeGrasp:
     x: float
     opening_width_m: float = 0.03
     grasp_width_m: float = 0.02
+    min_hold_width_m: float = 0.01
 
     def __post_init__(self) -> None:
         self.q_lift = self.q_place = np.full(6, self.x)
@@ -309,6 +310,43 @@ def test_object_detection_lost_while_the_fingers_settle_is_not_a_slip():
     picker.gripper.settling_reads = 10**6  # never comes back, but the fingers rest at the part's width
     report = picker.run()
     assert [a.outcome for a in report.attempts] == ["picked"] and report.stop_reason == "bin_empty"
+
+
+def test_a_part_held_at_another_of_its_widths_is_placed_not_dropped():
+    """The fingers stop at 20 mm on a grasp planned at 30 mm, above the part's narrowest hold (10 mm): the part
+    turned in the fingers (in the simulated cell: nuts closed on at 10.8 mm across their faces, not their 18 mm
+    flats) and is held. It is placed, with a note; only near the planned width (``hold_any_width=False``) it is
+    dropped back as slipped."""
+
+    class WideGrasps(FakePlanner):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
+            plan = super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
+            for g in plan.grasps:
+                g.grasp_width_m = 0.03
+            return plan
+
+    picker, _ = make_picker(FakeBin([0.0]), WideGrasps())
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["picked"] and report.stop_reason == "bin_empty"
+    assert report.attempts[0].detail.startswith("held at 20.0 mm, not at the planned 30.0 mm")
+    picker, _ = make_picker(FakeBin([0.0]), WideGrasps(), config=PickerConfig(hold_any_width=False))
+    first = picker.run(max_cycles=1).attempts[0]
+    assert first.outcome == "slipped" and "closed to 20.0 mm, the part is 30.0 mm wide" in first.detail
+
+
+def test_fingers_closed_below_the_parts_narrowest_hold_are_a_slip():
+    bin_ = FakeBin([0.0])
+    picker, _ = make_picker(bin_)
+    close = picker.gripper.close
+
+    def close_on_a_sliver(force_n=None, speed_m_s=None):
+        held = close(force_n, speed_m_s)
+        picker.gripper.width = 0.004  # something 4 mm wide, or the pads on the part's edge: not a hold of a 10 mm part
+        return held
+
+    picker.gripper.close = close_on_a_sliver
+    first = picker.run(max_cycles=1).attempts[0]
+    assert first.outcome == "slipped" and first.detail.endswith("(10.0 mm at its narrowest hold)")
 
 
 def test_a_part_stuck_in_the_fingers_stops_the_run_as_gripper_blocked():
