@@ -310,6 +310,8 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "n_left": int(in_end.sum()),
         "n_picked": report.n_picked,
         "n_in_tray": int(in_tray.sum()),
+        # picks held at another width than planned (the picker's note), for how often the verify rule decided
+        "held_off_plan": [a.detail for a in report.attempts if a.outcome == "picked" and a.detail],
         "n_tried": sum(a.outcome != "motion_refused" for a in report.attempts),
         "failures": report.failures_by_cause(),
         "nudges": [c.nudge["outcome"] for c in cycles if c.nudge is not None],
@@ -370,6 +372,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         # ground truth: parts from the bin that lie in the tray at the end (a part the picker counts as picked that
         # fell on the way is missing here)
         "n_in_tray": sum(b.get("n_in_tray", 0) for b in bins),
+        "n_held_off_plan": sum(len(b.get("held_off_plan", [])) for b in bins),
         "n_attempts": n_tried,
         "cycle_median_s": median(cycle),
         "cycle_p90_s": percentile(cycle, 90),
@@ -408,8 +411,8 @@ def format_results(results: dict[str, Any]) -> str:
             f"stops {r['stop_reasons']}"
         )
         lines.append(
-            f"{name}: cleared by kind {r['cleared_by_kind']}; picked {r['n_picked']}, "
-            f"in the tray {r.get('n_in_tray', '-')}"
+            f"{name}: cleared by kind {r['cleared_by_kind']}; picked {r['n_picked']} (held at another width than "
+            f"planned: {r.get('n_held_off_plan', '-')}), in the tray {r.get('n_in_tray', '-')}"
         )
         lines.append(f"{name}: left in the bin {r['left_by_cause'] or 'nothing'}")
     return "\n".join(lines)
