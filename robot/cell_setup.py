@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import tomllib
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, ValidationError
 
 from robot.picker import PickerConfig
 from robot.ur_config import URConfig
@@ -109,7 +109,7 @@ class CellFile(_Strict):
     bin: BinSection | None = None  # None: the simulated cell's bin
     place: PlaceSection | None = None  # None: above the simulated cell's tray
     planner: dict[str, float | int | bool] = Field(default_factory=dict)
-    picker: dict[str, float | int | None] = Field(default_factory=dict)
+    picker: dict[str, StrictBool | StrictInt | StrictFloat | None] = Field(default_factory=dict)  # TOML is typed
 
 
 class CellSetup:

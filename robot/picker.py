@@ -222,6 +222,8 @@ class PickerConfig:
         ):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ConfigError(f"PickerConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
+        if not isinstance(self.hold_any_width, bool):
+            raise ConfigError(f"PickerConfig.hold_any_width must be true or false, got {self.hold_any_width!r}")
         if not (isinstance(self.max_nudges, int) and self.max_nudges >= 0):
             raise ConfigError(f"PickerConfig.max_nudges must be an integer >= 0, got {self.max_nudges!r}")
         for name in (

@@ -427,6 +427,14 @@ def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
         load_cell_setup(bad)
     with pytest.raises(ConfigError, match=r"PickerConfig\.max_cycles"):
         PickerConfig(max_cycles=0)
+    strict = tmp_path / "strict.toml"
+    strict.write_text(
+        Path("launch/cells/sim.toml").read_text().replace("[picker]\n", "[picker]\nhold_any_width = false\n")
+    )
+    assert load_cell_setup(strict).picker.hold_any_width is False
+    bad.write_text(strict.read_text().replace("hold_any_width = false", 'hold_any_width = "no"'))
+    with pytest.raises(ConfigError, match=r"bad\.toml.*picker"):
+        load_cell_setup(bad)
 
 
 def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
