@@ -173,9 +173,9 @@ class PickerConfig:
     the narrowest width the part can be held at (``hold_any_width``; else the planned grasp width) less this means
     the part slipped out; hold_any_width: a part held at another of its widths than the planned one is held (False:
     only near the planned width; the fingers closing on a nut's faces instead of its flats then drop it back into
-    the bin as "slipped"); slip_settle_s: how long the gripper may report
-    no object (its fingers settling) before the part counts as lost. still_there_distance_m: a part of the same model
-    this close to a picked one in the next frame means the pick failed. max_failures_per_part /
+    the bin as "slipped"); slip_settle_s: how long the gripper may report no object (its fingers settling) before
+    the part counts as lost. still_there_distance_m: a part of the same model this close to a picked one in the next
+    frame means the pick failed. max_failures_per_part /
     exclusion_distance_m: after this many failed attempts on parts of one model within this distance of each other,
     parts there are no longer planned (checked on the poses planned from, refined ones included).
     open_tolerance_m / open_timeout_s: the fingers must reach a commanded opening less this within this time (a
