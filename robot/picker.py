@@ -555,8 +555,7 @@ class Picker:
                 raise
             cause = _motion_cause(exc)
             log.warning("attempt on part %d: %s during %s (%s); recovering", grasp.part_index, cause, stage, exc)
-            self._recover()
-            self._after_recovery(float(grasp.T_base_lift[2, 3]))
+            self._recover_and_back_out(float(grasp.T_base_lift[2, 3]))
             return _fail(attempt, cause, stage, str(exc))
 
     def _nudge(self, poses: Sequence[Any], plan: Any, record: CycleRecord) -> bool:
@@ -595,8 +594,7 @@ class Picker:
                 raise
             record.nudge.update(outcome=_motion_cause(exc), detail=str(exc))
             log.warning("nudge of part %d: %s (%s); recovering", nudge.part_index, record.nudge["outcome"], exc)
-            self._recover()
-            self._after_recovery(float(nudge.T_base_retreat[2, 3]))
+            self._recover_and_back_out(float(nudge.T_base_retreat[2, 3]))
         record.plan_summary = (
             f"nudged part {nudge.part_index} (obj {nudge.obj_id}, {nudge.cause}) {1e3 * nudge.distance_m:.0f} mm "
             f"({record.nudge['outcome']}); {record.plan_summary}"
@@ -638,19 +636,21 @@ class Picker:
             time.sleep(0.02)
 
     def _back_out(self, grasp: Any, timer: _StageTimer) -> None:
-        """Open and go back out along the approach to the lift (above the rim: the joint move that follows starts
-        where the planner checked it)."""
+        """Open to the grasp's opening (what the approach was checked with: fully open, a finger may reach a wall)
+        and go back out along the approach to the lift (above the rim: the joint move that follows starts where the
+        planner checked it)."""
         with timer("grasp"):
-            self._open_to(None)
+            self._open_to(min(grasp.opening_width_m, self._stroke()) if self.gripper.can_set_width else None)
             self.robot.move_l(grasp.T_base_lift, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
 
-    def _after_recovery(self, safe_height_m: float) -> None:
-        """After a recovered failure the arm is at rest somewhere on the way: let go, and go straight up to
-        ``safe_height_m`` (base z of a pose above the bin's rim) before the joint move to the observe pose."""
-        try:
-            self.gripper.open()
-        except GripperError as exc:
-            log.warning("the gripper did not open after recovery (%s)", exc)
+    def _recover_and_back_out(self, safe_height_m: float) -> None:
+        """After a protective stop or a dropped link the arm is at rest somewhere on the way, perhaps with a finger
+        pressed on a wall: hold the fingers where they are, recover, go straight up to ``safe_height_m`` (base z of
+        a pose above the bin's rim), and only then let go, before the joint move to the observe pose. Fingers that
+        go on pushing stop the arm again as soon as it is unlocked (in the cell bench a finger opening into a wall
+        did, twice, and the run needed an operator)."""
+        self._hold_fingers()
+        self._recover()
         T = np.array(self.robot.T_base_tcp())
         T[2, 3] = max(T[2, 3], safe_height_m)
         try:
@@ -662,6 +662,19 @@ class Picker:
                 raise
             log.warning("backing out after recovery failed too (%s); recovering again", exc)
             self._recover()
+        try:
+            self.gripper.open()
+        except GripperError as exc:
+            log.warning("the gripper did not open after recovery (%s)", exc)
+
+    def _hold_fingers(self) -> None:
+        """Stop the fingers where they are (commanded to their own width), so they no longer push on anything."""
+        try:
+            width = self.gripper.width_m() if self.gripper.can_set_width else None
+            if width is not None:
+                self.gripper.open(width_m=width)
+        except GripperError as exc:
+            log.warning("could not hold the fingers after recovery (%s)", exc)
 
     def _recover(self) -> None:
         """``robot.recover()``, tried again every half second while the controller cannot be reached at all (the
@@ -740,8 +753,7 @@ class Picker:
             if not exc.recoverable or self._observe_height_m is None:
                 raise
             log.warning("%s on the way to the observe pose (%s); recovering", _motion_cause(exc), exc)
-            self._recover()
-            self._after_recovery(self._observe_height_m)
+            self._recover_and_back_out(self._observe_height_m)
             self.robot.move_j(self.q_observe, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
         if self._observe_height_m is None:
             self._observe_height_m = float(np.asarray(self.robot.T_base_tcp())[2, 3])

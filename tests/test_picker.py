@@ -244,6 +244,48 @@ def test_protective_stop_is_recovered_and_the_cycle_looks_again():
     assert report.stop_reason == "bin_empty"
 
 
+def test_after_a_protective_stop_the_fingers_are_held_until_the_arm_is_up():
+    """Fingers that go on moving after a stop push on whatever stopped them (in the cell bench: a finger opening
+    into a wall stopped the arm again as soon as it was unlocked): hold them at their width, recover, go straight
+    up, and only then open."""
+    picker, robot = make_picker(FakeBin([0.0]), stop_once_x=0.0)
+    events: list[str] = []
+    gripper_open, move_l, recover = picker.gripper.open, robot.move_l, robot.recover
+
+    def log_open(width_m=None, speed_m_s=None):
+        events.append("open" if width_m is None else f"open to {1e3 * width_m:.0f} mm")
+        gripper_open(width_m, speed_m_s)
+
+    def log_move_l(T, speed_m_s=None, accel_m_s2=None):
+        move_l(T, speed_m_s, accel_m_s2)
+        events.append(f"move_l to z {T[2, 3]:.2f}")
+
+    def log_recover(timeout_s=None):
+        events.append("recover")
+        recover(timeout_s)
+
+    picker.gripper.open, robot.move_l, robot.recover = log_open, log_move_l, log_recover
+    attempt = picker.run(max_cycles=1).attempts[0]
+    assert attempt.outcome == "protective_stop" and attempt.stage == "approach"
+    # opened to the grasp's 30 mm, stopped on the way to the pre-grasp (no move_l logged), then the recovery
+    assert events == ["open to 30 mm", "open to 30 mm", "recover", "move_l to z 0.10", "open"]
+
+
+def test_fingers_that_close_on_air_back_out_at_the_opening_the_approach_was_checked_with():
+    picker, _ = make_picker(FakeBin([0.0]))
+    picker.gripper.empty_once = True
+    widths: list[float | None] = []
+    gripper_open = picker.gripper.open
+
+    def log_open(width_m=None, speed_m_s=None):
+        widths.append(width_m)
+        gripper_open(width_m, speed_m_s)
+
+    picker.gripper.open = log_open
+    attempt = picker.run(max_cycles=1).attempts[0]
+    assert attempt.outcome == "gripper_empty" and widths == [0.03, 0.03]  # not fully open (None) near the walls
+
+
 def test_a_stop_the_cell_cannot_release_ends_the_run_with_its_report():
     bin_ = FakeBin([0.0, 0.1])
     picker, robot = make_picker(bin_, stop_once_x=0.1)
