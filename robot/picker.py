@@ -31,7 +31,7 @@ close to a wall or a neighbour for the fingers, the picker nudges it (``robot.nu
 the closed fingers) and looks again: at most ``max_nudges`` per run and ``max_nudges_per_part`` at one location. A
 part whose location has seen ``max_failures_per_part`` failed attempts (within ``exclusion_distance_m``: a part that
 moved is a new chance) is left out of planning, so one stubborn part cannot make the run loop. The run stops cleanly
-when the camera sees no parts ("bin_empty"; "parts_unseen" when the depth shows the bin is not empty), when no safe
+when no part is estimated in the bin ("bin_empty"; "parts_unseen" when the depth shows it is not empty), when no safe
 grasp is left ("nothing_safe", with the planner's reasons), when every part left has been given up ("gave_up"), when
 the fingers cannot be freed ("gripper_blocked"), after ``max_cycles``, after ``max_failed_cycles`` cycles in a row
 without a pick, or when a stop cannot be released by the cell itself (an emergency stop, a protective stop that does
@@ -69,7 +69,7 @@ STAGES = ("capture", "perceive", "plan", "approach", "grasp", "verify", "place",
 #: Why a run stopped.
 STOP_REASONS = (
     "bin_empty",
-    "parts_unseen",  # no detections, but the depth shows something in the bin
+    "parts_unseen",  # no part estimated in the bin, but the depth shows something in it
     "nothing_safe",
     "gave_up",
     "gripper_blocked",
@@ -183,9 +183,10 @@ class PickerConfig:
     the place pose before the part counts as stuck. reconnect_timeout_s: how long recovery keeps trying to reach a
     controller that does not answer (a network link that is down). max_nudges / max_nudges_per_part: nudges per
     run (0: never nudge) and per location (within ``exclusion_distance_m``); a nudge is not a failed cycle.
-    min_unseen_area_m2: with no detections, a bin whose depth shows at least this much of it covered (something
-    above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find: the run stops with
-    "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top seen from above.
+    min_unseen_area_m2: with no part estimated in the bin, a bin whose depth shows at least this much of it covered
+    (something above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find or whose
+    estimates land outside it: the run stops with "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top
+    seen from above.
     """
 
     max_cycles: int = 50
@@ -420,16 +421,7 @@ class Picker:
 
         try:
             if not result.poses:
-                covered = self.planner.pile_area_m2(frame.depth_m, frame.intrinsics, self.T_base_camera)
-                if covered >= self.config.min_unseen_area_m2:
-                    record.end = "parts_unseen"
-                    record.plan_summary = (
-                        f"the camera sees no parts, but the depth shows {1e4 * covered:.1f} cm2 of the bin covered: "
-                        "parts the detector does not find"
-                    )
-                else:
-                    record.end, record.plan_summary = "bin_empty", "the camera sees no parts (no detections)"
-                return record
+                return self._empty_or_unseen(record, frame, "the camera sees no parts (no detections)")
             poses, excluded = self._split_given_up(result.poses)
             if not poses:
                 return self._all_given_up(record, len(excluded))
@@ -456,9 +448,9 @@ class Picker:
                 record.plan_summary += f" ({record.n_excluded} part(s) given up after repeated failures)"
             if plan.nothing_safe:
                 if getattr(plan, "n_in_bin", None) == 0:  # the camera sees parts, but none in the bin
-                    record.end = "bin_empty"
-                    record.plan_summary = f"no part in the bin ({len(poses)} seen outside it); {record.plan_summary}"
-                elif not self._nudge(poses, plan, record):
+                    seen = f"no part estimated in the bin ({len(poses)} seen outside it); {record.plan_summary}"
+                    return self._empty_or_unseen(record, frame, seen)
+                if not self._nudge(poses, plan, record):
                     record.end = "nothing_safe"
                 return record
             record.end = "failed"
@@ -485,6 +477,18 @@ class Picker:
             )  # fmt: skip
             if self.on_cycle is not None:
                 self.on_cycle(record, frame, result, seen_poses)
+
+    def _empty_or_unseen(self, record: CycleRecord, frame: Frame, seen: str) -> CycleRecord:
+        """No part estimated in the bin (``seen`` says what the camera saw): "bin_empty" when the depth agrees,
+        "parts_unseen" when it shows ``min_unseen_area_m2`` of the bin covered (parts the detector does not find, or
+        whose estimates land outside the bin)."""
+        covered = self.planner.pile_area_m2(frame.depth_m, frame.intrinsics, self.T_base_camera)
+        if covered >= self.config.min_unseen_area_m2:
+            record.end = "parts_unseen"
+            record.plan_summary = f"{seen}, but the depth shows {1e4 * covered:.1f} cm2 of the bin covered"
+        else:
+            record.end, record.plan_summary = "bin_empty", seen
+        return record
 
     def _all_given_up(self, record: CycleRecord, n_excluded: int) -> CycleRecord:
         record.end, record.n_excluded = "gave_up", n_excluded

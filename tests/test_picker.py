@@ -226,6 +226,16 @@ def test_parts_seen_only_outside_the_bin_mean_the_bin_is_empty():
     report = make_picker(FakeBin([0.0]), OutsidePlanner())[0].run()
     assert report.stop_reason == "bin_empty" and "outside it" in report.stop_detail and report.attempts == []
 
+    class OutsideButCovered(OutsidePlanner):
+        def pile_area_m2(self, depth_m, intrinsics, T_base_camera):
+            return 5e-4
+
+    # estimates outside the bin while the depth shows it covered: parts estimated wrong, not an empty bin (the cell
+    # bench's seed 24 stopped "bin_empty" with 3 parts left, 2 of them estimated outside)
+    report = make_picker(FakeBin([0.0]), OutsideButCovered())[0].run()
+    assert report.stop_reason == "parts_unseen" and report.stop_detail.startswith("no part estimated in the bin (1")
+    assert report.stop_detail.endswith("5.0 cm2 of the bin covered")
+
 
 def test_refused_motion_moves_on_to_the_next_candidate():
     bin_ = FakeBin([0.0, 0.1])
@@ -648,7 +658,9 @@ def test_no_detections_in_a_bin_the_depth_shows_is_not_empty_stops_as_parts_unse
     bin_ = FakeBin([])
     picker, _ = make_picker(bin_, CoveredBin())
     report = picker.run()
-    assert report.stop_reason == "parts_unseen" and "3.0 cm2 of the bin covered" in report.stop_detail
+    assert report.stop_reason == "parts_unseen" and report.stop_detail == (
+        "the camera sees no parts (no detections), but the depth shows 3.0 cm2 of the bin covered"
+    )
     picker, _ = make_picker(FakeBin([]), CoveredBin(), PickerConfig(min_unseen_area_m2=5e-4))
     assert picker.run().stop_reason == "bin_empty"
 
