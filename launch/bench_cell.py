@@ -310,6 +310,12 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "n_left": int(in_end.sum()),
         "n_picked": report.n_picked,
         "n_in_tray": int(in_tray.sum()),
+        # parts that left the bin but are not in the tray: where they lie (world frame, m), to trace drops
+        "elsewhere": [
+            {"part": kind, "xyz_m": np.round(T[:3, 3], 3).tolist()}
+            for kind, T, moved in zip(kinds, T_end, in_start & ~in_end & ~in_tray, strict=True)
+            if moved
+        ],
         # picks held at another width than planned (the picker's note), for how often the verify rule decided
         "held_off_plan": [a.detail for a in report.attempts if a.outcome == "picked" and a.detail],
         "n_tried": sum(a.outcome != "motion_refused" for a in report.attempts),
@@ -373,6 +379,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         # fell on the way is missing here)
         "n_in_tray": sum(b.get("n_in_tray", 0) for b in bins),
         "n_held_off_plan": sum(len(b.get("held_off_plan", [])) for b in bins),
+        "out_of_bin_not_in_tray": [{"seed": b["seed"], **e} for b in bins for e in b.get("elsewhere", [])],
         "n_attempts": n_tried,
         "cycle_median_s": median(cycle),
         "cycle_p90_s": percentile(cycle, 90),

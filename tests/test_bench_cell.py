@@ -16,6 +16,7 @@ from sygrid.fileio import write_json_atomic
 def _bin(seed: int, n_left: int, picked: int, tried: int, cycles: list[float], stop: str, left_why: dict) -> dict:
     return {
         "seed": seed, "n_parts": 10, "n_left": n_left, "n_picked": picked, "n_tried": tried, "n_in_tray": picked - 1,
+        "elsewhere": [{"part": "pipe", "xyz_m": [0.1, 0.2, 0.0]}],
         "failures": {"gripper_empty": tried - picked} if tried > picked else {}, "stop_reason": stop,
         "parts_by_kind": {"hex_nut": 6, "pipe": 4}, "left_by_kind": {"hex_nut": n_left},
         "left_why": left_why, "cycle_s": cycles, "perceive_plan_ms": [100.0 * (k + 1) for k in range(len(cycles))],
@@ -32,6 +33,7 @@ def test_summary_counts_parts_picks_cycles_and_causes():
     assert s["parts_cleared"] == pytest.approx(18 / 20) and s["pick_success_rate"] == pytest.approx(18 / 19)
     assert s["cycle_median_s"] == pytest.approx(5.5) and s["perceive_plan_median_ms"] == pytest.approx(150.0)
     assert s["failures_by_cause"] == {"gripper_empty": 1} and s["n_in_tray"] == 16
+    assert s["out_of_bin_not_in_tray"][1] == {"seed": 1, "part": "pipe", "xyz_m": [0.1, 0.2, 0.0]}
     assert s["stop_reasons"] == {"nothing_safe": 1, "bin_empty": 1}
     assert s["cleared_by_kind"] == {"hex_nut": "10/12", "pipe": "8/8"}
     assert s["left_by_cause"] == {"hex_nut: collision_bin": 2}
