@@ -157,11 +157,32 @@ def test_parts_keep_the_world_state_and_rest_in_the_bin(tmp_path) -> None:
     world.step(300)
     resting = world.part_poses()
     np.testing.assert_allclose(resting[:, 2, 3], world.T_world_bin[2, 3] + 0.01, atol=5e-4)  # no sinking
-    assert world.arm_collision_force_n() == 0.0
+    assert world.arm_collision_force_n() == 0.0 and world.thrown_parts == {}
     mass = world.model.body(names[0]).mass[0]
     assert mass == pytest.approx(part.mass_kg, rel=1e-9)
     world.set_part_poses(poses)
     np.testing.assert_allclose(world.part_poses(), poses, atol=1e-12)
+
+
+def test_a_part_the_physics_throws_is_reported_once(tmp_path, caplog) -> None:
+    """A gear once ended 470 m from the cell in a pick run: a part moving faster than the cell can move anything is
+    named (with the time), so a run's results can be read knowing it."""
+    world = CellWorld()
+    part = _box_part(0.02)
+    hull = build_collision_model(part, "hull", cache_dir=tmp_path)
+    world.add_parts([part] * 2, np.stack([world.T_world_bin @ make_T(t=(x, 0.0, 0.0105)) for x in (-0.05, 0.05)]),
+                    collision=[hull] * 2)  # fmt: skip
+    world.step(50)
+    assert world.thrown_parts == {}
+    dof = world.model.joint("part1_box_free").dofadr[0]
+    world.data.qvel[dof : dof + 3] = (0.0, 0.0, 30.0)
+    with caplog.at_level("WARNING", logger="sim.world"):
+        world.step(1)
+        world.step(1)
+    ((name, (t, speed)),) = world.thrown_parts.items()
+    assert name == "part1_box" and speed == pytest.approx(30.0, rel=0.01)
+    assert t == pytest.approx(world.time_s - world.dt_s)  # the first step it was seen at
+    assert [r.getMessage().split(" moves at")[0] for r in caplog.records] == ["part1_box"]  # once
 
 
 def test_bad_arguments_and_configs_are_refused_with_the_reason(tmp_path) -> None:
