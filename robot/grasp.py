@@ -764,6 +764,7 @@ class GraspPlanner:
         r = ev.ranked
         T_flange_tcp = cfg.gripper.T_flange_tcp
         x_seed = forward_kinematics(q_seed, T_flange_tcp)[:3, 0]
+        min_hold_width = float(self._models[ev.part.obj_id].grasps.width_m.min())  # the part's, for every grasp
         out: list[PlannedGrasp] = []
         for k in range(len(r["score"])):
             T_grasp = r["T_grasp"][k].copy()
@@ -821,7 +822,7 @@ class GraspPlanner:
                     q_place=q_place,
                     opening_width_m=float(r["opening"][k]),
                     grasp_width_m=float(r["width"][k]),
-                    min_hold_width_m=float(self._models[ev.part.obj_id].grasps.width_m.min()),
+                    min_hold_width_m=min_hold_width,
                     approach_angle_deg=float(np.degrees(r["angle"][k])),
                     backoff_m=float(r["backoff"][k]),
                     engagement_m=float(r["engagement"][k]),

@@ -509,11 +509,12 @@ class Picker:
         timer = _StageTimer(record.stage_wall_s)
         try:
             with timer("approach"):
-                opening = min(grasp.opening_width_m, self._stroke())
-                if not self._open_to(opening if self.gripper.can_set_width else None):
+                opening = self._grasp_opening(grasp)
+                if not self._open_to(opening):
+                    target = "fully" if opening is None else f"to {1e3 * opening:.1f} mm"
                     return _fail(
                         attempt, "gripper_blocked", stage,
-                        f"the fingers did not open to {1e3 * opening:.1f} mm (at {self._width_text()}): something "
+                        f"the fingers did not open {target} (at {self._width_text()}): something "
                         "is stuck between them",
                     )  # fmt: skip
                 # Joint move to the lift pose (back out along the approach, above the pile and the bin's rim),
@@ -543,7 +544,7 @@ class Picker:
             stage = "place"
             with timer("place"):
                 self.robot.move_j(grasp.q_place, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
-                released = self._release(opening if self.gripper.can_set_width else None)
+                released = self._release(opening)
             attempt.stage = "place"
             if not released:
                 return _fail(
@@ -644,7 +645,7 @@ class Picker:
         and go back out along the approach to the lift (above the rim: the joint move that follows starts where the
         planner checked it)."""
         with timer("grasp"):
-            self._open_to(min(grasp.opening_width_m, self._stroke()) if self.gripper.can_set_width else None)
+            self._open_to(self._grasp_opening(grasp))
             self.robot.move_l(grasp.T_base_lift, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
 
     def _recover_and_back_out(self, safe_height_m: float) -> None:
@@ -678,7 +679,7 @@ class Picker:
             if width is not None:
                 self.gripper.open(width_m=width)
         except GripperError as exc:
-            log.warning("could not hold the fingers after recovery (%s)", exc)
+            log.warning("could not hold the fingers before recovering (%s)", exc)
 
     def _recover(self) -> None:
         """``robot.recover()``, tried again every half second while the controller cannot be reached at all (the
@@ -747,8 +748,8 @@ class Picker:
 
     def _to_observe(self) -> None:
         """The joint move to the observe pose. A protective stop on the way (the arm met a wall or a part leaving the
-        bin) is recovered once: let go, straight up to the observe pose's height, and the joint move again; a
-        second one needs an operator."""
+        bin) is recovered once (``_recover_and_back_out`` to the observe pose's height) and the joint move is made
+        again; a second one needs an operator."""
         cfg = self.config
         try:
             if np.max(np.abs(np.asarray(self.robot.q()) - self.q_observe)) > 1e-3:
@@ -761,6 +762,11 @@ class Picker:
             self.robot.move_j(self.q_observe, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
         if self._observe_height_m is None:
             self._observe_height_m = float(np.asarray(self.robot.T_base_tcp())[2, 3])
+
+    def _grasp_opening(self, grasp: Any) -> float | None:
+        """The opening a grasp's approach was checked with, as the gripper is commanded to it (None: a gripper that
+        can only open fully)."""
+        return min(grasp.opening_width_m, self._stroke()) if self.gripper.can_set_width else None
 
     def _stroke(self) -> float:
         config = getattr(self.gripper, "config", None)
