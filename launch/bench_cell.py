@@ -60,6 +60,7 @@ class Variant:
     detector_input_size: int | None = None
     models_dir: str | None = None  # another model folder than the cell file's
     detect_in_bin: bool | None = None
+    ignore_floor: bool | None = None
 
 
 _BUILTIN_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "builtin")
@@ -101,6 +102,11 @@ VARIANTS: dict[str, Variant] = {
     ),
     "models_full_frame": Variant(
         "models", "the cell file's models; the detector on the whole frame, not the bin's box", detect_in_bin=False
+    ),
+    "models_with_floor": Variant(
+        "models",
+        "the cell file's models; refinement also fits the floor seen through the parts' masks",
+        ignore_floor=False,
     ),
     "models_sim_cell": Variant(
         "models",
@@ -248,6 +254,7 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
         "detector_input_size": variant.detector_input_size,
         "models_dir": variant.models_dir,
         "detect_in_bin": variant.detect_in_bin,
+        "ignore_floor": variant.ignore_floor,
     }
     perception = d.perception.model_copy(
         update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}

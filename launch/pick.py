@@ -105,10 +105,16 @@ def open_cell(
                 detector_input_size=d.perception.detector_input_size, conf_threshold=d.perception.conf_threshold,
                 refine=d.perception.refine, max_refined=d.perception.max_refined, num_threads=d.perception.num_threads,
             )  # fmt: skip
-            region = None
-            if d.perception.detect_in_bin and planner_config.bin is not None:
-                region = planner_config.bin.inner_corners_camera(T_base_camera)
-            perception = PerceptionPipeline.from_folder(models_dir, overrides, region_camera_m=region)
+            region = floor = None
+            if planner_config.bin is not None:
+                if d.perception.detect_in_bin:
+                    region = planner_config.bin.inner_corners_camera(T_base_camera)
+                if d.perception.ignore_floor:
+                    floor = planner_config.bin.floor_plane_camera(T_base_camera)
+            perception = PerceptionPipeline.from_folder(
+                models_dir, overrides, region_camera_m=region, floor_plane_camera=floor,
+                floor_margin_m=d.perception.floor_margin_m,
+            )  # fmt: skip
             models = perception.models
         planner = GraspPlanner(models, planner_config)
         robot = stack.enter_context(URRobot(setup.robot))

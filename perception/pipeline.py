@@ -15,7 +15,10 @@ the caller (``PipelineOverrides``), which is how the benchmark sweeps input size
 
 A cell knows where parts can be (the bin), so the pipeline can be given that region as 3D points in the camera
 frame; the detector then looks only at their image box (``region_of_interest``), at the scale it would see the
-whole frame at: same parts found, at the region's share of the cost.
+whole frame at: same parts found, at the region's share of the cost. It can also be given the plane of the bin's
+floor: the refinement then ignores depth pixels on the floor. A detection mask at this scale is a filled blob, so
+a nut's mask takes in the floor seen through its hole (a third of its depth points, 10.8 mm below its top face),
+which pulled ICP towards a nut standing on edge; no part surface lies on the floor plane itself.
 """
 
 from __future__ import annotations
@@ -46,6 +49,10 @@ MANIFEST_FORMAT = "sygrid-models/1"
 # Pixels added around a region's box: a part on the rim or leaning out over it still has its whole box inside,
 # and the detector sees some of the context it was trained with around the parts.
 REGION_MARGIN_PX = 8
+# Depth this close to the floor plane is the floor: the sim camera's depth is exact and a calibration within 2 mm
+# and 0.3 deg (robot.calibration's target) tilts the plane by ~1 mm over the bin; the thinnest part lying flat (a
+# 3 mm washer) stays above it. A noisy stereo camera needs a wider margin (``[perception] floor_margin_m``).
+FLOOR_MARGIN_M = 0.0015
 
 
 class _Strict(BaseModel):
@@ -112,11 +119,15 @@ class PerceptionPipeline:
         min_mask_px: int = 30,
         max_refined: int | None = None,
         region_camera_m: np.ndarray | None = None,
+        floor_plane_camera: np.ndarray | None = None,
+        floor_margin_m: float = FLOOR_MARGIN_M,
     ) -> None:
         """``max_refined``: stop refining once this many poses are refined, nearest parts (top of the pile) first;
         the rest keep their RGB estimate with ``details["icp"]["status"] == "skipped"``. None refines every pose.
         ``region_camera_m``: (n, 3) points in the camera frame (metres) that bound where parts can be, e.g. a bin's
         inner corners at its floor and rim; the detector looks only inside their image box. None: the whole frame.
+        ``floor_plane_camera``: ``(a, b, c, d)`` the floor the parts lie on, in the camera frame (see
+        ``without_floor``); depth less than ``floor_margin_m`` above it is not used for refinement. None: all depth.
         """
         if max_refined is not None and max_refined < 1:
             raise ConfigError(f"PerceptionPipeline: max_refined must be >= 1 or None, got {max_refined}")
@@ -133,12 +144,30 @@ class PerceptionPipeline:
                     f"got {region.tolist()}"
                 )
             self.region_camera_m = region
+        self.floor_plane_camera = None
+        if floor_plane_camera is not None:
+            plane = np.asarray(floor_plane_camera, dtype=float)
+            if plane.shape != (4,) or not np.isfinite(plane).all() or abs(np.linalg.norm(plane[:3]) - 1.0) > 1e-6:
+                raise ConfigError(
+                    "PerceptionPipeline: floor_plane_camera must be (a, b, c, d) with (a, b, c) a unit normal, got "
+                    f"{np.asarray(floor_plane_camera).tolist()}"
+                )
+            self.floor_plane_camera = plane
+        if not 0.0 <= floor_margin_m < 0.05:
+            raise ConfigError(f"PerceptionPipeline: floor_margin_m must be in [0, 0.05) m, got {floor_margin_m}")
+        self.floor_margin_m = float(floor_margin_m)
 
     @classmethod
     def from_folder(
-        cls, folder: str | Path, overrides: PipelineOverrides | None = None, region_camera_m: np.ndarray | None = None
+        cls,
+        folder: str | Path,
+        overrides: PipelineOverrides | None = None,
+        region_camera_m: np.ndarray | None = None,
+        floor_plane_camera: np.ndarray | None = None,
+        floor_margin_m: float | None = None,
     ) -> PerceptionPipeline:
-        """Loads the manifest's models; errors name the folder's files and fields."""
+        """Loads the manifest's models; errors name the folder's files and fields. ``floor_margin_m`` None: the
+        default (``FLOOR_MARGIN_M``)."""
         folder = Path(folder)
         o = overrides or PipelineOverrides()
         manifest = load_manifest(folder)
@@ -162,6 +191,8 @@ class PerceptionPipeline:
             min_mask_px=manifest.min_mask_px,
             max_refined=o.max_refined or manifest.refine.max_refined,
             region_camera_m=region_camera_m,
+            floor_plane_camera=floor_plane_camera,
+            floor_margin_m=FLOOR_MARGIN_M if floor_margin_m is None else floor_margin_m,
         )
 
     def poseable(self, detections: list[Detection]) -> list[Detection]:
@@ -212,6 +243,9 @@ class PerceptionPipeline:
         so with ``max_refined`` the ICP time (about 20 ms a part on a 2-core CPU) goes to the parts a grasp
         planner chooses from. The others keep their RGB estimate, marked ``skipped``."""
         assert self.refiner is not None
+        depth_m = frame.depth_m
+        if self.floor_plane_camera is not None:
+            depth_m = without_floor(depth_m, frame.intrinsics, self.floor_plane_camera, self.floor_margin_m)
         out: list[ObjectPose] = []
         n_refined = 0
         for pose in sorted(poses, key=lambda p: _median_depth(p, frame.depth_m)):
@@ -222,7 +256,7 @@ class PerceptionPipeline:
                 out.append(ObjectPose(pose.detection, pose.T_camera_object, pose.score, pose.method,
                                       {**pose.details, "icp": icp}))  # fmt: skip
             else:
-                out.append(self.refiner.refine(pose, frame.depth_m, frame.intrinsics, self.models[pose.obj_id]))
+                out.append(self.refiner.refine(pose, depth_m, frame.intrinsics, self.models[pose.obj_id]))
                 n_refined += _icp_status(out[-1]) == "refined"
         return out
 
@@ -237,6 +271,24 @@ def region_of_interest(
     x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + margin_px
     x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, intrinsics.width), min(y1, intrinsics.height)
     return (int(x0), int(y0), int(x1), int(y1)) if x1 > x0 and y1 > y0 else None
+
+
+def without_floor(
+    depth_m: np.ndarray, intrinsics: CameraIntrinsics, floor_plane_camera: np.ndarray, margin_m: float
+) -> np.ndarray:
+    """A copy of ``depth_m`` with the pixels that see the floor (less than ``margin_m`` above the plane, or below
+    it) set to 0 (no data), same dtype. ``floor_plane_camera``: ``(a, b, c, d)``; a camera-frame point p lies
+    ``(a, b, c) . p + d`` above the floor, ``(a, b, c)`` the unit normal pointing up, out of the floor."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    h, w = depth.shape
+    K = intrinsics.K
+    normal, offset = np.asarray(floor_plane_camera[:3], dtype=float), float(floor_plane_camera[3])
+    # height = z * (n . ray(u, v)) + d, the ray with unit depth through the pixel
+    along_u = normal[0] * (np.arange(w) - K[0, 2]) / K[0, 0]
+    along_v = normal[1] * (np.arange(h) - K[1, 2]) / K[1, 1]
+    height = depth * (along_v[:, None] + along_u[None, :] + normal[2]) + offset
+    on_floor = np.isfinite(depth) & (depth > 0) & (height < margin_m)
+    return np.where(on_floor, 0, depth_m).astype(np.asarray(depth_m).dtype)
 
 
 def _icp_status(pose: ObjectPose) -> str | None:

@@ -10,7 +10,7 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps)
     [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
-                  conf_threshold, detector_input_size, detect_in_bin
+                  conf_threshold, detector_input_size, detect_in_bin, ignore_floor, floor_margin_m
     [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
     [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
     [planner]     robot.grasp.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
@@ -73,6 +73,8 @@ class PerceptionSection(_Strict):
     conf_threshold: float | None = Field(default=None, gt=0, lt=1)
     detector_input_size: int | None = Field(default=None, ge=32, le=4096)
     detect_in_bin: bool = True  # the detector looks only at the bin's image box (the planner's bin, calibration)
+    ignore_floor: bool = True  # refinement ignores depth on the bin's floor (seen through holes in a part's mask)
+    floor_margin_m: float | None = Field(default=None, ge=0, lt=0.05)  # None: perception.pipeline.FLOOR_MARGIN_M
     num_threads: int = Field(default=2, ge=1)
 
 

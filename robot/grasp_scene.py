@@ -74,6 +74,13 @@ class BinGeometry:
         corners = np.array([(x, y, z) for x in (-hx, hx) for y in (-hy, hy) for z in (0.0, 2.0 * hz)])
         return transform_points(invert(T_base_camera) @ self.T_base_bin, corners)
 
+    def floor_plane_camera(self, T_base_camera: np.ndarray) -> np.ndarray:
+        """(4,) the inner floor's plane ``(a, b, c, d)`` in the camera frame: a point p lies ``(a, b, c) . p + d``
+        above the floor."""
+        T_camera_bin = invert(T_base_camera) @ self.T_base_bin
+        normal = T_camera_bin[:3, 2]
+        return np.append(normal, -normal @ T_camera_bin[:3, 3])
+
     def height_above_floor_m(self, points_base: np.ndarray) -> np.ndarray:
         """(...,) signed height of points ``(..., 3)`` above the inner floor's plane."""
         return (np.asarray(points_base) - self.floor_point) @ self.floor_normal

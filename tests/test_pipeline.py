@@ -229,3 +229,35 @@ def test_a_region_outside_the_image_is_a_configuration_error():
         pipeline.run(frame)
     with pytest.raises(ConfigError, match="in front of the camera"):
         PerceptionPipeline(None, None, {}, None, region_camera_m=-behind_the_image)  # type: ignore[arg-type]
+
+
+def test_without_floor_drops_the_pixels_on_a_tilted_floor_and_keeps_what_lies_on_it():
+    from perception.pipeline import without_floor
+    from robot.grasp_scene import BinGeometry
+    from sygrid.camera import CameraIntrinsics, unproject_depth
+    from sygrid.transforms import make_T, rotation_about
+
+    camera = CameraIntrinsics.from_fov(80, 60, 50.0)
+    # the camera 0.6 m above the floor, looking down, tilted 20 deg; the floor is the bin's (base frame z = 0.02)
+    bin_ = BinGeometry(T_base_bin=make_T(t=(-0.5, 0.0, 0.02)))
+    R_base_camera = rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(180 - 20))
+    T_base_camera = make_T(R_base_camera, (-0.5, 0.1, 0.62))
+    plane = bin_.floor_plane_camera(T_base_camera)
+    assert np.linalg.norm(plane[:3]) == pytest.approx(1.0)
+    # ray-plane depth of the floor for every pixel, then a 10 mm block on it in the middle of the image
+    rays = unproject_depth(camera.K, np.ones((camera.height, camera.width)))
+    floor_depth = -plane[3] / (rays @ plane[:3])
+    block = np.zeros(floor_depth.shape, bool)
+    block[25:35, 35:45] = True
+    depth = np.where(block, floor_depth + 0.010 / (rays @ plane[:3]), floor_depth).astype(np.float32)
+    height = unproject_depth(camera.K, depth.astype(float)) @ plane[:3] + plane[3]
+    assert np.allclose(height[~block], 0.0, atol=1e-6) and np.allclose(height[block], 0.010, atol=1e-6)
+    depth[0, 0] = 0.0  # no data stays no data
+    before = depth.copy()
+    out = without_floor(depth, camera, plane, 0.0015)
+    assert out.dtype == np.float32 and np.array_equal(depth, before)  # a copy, the frame is untouched
+    assert np.all(out[~block] == 0) and np.array_equal(out[block], depth[block])
+    with pytest.raises(ConfigError, match="floor_plane_camera must be"):
+        PerceptionPipeline(None, None, {}, None, floor_plane_camera=np.array([0.0, 0, 2, 1]))  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="floor_margin_m must be"):
+        PerceptionPipeline(None, None, {}, None, floor_margin_m=-0.001)  # type: ignore[arg-type]

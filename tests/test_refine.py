@@ -209,3 +209,33 @@ def test_a_refused_icp_run_falls_back_to_the_next_start():
     assert kept.details["icp"]["status"] == "kept_initial" and kept.details["icp"]["reason"] == "refused for the test"
     with pytest.raises(ValueError, match="fallback_starts >= 0"):
         RefineConfig(fallback_starts=-1)
+
+
+def test_the_floor_seen_through_a_nuts_hole_stands_it_on_edge_unless_the_floor_is_removed():
+    from perception.pipeline import without_floor
+
+    # A nut lying flat on a floor, seen from above; the mask is its filled outline (a detector's mask at bin
+    # scale), so a third of the masked depth is the floor through the hole, one nut thickness below the top face.
+    model = builtin_part("hex_nut")
+    T_true = make_T(rotation_about(np.array([0.0, 0.0, 1.0]), 0.3), [0.005, -0.004, 0.3])
+    nut = raycast_depth(model, T_true, CAMERA)
+    floor_z = 0.3 + float(np.asarray(model.mesh.vertices)[:, 2].max())
+    depth = np.where(nut > 0, nut, floor_z).astype(np.float32)
+    mask = np.zeros(depth.shape, np.uint8)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.argwhere(nut > 0)[:, ::-1].astype(np.int32)), 1)
+    mask = mask.astype(bool)
+    assert (mask & (nut == 0)).sum() > 0.25 * mask.sum()
+    pose = _pose(model, mask, _perturbed(T_true, [1.0, 1.0, 0.0], 15.0, [1.5, -1.0, 2.0]))
+
+    def axis_error_deg(refined: ObjectPose) -> float:
+        return float(np.degrees(np.arccos(min(1.0, abs(refined.T_camera_object[:3, 2] @ T_true[:3, 2])))))
+
+    # the floor layer and the top face fit a nut on edge about as well as the flat one: ICP stands it up
+    assert axis_error_deg(DepthRefiner().refine(pose, depth, CAMERA, model)) > 45.0
+    floor_plane = np.array([0.0, 0.0, -1.0, floor_z])  # height above the floor = floor_z - z
+    bare = without_floor(depth, CAMERA, floor_plane, 0.0015)
+    assert bare.dtype == np.float32 and np.all(bare[nut > 0] == depth[nut > 0]) and np.all(bare[nut == 0] == 0)
+    refined = DepthRefiner().refine(pose, bare, CAMERA, model)
+    assert refined.details["icp"]["status"] == "refined"
+    assert axis_error_deg(refined) < 2.0
+    assert np.linalg.norm(refined.T_camera_object[:3, 3] - T_true[:3, 3]) < 0.0005
