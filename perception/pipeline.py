@@ -283,7 +283,9 @@ def without_floor(
     h, w = depth.shape
     K = intrinsics.K
     normal, offset = np.asarray(floor_plane_camera[:3], dtype=float), float(floor_plane_camera[3])
-    # height = z * (n . ray(u, v)) + d, the ray with unit depth through the pixel
+    # height = z * (n . ray(u, v)) + d, the ray with unit depth through the pixel. Not sygrid.camera.unproject_depth
+    # and a dot product: the ray term is separable in u and v, and this runs on every frame (0.7 ms against 8.8 ms
+    # for a 640 x 480 frame, measured with timeit on this machine).
     along_u = normal[0] * (np.arange(w) - K[0, 2]) / K[0, 0]
     along_v = normal[1] * (np.arange(h) - K[1, 2]) / K[1, 1]
     height = depth * (along_v[:, None] + along_u[None, :] + normal[2]) + offset

@@ -51,8 +51,9 @@ class RefineConfig:
             from a principal-axes start tens of degrees away), and the extra runs cost only where refinement would
             have failed. The default tries every start: on a nut lying flat (a planar patch of ~50 points whose
             turn about the axis the depth hardly fixes) point-to-plane ICP diverges from some starts and converges
-            from others; in the cell's first frames (seeds 0-19, floor depth removed) trying all five left 5 of 40
-            nuts unrefined against 20 with two fallbacks, at the same median time.
+            from others; in the cell's first frames (seeds 0-19, floor depth removed; a one-off diagnostic against
+            the simulator's ground truth) trying all five left 5 of 40 nuts unrefined against 20 with two
+            fallbacks, at the same median time.
         correspondence_fractions: ICP stages: the max correspondence distance of each, x diameter (coarse to fine).
         max_iterations: ICP iterations per stage at most.
         iterations_per_call: ICP iterations per open3d call; the stage ends after a call whose last update was
