@@ -35,7 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from perception.camera import Frame
 from perception.detector import YoloSegDetector
 from perception.pose import PoseEstimator
-from perception.refine import DepthRefiner
+from perception.refine import DepthRefiner, RefineConfig
 from perception.results import Detection, ObjectPose
 from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.drop import resolve_object
@@ -94,6 +94,7 @@ class PipelineOverrides:
     pose_method: str | None = None
     refine: bool | None = None
     max_refined: int | None = None
+    min_fitness: float | None = None  # the refinement's acceptance (perception.refine.RefineConfig.min_fitness)
     num_threads: int = 2
 
 
@@ -186,7 +187,9 @@ class PerceptionPipeline:
             detector,
             pose,
             models,
-            DepthRefiner() if refine else None,
+            DepthRefiner(RefineConfig() if o.min_fitness is None else RefineConfig(min_fitness=o.min_fitness))
+            if refine
+            else None,
             pose_method=o.pose_method or manifest.pose.method,
             min_mask_px=manifest.min_mask_px,
             max_refined=o.max_refined or manifest.refine.max_refined,

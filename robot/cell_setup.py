@@ -75,6 +75,7 @@ class PerceptionSection(_Strict):
     detect_in_bin: bool = True  # the detector looks only at the bin's image box (the planner's bin, calibration)
     ignore_floor: bool = True  # refinement ignores depth on the bin's floor (seen through holes in a part's mask)
     floor_margin_m: float | None = Field(default=None, ge=0, lt=0.05)  # None: perception.pipeline.FLOOR_MARGIN_M
+    min_fitness: float | None = Field(default=None, ge=0, le=1)  # refinement acceptance; None: RefineConfig's
     num_threads: int = Field(default=2, ge=1)
 
 
