@@ -61,6 +61,7 @@ class Variant:
     models_dir: str | None = None  # another model folder than the cell file's
     detect_in_bin: bool | None = None
     ignore_floor: bool | None = None
+    min_fitness: float | None = None
 
 
 _BUILTIN_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "builtin")
@@ -107,6 +108,16 @@ VARIANTS: dict[str, Variant] = {
         "models",
         "the cell file's models; refinement also fits the floor seen through the parts' masks",
         ignore_floor=False,
+    ),
+    "models_fitness08": Variant(
+        "models",
+        "the cell file's models; a refinement is accepted only when 80 % of the depth lies on the model (not 30 %)",
+        min_fitness=0.8,
+    ),
+    "models_fitness06": Variant(
+        "models",
+        "the cell file's models; a refinement is accepted only when 60 % of the depth lies on the model (not 30 %)",
+        min_fitness=0.6,
     ),
     "models_sim_cell": Variant(
         "models",
@@ -255,6 +266,7 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
         "models_dir": variant.models_dir,
         "detect_in_bin": variant.detect_in_bin,
         "ignore_floor": variant.ignore_floor,
+        "min_fitness": variant.min_fitness,
     }
     perception = d.perception.model_copy(
         update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}

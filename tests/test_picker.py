@@ -471,6 +471,7 @@ def test_a_failing_part_found_again_by_refine_more_is_given_up():
 def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
     setup = load_cell_setup("launch/cells/sim.toml")
     assert setup.is_sim and setup.robot.host == "127.0.0.50" and setup.data.perception.kind == "models"
+    assert setup.data.perception.min_fitness is None  # RefineConfig's (see the README: 0.8 picked fewer)
     hw = load_cell_setup("launch/cells/ur5e_oak.toml")
     assert not hw.is_sim and hw.data.camera.kind == "oak" and hw.robot.host == "192.168.1.10"
     bad = tmp_path / "bad.toml"
@@ -486,6 +487,9 @@ def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
     assert load_cell_setup(strict).picker.hold_any_width is False
     bad.write_text(strict.read_text().replace("hold_any_width = false", 'hold_any_width = "no"'))
     with pytest.raises(ConfigError, match=r"bad\.toml.*picker"):
+        load_cell_setup(bad)
+    bad.write_text(strict.read_text().replace("[perception]\n", "[perception]\nmin_fitness = 1.5\n"))
+    with pytest.raises(ConfigError, match=r"bad\.toml.*min_fitness"):
         load_cell_setup(bad)
 
 

@@ -14,6 +14,7 @@ from perception.bench import chart, format_results, run, run_benchmark
 from perception.camera import Frame
 from perception.evaluation import EvalSettings, bop_items, evaluate, format_table
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
+from perception.refine import RefineConfig
 from sygrid.bench.common import save_results
 from sygrid.errors import ConfigError
 from sygrid.writers import load_bop_item
@@ -98,6 +99,9 @@ def test_perception_benchmark_runs_every_variant_on_the_same_images(
 def test_pipeline_turns_a_frame_into_poses(model_dir: Path, tiny_dataset: Path):
     pipeline = PerceptionPipeline.from_folder(model_dir)
     assert sorted(pipeline.models) == [1, 3, 4] and pipeline.refiner is not None
+    assert pipeline.refiner.config.min_fitness == RefineConfig().min_fitness
+    strict = PerceptionPipeline.from_folder(model_dir, PipelineOverrides(min_fitness=0.8))
+    assert strict.refiner is not None and strict.refiner.config.min_fitness == 0.8
     scene_id, image_id = bop_items(tiny_dataset / "bop", "val_pbr")[0]
     ann, rgb, depth = load_bop_item(tiny_dataset / "bop", scene_id, image_id, split="val_pbr")
     result = pipeline.run(Frame(rgb, depth, ann.intrinsics, timestamp_s=0.0))

@@ -239,3 +239,27 @@ def test_the_floor_seen_through_a_nuts_hole_stands_it_on_edge_unless_the_floor_i
     assert refined.details["icp"]["status"] == "refined"
     assert axis_error_deg(refined) < 2.0
     assert np.linalg.norm(refined.T_camera_object[:3, 3] - T_true[:3, 3]) < 0.0005
+
+
+def test_a_wrong_class_fit_passes_a_loose_acceptance_and_fails_the_cells():
+    # An L-bracket lying on a leg, seen from above (the other leg points at the camera), and a detector that called
+    # it a gear (what the built-in detector does with most of them at the cell camera's scale). ICP puts the
+    # gear's face on the bracket's leg: at the default acceptance (30 % of the depth on the model) that passes,
+    # at the simulated cell's (80 %) it does not, while the L-bracket itself fits all its depth either way.
+    bracket, gear = builtin_part("l_bracket"), builtin_part("spur_gear")
+    R_camera_world = np.diag([1.0, -1.0, -1.0])  # looking straight down
+    lying = rotation_about(np.array([0.0, 0.0, 1.0]), 1.9) @ rotation_about(np.array([0.0, 1.0, 0.0]), np.pi / 4)
+    T_true = make_T(R_camera_world @ lying, [0.01, -0.005, 0.35])
+    depth = raycast_depth(bracket, T_true, CAMERA)
+    mask = depth > 0
+    as_gear = _pose(gear, mask, make_T(R_camera_world, T_true[:3, 3]))  # a gear lying flat where the part is
+    near = _pose(bracket, mask, _perturbed(T_true, [1.0, 0.0, 0.0], 3.0, [2.0, 0.0, 0.0]))
+    loose, strict = DepthRefiner(RefineConfig(min_fitness=0.3)), DepthRefiner(RefineConfig(min_fitness=0.8))
+    gear_fit = loose.refine(as_gear, depth, CAMERA, gear).details["icp"]
+    assert gear_fit["status"] == "refined" and gear_fit["fitness"] < 0.6
+    refused = strict.refine(as_gear, depth, CAMERA, gear).details["icp"]
+    assert refused["status"] == "kept_initial" and "below 0.8" in refused["reason"]
+    right = strict.refine(near, depth, CAMERA, bracket)
+    assert right.details["icp"]["status"] == "refined" and right.details["icp"]["fitness"] > 0.95
+    rotation_deg, shift_m = symmetric_pose_errors(right.T_camera_object, T_true, bracket.symmetry_transforms(360))[:2]
+    assert rotation_deg < 5.0 and shift_m < 0.004  # the cell diagnostic's "right pose"
