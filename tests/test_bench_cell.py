@@ -126,3 +126,15 @@ def test_saved_runs_over_the_same_bins_merge_and_others_are_refused(tmp_path):
     (tmp_path / "both.png").unlink()
     args = build_parser("bench").parse_args(["bench", "cell", "--replot", "--name", "both"])
     assert run(args, out_dir=tmp_path) == 0 and (tmp_path / "both.png").is_file()
+
+
+def test_a_variant_changes_only_its_own_settings_of_the_cell_file():
+    from launch.bench_cell import CELL_FILE, HOST, VARIANTS, _setup
+    from robot.cell_setup import load_cell_setup
+
+    base = load_cell_setup(CELL_FILE)
+    plain = _setup(base, VARIANTS["models"], 7, None).data
+    strict = _setup(base, VARIANTS["models_fitness08"], 7, None).data
+    assert plain.sim.seed == strict.sim.seed == 7 and plain.sim.host == HOST
+    assert plain.perception.min_fitness == base.data.perception.min_fitness and strict.perception.min_fitness == 0.8
+    assert strict.perception.model_copy(update={"min_fitness": plain.perception.min_fitness}) == plain.perception
