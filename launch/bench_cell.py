@@ -62,6 +62,7 @@ class Variant:
     detect_in_bin: bool | None = None
     ignore_floor: bool | None = None
     min_fitness: float | None = None
+    mask_erosion_px: int | None = None
 
 
 _BUILTIN_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "builtin")
@@ -118,6 +119,16 @@ VARIANTS: dict[str, Variant] = {
         "models",
         "the cell file's models; a refinement is accepted only when 60 % of the depth lies on the model (not 30 %)",
         min_fitness=0.6,
+    ),
+    "models_erosion0": Variant(
+        "models", "the cell file's models; refinement on the whole mask (no border pixel peeled off)", mask_erosion_px=0
+    ),
+    "models_sim_cell_erosion0": Variant(
+        "models",
+        "models/sim_cell at 960 px; refinement on the whole mask (no border pixel peeled off)",
+        models_dir=_SIM_CELL_MODELS,
+        detector_input_size=960,
+        mask_erosion_px=0,
     ),
     "models_sim_cell": Variant(
         "models",
@@ -267,6 +278,7 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
         "detect_in_bin": variant.detect_in_bin,
         "ignore_floor": variant.ignore_floor,
         "min_fitness": variant.min_fitness,
+        "mask_erosion_px": variant.mask_erosion_px,
     }
     perception = d.perception.model_copy(
         update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}

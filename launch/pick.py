@@ -104,7 +104,7 @@ def open_cell(
             overrides = PipelineOverrides(
                 detector_input_size=d.perception.detector_input_size, conf_threshold=d.perception.conf_threshold,
                 refine=d.perception.refine, max_refined=d.perception.max_refined, min_fitness=d.perception.min_fitness,
-                num_threads=d.perception.num_threads,
+                mask_erosion_px=d.perception.mask_erosion_px, num_threads=d.perception.num_threads,
             )  # fmt: skip
             region = floor = None
             if planner_config.bin is not None:

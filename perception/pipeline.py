@@ -95,6 +95,7 @@ class PipelineOverrides:
     refine: bool | None = None
     max_refined: int | None = None
     min_fitness: float | None = None  # the refinement's acceptance (perception.refine.RefineConfig.min_fitness)
+    mask_erosion_px: int | None = None  # perception.refine.RefineConfig.mask_erosion_px
     num_threads: int = 2
 
 
@@ -187,9 +188,7 @@ class PerceptionPipeline:
             detector,
             pose,
             models,
-            DepthRefiner(RefineConfig() if o.min_fitness is None else RefineConfig(min_fitness=o.min_fitness))
-            if refine
-            else None,
+            DepthRefiner(_refine_config(o)) if refine else None,
             pose_method=o.pose_method or manifest.pose.method,
             min_mask_px=manifest.min_mask_px,
             max_refined=o.max_refined or manifest.refine.max_refined,
@@ -294,6 +293,12 @@ def without_floor(
     height = depth * (along_v[:, None] + along_u[None, :] + normal[2]) + offset
     on_floor = np.isfinite(depth) & (depth > 0) & (height < margin_m)
     return np.where(on_floor, 0, depth_m).astype(np.asarray(depth_m).dtype)
+
+
+def _refine_config(overrides: PipelineOverrides) -> RefineConfig:
+    """``RefineConfig``'s defaults with the overrides' refinement settings that are given."""
+    given = {"min_fitness": overrides.min_fitness, "mask_erosion_px": overrides.mask_erosion_px}
+    return RefineConfig(**{name: value for name, value in given.items() if value is not None})
 
 
 def _icp_status(pose: ObjectPose) -> str | None:

@@ -10,7 +10,8 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps)
     [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
-                  conf_threshold, detector_input_size, detect_in_bin, ignore_floor, floor_margin_m
+                  conf_threshold, detector_input_size, detect_in_bin, ignore_floor, floor_margin_m,
+                  min_fitness, mask_erosion_px (refinement settings)
     [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
     [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
     [planner]     robot.grasp.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
@@ -76,6 +77,7 @@ class PerceptionSection(_Strict):
     ignore_floor: bool = True  # refinement ignores depth on the bin's floor (seen through holes in a part's mask)
     floor_margin_m: float | None = Field(default=None, ge=0, lt=0.05)  # None: perception.pipeline.FLOOR_MARGIN_M
     min_fitness: float | None = Field(default=None, ge=0, le=1)  # refinement acceptance; None: RefineConfig's
+    mask_erosion_px: int | None = Field(default=None, ge=0, le=5)  # mask border not refined on; None: RefineConfig's
     num_threads: int = Field(default=2, ge=1)
 
 

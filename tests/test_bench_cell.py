@@ -138,3 +138,5 @@ def test_a_variant_changes_only_its_own_settings_of_the_cell_file():
     assert plain.sim.seed == strict.sim.seed == 7 and plain.sim.host == HOST
     assert plain.perception.min_fitness == base.data.perception.min_fitness and strict.perception.min_fitness == 0.8
     assert strict.perception.model_copy(update={"min_fitness": plain.perception.min_fitness}) == plain.perception
+    tuned = _setup(base, VARIANTS["models_sim_cell_erosion0"], 7, None).data.perception
+    assert tuned.mask_erosion_px == 0 and tuned.detector_input_size == 960 and tuned.models_dir.endswith("sim_cell")

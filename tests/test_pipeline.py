@@ -100,8 +100,9 @@ def test_pipeline_turns_a_frame_into_poses(model_dir: Path, tiny_dataset: Path):
     pipeline = PerceptionPipeline.from_folder(model_dir)
     assert sorted(pipeline.models) == [1, 3, 4] and pipeline.refiner is not None
     assert pipeline.refiner.config.min_fitness == RefineConfig().min_fitness
-    strict = PerceptionPipeline.from_folder(model_dir, PipelineOverrides(min_fitness=0.8))
+    strict = PerceptionPipeline.from_folder(model_dir, PipelineOverrides(min_fitness=0.8, mask_erosion_px=0))
     assert strict.refiner is not None and strict.refiner.config.min_fitness == 0.8
+    assert strict.refiner.config.mask_erosion_px == 0 and pipeline.refiner.config.mask_erosion_px == 1
     scene_id, image_id = bop_items(tiny_dataset / "bop", "val_pbr")[0]
     ann, rgb, depth = load_bop_item(tiny_dataset / "bop", scene_id, image_id, split="val_pbr")
     result = pipeline.run(Frame(rgb, depth, ann.intrinsics, timestamp_s=0.0))
