@@ -115,11 +115,6 @@ VARIANTS: dict[str, Variant] = {
         "the cell file's models; a refinement is accepted only when 80 % of the depth lies on the model (not 30 %)",
         min_fitness=0.8,
     ),
-    "models_fitness06": Variant(
-        "models",
-        "the cell file's models; a refinement is accepted only when 60 % of the depth lies on the model (not 30 %)",
-        min_fitness=0.6,
-    ),
     "models_erosion0": Variant(
         "models", "the cell file's models; refinement on the whole mask (no border pixel peeled off)", mask_erosion_px=0
     ),
