@@ -98,9 +98,10 @@ VARIANTS: dict[str, Variant] = {
     "models_640": Variant("models", "trained models, detector at 640 px", detector_input_size=640),
     "models_builtin": Variant(
         "models",
-        "the general built-in models at 800 px (their best size on the cell's frames)",
+        "the general built-in models at 800 px (their best size on the cell's frames), masks peeled by a pixel",
         models_dir=_BUILTIN_MODELS,
         detector_input_size=800,
+        mask_erosion_px=1,
     ),
     "models_full_frame": Variant(
         "models", "the cell file's models; the detector on the whole frame, not the bin's box", detect_in_bin=False
@@ -116,7 +117,11 @@ VARIANTS: dict[str, Variant] = {
         min_fitness=0.8,
     ),
     "models_erosion0": Variant(
-        "models", "the cell file's models; refinement on the whole mask (no border pixel peeled off)", mask_erosion_px=0
+        "models",
+        "the built-in models at 800 px; refinement on the whole mask (no border pixel peeled off)",
+        models_dir=_BUILTIN_MODELS,
+        detector_input_size=800,
+        mask_erosion_px=0,
     ),
     "models_sim_cell_erosion0": Variant(
         "models",
@@ -127,9 +132,10 @@ VARIANTS: dict[str, Variant] = {
     ),
     "models_sim_cell": Variant(
         "models",
-        "models/sim_cell (detector fine-tuned on the cell's views) at 960 px (its best size on the cell's frames)",
+        "models/sim_cell (detector fine-tuned on the cell's views) at 960 px, masks peeled by a pixel",
         models_dir=_SIM_CELL_MODELS,
         detector_input_size=960,
+        mask_erosion_px=1,
     ),
 }
 QUICK_VARIANTS = ("oracle", "oracle_fast", "models")
@@ -153,6 +159,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--replot", action="store_true", help="only redraw NAME.png from the saved NAME.json")
     parser.add_argument(
+        "--resume", action="store_true",
+        help="go on with a stopped run: keep the bins of the saved NAME.json (same seeds, variants and scene) "
+        "and run the seeds it has not done",
+    )  # fmt: skip
+    parser.add_argument(
         "--merge", default=None, metavar="A,B,...",
         help="run nothing: put the variants of the saved results A, B, ... (same seeds) into one NAME.json/png, "
         "each named 'A: variant'",
@@ -168,11 +179,17 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         raise ConfigError(f"{args.config}: sygrid bench cell needs a simulated cell ([cell] kind = 'sim')")
     seeds = list(range(args.first_seed, args.first_seed + (QUICK_SEEDS if args.quick else args.seeds)))
     results: dict[str, Any] = {"targets": TARGETS, "seeds": seeds, "scene": str(args.scene or base.data.sim.scene)}
-    bins: dict[str, list] = {name: [] for name in names}
     name_out = args.name or ("cell_quick" if args.quick else "cell")
+    bins: dict[str, list] = {name: [] for name in names}
+    if args.resume:
+        saved_path = out_dir / f"{name_out}.json"
+        bins = bins_to_resume(read_json(saved_path, "cell benchmark results"), results, names, saved_path)
+    n_done = len(next(iter(bins.values())))
+    if n_done:
+        results.update(seeds_done=seeds[:n_done], variants=_variant_results(bins))
     # Seeds outside, variants inside, and the results saved after each seed: every variant has seen the same bins
     # at any moment, and a run stopped early keeps what it measured (``seeds_done``).
-    for k, seed in enumerate(seeds):
+    for k, seed in enumerate(seeds[n_done:], start=n_done):
         for name in names:
             start = time.perf_counter()
             outcome = run_bin(base, VARIANTS[name], seed, args.scene, args.max_cycles)
@@ -184,10 +201,7 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
                 f"({time.perf_counter() - start:.0f} s)",
                 flush=True,
             )
-        results["seeds_done"] = seeds[: k + 1]
-        results["variants"] = {
-            name: {"description": VARIANTS[name].description, **summarize(b), "bins": b} for name, b in bins.items()
-        }
+        results.update(seeds_done=seeds[: k + 1], variants=_variant_results(bins))
         if k + 1 < len(seeds):
             figure = chart(results)
             save_results(name_out, results, figure, out_dir)
@@ -196,6 +210,10 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     json_path, png_path = save_results(name_out, results, chart(results), out_dir)
     print(f"wrote {json_path} and {png_path}")
     return 0
+
+
+def _variant_results(bins: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
+    return {name: {"description": VARIANTS[name].description, **summarize(b), "bins": b} for name, b in bins.items()}
 
 
 def _from_saved(args: argparse.Namespace, out_dir: Path) -> int:
@@ -230,6 +248,26 @@ def merge_results(saved: dict[str, dict[str, Any]]) -> dict[str, Any]:
             )
         variants.update({f"{name}: {v}": r for v, r in run["variants"].items()})
     return {"targets": first["targets"], "seeds": seeds, "seeds_done": seeds, "scene": scene, "variants": variants}
+
+
+def bins_to_resume(
+    saved: dict[str, Any], planned: dict[str, Any], names: list[str], path: Path
+) -> dict[str, list[dict[str, Any]]]:
+    """The per-variant bins of a stopped run, to go on from, checked against the run now asked for.
+
+    Raises:
+        ConfigError: the saved run (``path``) measured other seeds, variants or scene than the ones asked for.
+    """
+    done = _seeds_measured(saved)
+    expected = {"seeds": planned["seeds"], "scene": planned["scene"], "variants": sorted(names)}
+    found = {"seeds": saved["seeds"], "scene": saved["scene"], "variants": sorted(saved["variants"])}
+    for key in expected:
+        if found[key] != expected[key]:
+            raise ConfigError(
+                f"{path}: field '{key}' is {found[key]}, the run asked for {expected[key]}: "
+                "--resume goes on only with the same seeds, variants and scene"
+            )
+    return {name: list(saved["variants"][name]["bins"][: len(done)]) for name in names}
 
 
 def _seeds_measured(results: dict[str, Any]) -> list[int]:
