@@ -1,7 +1,7 @@
 """``sygrid demo``: the main job on built-in defaults, the picking demo in the simulated cell.
 
 It is ``sygrid pick`` on ``launch/cells/sim.toml``: the UR controller emulator on loopback, a bin of 10 built-in
-parts dropped with the seed, the shipped models (``models/builtin``) in the loop, ur_rtde driving the arm until
+parts dropped with the seed, the shipped models (``models/sim_cell``) in the loop, ur_rtde driving the arm until
 the bin is empty or nothing is safe to pick; it prints the success rate and cycle times and writes the run report
 (JSON and PNG) to ``out/pick``. Every option of ``sygrid pick`` applies.
 """

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from launch.bench_cell import TARGETS, chart, format_results, merge_results, run, summarize
+from launch.bench_cell import TARGETS, bins_to_resume, chart, format_results, merge_results, run, summarize
 from launch.cli import build_parser
 from sygrid.errors import ConfigError
 from sygrid.fileio import write_json_atomic
@@ -128,6 +128,29 @@ def test_saved_runs_over_the_same_bins_merge_and_others_are_refused(tmp_path):
     assert run(args, out_dir=tmp_path) == 0 and (tmp_path / "both.png").is_file()
 
 
+def test_a_stopped_run_resumes_with_its_bins_and_only_the_same_run_can_resume(tmp_path):
+    from launch.bench_cell import CELL_FILE
+    from robot.cell_setup import load_cell_setup
+
+    scene = str(load_cell_setup(CELL_FILE).data.sim.scene)
+    bins = [_bin(s, 2, 8, 8, [5.0], "nothing_safe", {}) for s in (0, 1, 2)]
+    stopped = {"targets": TARGETS, "seeds": [0, 1, 2], "seeds_done": [0, 1], "scene": scene,
+               "variants": {"models": {"description": "models", **summarize(bins), "bins": bins}}}  # fmt: skip
+    path = tmp_path / "cell.json"
+    planned = {"seeds": [0, 1, 2], "scene": scene}
+    # only the bins of the seeds done are kept (a bin written after the last save is not trusted)
+    assert [b["seed"] for b in bins_to_resume(stopped, planned, ["models"], path)["models"]] == [0, 1]
+    with pytest.raises(ConfigError, match=r"cell.json: field 'variants' is \['models'\]"):
+        bins_to_resume(stopped, planned, ["oracle"], path)
+    with pytest.raises(ConfigError, match="field 'seeds'"):
+        bins_to_resume(stopped, {**planned, "seeds": [0, 1, 2, 3]}, ["models"], path)
+    # through the command, on a run with every seed done: nothing runs, the results are written again
+    write_json_atomic(path, {**stopped, "seeds_done": [0, 1, 2]})
+    args = build_parser("bench").parse_args(["bench", "cell", "--seeds", "3", "--variants", "models", "--resume"])
+    assert run(args, out_dir=tmp_path) == 0
+    assert (tmp_path / "cell.png").is_file()
+
+
 def test_a_variant_changes_only_its_own_settings_of_the_cell_file():
     from launch.bench_cell import CELL_FILE, HOST, VARIANTS, _setup
     from robot.cell_setup import load_cell_setup
@@ -140,3 +163,8 @@ def test_a_variant_changes_only_its_own_settings_of_the_cell_file():
     assert strict.perception.model_copy(update={"min_fitness": plain.perception.min_fitness}) == plain.perception
     tuned = _setup(base, VARIANTS["models_sim_cell_erosion0"], 7, None).data.perception
     assert tuned.mask_erosion_px == 0 and tuned.detector_input_size == 960 and tuned.models_dir.endswith("sim_cell")
+    # variants that name their models keep measuring the same thing whatever the cell file runs
+    for name, peel in (("models_builtin", 1), ("models_erosion0", 0)):
+        general = _setup(base, VARIANTS[name], 7, None).data.perception
+        assert general.models_dir.endswith("builtin") and general.detector_input_size == 800
+        assert general.mask_erosion_px == peel
