@@ -19,7 +19,8 @@ so a sweep of more variants over fewer seeds can sit beside the headline run): p
 success rate against the median cycle time per variant, and the parts left by cause.
 
 The emulator runs in real time: a bin of 10 parts takes about a minute, so 30 seeds of one variant take about half
-an hour. Variants with ``models`` perception need a trained model folder (the cell file's, or the variant's own).
+an hour. The results are saved after every seed; ``--resume`` goes on with a stopped run from the seeds it
+has not done. Variants with ``models`` perception need a trained model folder (the cell file's, or the variant's own).
 """
 
 from __future__ import annotations
