@@ -88,6 +88,11 @@ VARIANTS: dict[str, Variant] = {
         "models", "the cell file's models; pad tips 2 mm above the bin floor (not 1 mm)", {"floor_clearance_m": 0.002}
     ),
     "models_no_nudge": Variant("models", "the cell file's models; no nudges", picker={"max_nudges": 0}),
+    "models_no_sheet": Variant(
+        "models",
+        "the cell file's models; no grasp narrower than 4 mm (no pinch of a 2 mm sheet: the previous planner default)",
+        {"min_grasp_width_m": 0.004},
+    ),
     "models_planned_width": Variant(
         "models",
         "the cell file's models; a part held at another width than the planned one is dropped back (slipped)",

@@ -188,8 +188,9 @@ class PlannerConfig:
     max_grasps_per_part: planned grasps per part (alternatives for retries). max_planned_parts: plan this many
     parts, best first (None: all parts); the other parts' candidates are checked only if they could still rank
     among them, which saves most of the time in a full bin. min_grasp_width_m: candidates narrower than this are
-    not used: the gripper's object detection (fingers stopped 1.5 mm or more short of closed) cannot tell a 2 mm
-    sheet from air (in the simulated cell such grasps of the L bracket came back "gripper_empty").
+    not used (0: all). A 2 mm sheet is held: the picker takes fingers that stopped apart for a hold even when the
+    gripper's object detection, which needs them 1.5 mm or more short of closed, says "no object"
+    (``PickerConfig.min_held_width_m``); these pinches are an L-bracket standing on its sheet edges' only grasps.
     """
 
     grasp_params: GraspSetParams = field(default_factory=GraspSetParams)
@@ -224,7 +225,7 @@ class PlannerConfig:
     weights: ScoreWeights = field(default_factory=ScoreWeights)
     max_grasps_per_part: int = 1
     max_planned_parts: int | None = None
-    min_grasp_width_m: float = 0.004
+    min_grasp_width_m: float = 0.0
 
     def __post_init__(self) -> None:
         T = np.array(self.T_base_place, dtype=float)

@@ -10,8 +10,9 @@ One cycle (``Picker.cycle``) takes one frame, estimates the parts, plans, and tr
 - ``approach``: open the gripper to the grasp's opening and check that the fingers got there (something stuck
   between them: ``gripper_blocked``), joint move to the lift pose (above the bin's rim on the approach line),
   straight lines to the pre-grasp and the grasp;
-- ``grasp``: close; the gripper's object detection must say "held" (False: closed on air or the part slid away;
-  the gripper opens and backs out along the approach to the lift);
+- ``grasp``: close; the gripper's object detection must say "held", or the fingers must have stopped at least
+  ``min_held_width_m`` apart (False and closed: on air, or the part slid away; the gripper opens and backs out along
+  the approach to the lift);
 - ``verify``: straight line back out to the lift; the fingers must not have closed below the narrowest width the
   part can be held at less ``slip_width_tolerance_m`` (the part slipped out), and the gripper must report the object
   again, or its fingers rest where they are, within ``slip_settle_s``. A part held at another of its widths than the
@@ -187,6 +188,11 @@ class PickerConfig:
     (something above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find or whose
     estimates land outside it: the run stops with "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top
     seen from above.
+    min_held_width_m: fingers that stopped at least this far apart hold something, even when the gripper reports no
+    object, and fingers closer than this after lifting hold nothing. A gripper detects an object when its fingers
+    stop short of the commanded position by more than a tolerance (1.5 mm on the emulated 2F-85): a 2 mm sheet,
+    which the pads squeeze to 1.3 mm, reads "no object", although the fingers, closed on air, read 0 mm. 1 mm is
+    three of the 2F-85's position counts; on hardware, calibrate ``pos_closed`` so that closed on air reads 0.
     """
 
     max_cycles: int = 50
@@ -211,6 +217,7 @@ class PickerConfig:
     max_nudges: int = 8
     max_nudges_per_part: int = 2
     min_unseen_area_m2: float = 1e-4
+    min_held_width_m: float = 0.001
 
     def __post_init__(self) -> None:
         for name in (
@@ -229,7 +236,7 @@ class PickerConfig:
             raise ConfigError(f"PickerConfig.max_nudges must be an integer >= 0, got {self.max_nudges!r}")
         for name in (
             "slip_width_tolerance_m", "still_there_distance_m", "exclusion_distance_m", "open_tolerance_m",
-            "open_timeout_s", "slip_settle_s", "reconnect_timeout_s", "min_unseen_area_m2",
+            "open_timeout_s", "slip_settle_s", "reconnect_timeout_s", "min_unseen_area_m2", "min_held_width_m",
         ):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"PickerConfig.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -526,7 +533,7 @@ class Picker:
             stage = "grasp"
             with timer("grasp"):
                 held = self.gripper.close(force_n=cfg.grip_force_n)
-            if held is False:
+            if held is False and not self._fingers_apart():
                 self._back_out(grasp, timer)
                 return _fail(attempt, "gripper_empty", stage, "the fingers closed without meeting the part")
             stage = "verify"
@@ -611,20 +618,21 @@ class Picker:
     def _slip_reason(self, grasp: Any) -> tuple[str, float | None]:
         """Why the part is not in the gripper after lifting ("" when it is), and the fingers' last width.
 
-        Fingers closed below the narrowest width the part can be held at (``PickerConfig.hold_any_width``) say so at
-        once. Otherwise the part is held when the gripper reports an object, or when the fingers rest where they
+        Fingers closed below the narrowest width the part can be held at (``PickerConfig.hold_any_width``), less
+        ``slip_width_tolerance_m`` and never below ``min_held_width_m``, say so at once. Otherwise the part is held when the gripper reports an object, or when the fingers rest where they
         are (no change over ``_WIDTH_STEADY_S``): the emulated 2F-85 reads "moving" (no object) much of the time
         while its stiff pads hold a part, from the jitter of the finger speed. Neither within ``slip_settle_s``:
         the object is lost."""
         cfg = self.config
         narrowest = min(grasp.min_hold_width_m, grasp.grasp_width_m) if cfg.hold_any_width else grasp.grasp_width_m
+        lowest = max(narrowest - cfg.slip_width_tolerance_m, cfg.min_held_width_m)
         deadline = time.monotonic() + cfg.slip_settle_s
         steady_since, last_width = time.monotonic(), None
         while True:
             detected = self.gripper.object_detected()
             width = self.gripper.width_m()
             now = time.monotonic()
-            if width is not None and width < narrowest - cfg.slip_width_tolerance_m:
+            if width is not None and width < lowest:
                 why = f"the fingers closed to {1e3 * width:.1f} mm, the part is {1e3 * grasp.grasp_width_m:.1f} mm wide"
                 if narrowest < grasp.grasp_width_m:
                     why += f" ({1e3 * narrowest:.1f} mm at its narrowest hold)"
@@ -762,6 +770,11 @@ class Picker:
             self.robot.move_j(self.q_observe, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
         if self._observe_height_m is None:
             self._observe_height_m = float(np.asarray(self.robot.T_base_tcp())[2, 3])
+
+    def _fingers_apart(self) -> bool:
+        """The fingers stopped at least ``min_held_width_m`` apart: something thin is between them."""
+        width = self.gripper.width_m()
+        return width is not None and width >= self.config.min_held_width_m
 
     def _grasp_opening(self, grasp: Any) -> float | None:
         """The opening a grasp's approach was checked with, as the gripper is commanded to it (None: a gripper that
