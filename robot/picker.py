@@ -619,10 +619,10 @@ class Picker:
         """Why the part is not in the gripper after lifting ("" when it is), and the fingers' last width.
 
         Fingers closed below the narrowest width the part can be held at (``PickerConfig.hold_any_width``), less
-        ``slip_width_tolerance_m`` and never below ``min_held_width_m``, say so at once. Otherwise the part is held when the gripper reports an object, or when the fingers rest where they
-        are (no change over ``_WIDTH_STEADY_S``): the emulated 2F-85 reads "moving" (no object) much of the time
-        while its stiff pads hold a part, from the jitter of the finger speed. Neither within ``slip_settle_s``:
-        the object is lost."""
+        ``slip_width_tolerance_m`` and never below ``min_held_width_m``, say so at once. Otherwise the part is held
+        when the gripper reports an object, or when the fingers rest where they are (no change over
+        ``_WIDTH_STEADY_S``): the emulated 2F-85 reads "moving" (no object) much of the time while its stiff pads
+        hold a part, from the jitter of the finger speed. Neither within ``slip_settle_s``: the object is lost."""
         cfg = self.config
         narrowest = min(grasp.min_hold_width_m, grasp.grasp_width_m) if cfg.hold_any_width else grasp.grasp_width_m
         lowest = max(narrowest - cfg.slip_width_tolerance_m, cfg.min_held_width_m)
