@@ -15,11 +15,11 @@ A nudge (for a part the planner left for ``collision_bin`` or ``collision_parts`
    would be ``target_gap_m`` away;
 4. go straight up; the next look decides what to do.
 
-Not nudged: an L-bracket standing on its sheet edges (``approach_angle``: its only grasps pinch the 2 mm sheet).
-Pressed on its top edge and dragged, or pushed on its side at half its height, it moved along but stayed standing in
-the simulated cell, as statics says: its centre lies about 10 mm inside its footprint and it is 20 mm tall, so a
-push at its top tips it only with a force of half its weight, which is what the floor's friction (0.5) already
-yields to.
+A nudge does not topple an L-bracket standing on its sheet edges (whose only grasps pinch the 2 mm sheet): pressed
+on its top edge and dragged, or pushed on its side at half its height, it moved along but stayed standing in the
+simulated cell, as statics says: its centre lies about 10 mm inside its footprint and it is 20 mm tall, so a push at
+its top tips it only with a force of half its weight, which is what the floor's friction (0.5) already yields to.
+Away from a wall, standing, its sheet can be pinched.
 
 The walls are vertical, so a gripper clear of them at the press and at the end of the drag stays clear on the way
 straight down and back up: those two poses are all the wall check needs.

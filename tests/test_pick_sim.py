@@ -147,6 +147,24 @@ def test_a_gear_in_a_corner_is_nudged_out_and_then_picked(fresh):
     assert not picker.robot.is_protective_stopped()
 
 
+def test_an_l_bracket_standing_on_its_sheet_edges_is_picked_by_a_pinch_of_the_sheet(fresh):
+    """Standing on its sheet edges an L-bracket's only grasps pinch the 2 mm sheet: the gripper's object detection
+    reads "no object" (the pads squeeze the sheet to 1.3 mm, under its 1.5 mm), but the fingers stopped apart
+    hold it, and it is placed."""
+    picker, process, start = fresh
+    bracket = next(i for i, name in enumerate(process.part_names()) if name.endswith("l_bracket"))
+    cfg = CellConfig()
+    width = builtin_part("l_bracket").extents_m[1]  # the sheet's width, along the object's y
+    R_standing = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # object y up
+    _keep_only(process, start, bracket, cfg.T_world_bin @ make_T(R_standing, (0.0, -0.03, width / 2 + 0.0005)))
+    time.sleep(0.3)
+    T_bin_bracket = invert(cfg.T_world_bin) @ process.part_poses()[bracket]
+    assert T_bin_bracket[2, 1] > 0.99, "the bracket fell over"
+    report = picker.run(max_cycles=3)
+    assert [a.outcome for a in report.attempts] == ["picked"], [a.detail for a in report.attempts]
+    assert report.stop_reason == "bin_empty" and not _in_bin(process.part_poses()[[bracket]]).any()
+
+
 def test_an_unreachable_part_is_refused_with_the_reason(fresh):
     picker, process, start = fresh
     nut = _nut(process)

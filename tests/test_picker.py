@@ -401,6 +401,52 @@ def test_fingers_closed_below_the_parts_narrowest_hold_are_a_slip():
     assert first.outcome == "slipped" and first.detail.endswith("(10.0 mm at its narrowest hold)")
 
 
+class SheetGrasps(FakePlanner):
+    """Pinches of a 2 mm sheet (an L-bracket standing on its edges)."""
+
+    def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
+        plan = super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
+        for g in plan.grasps:
+            g.grasp_width_m = g.min_hold_width_m = 0.002
+            g.opening_width_m = 0.012
+        return plan
+
+
+def _close_on_a_sheet(gripper: FakeGripper, width_m: float) -> None:
+    """The gripper's close reports no object (it stopped under 1.5 mm short of closed) with the fingers at
+    ``width_m``: 1.3 mm on a 2 mm sheet (the pads squeeze it), 0 mm on air."""
+
+    def close(force_n=None, speed_m_s=None):
+        gripper.opening = False
+        gripper.held = width_m > 0
+        gripper.width = width_m
+        return False
+
+    gripper.close = close
+    gripper.object_detected = lambda: False
+
+
+def test_fingers_stopped_on_a_thin_sheet_hold_it_although_the_gripper_detects_no_object():
+    picker, _ = make_picker(FakeBin([0.0]), SheetGrasps())
+    _close_on_a_sheet(picker.gripper, 0.0013)
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["picked"] and report.stop_reason == "bin_empty"
+
+
+def test_fingers_closed_on_air_are_no_hold_of_a_thin_sheet():
+    bin_ = FakeBin([0.0])
+    picker, _ = make_picker(bin_, SheetGrasps())
+    _close_on_a_sheet(picker.gripper, 0.0)
+    first = picker.run(max_cycles=1).attempts[0]
+    assert first.outcome == "gripper_empty" and bin_.parts == [0.0]
+    # below 1 mm after lifting: the sheet slid out, whatever the slip tolerance (4 mm) below its 2 mm leaves
+    picker, _ = make_picker(bin_, SheetGrasps())
+    _close_on_a_sheet(picker.gripper, 0.0013)
+    picker.robot.move_l = lambda T, speed_m_s=None, accel_m_s2=None: setattr(picker.gripper, "width", 0.0005)
+    first = picker.run(max_cycles=1).attempts[0]
+    assert first.outcome == "slipped" and "closed to 0.5 mm, the part is 2.0 mm wide" in first.detail
+
+
 def test_a_part_stuck_in_the_fingers_stops_the_run_as_gripper_blocked():
     bin_ = FakeBin([0.0, 0.1])
     picker, _ = make_picker(bin_, config=PickerConfig(open_timeout_s=0.05))
