@@ -13,7 +13,7 @@ stock ur_rtde client) runs until it stops. Per variant it reports:
 - failures by cause, nudges by outcome (and the robot time of a nudge cycle), stop reasons, and which parts were
   left in the bin with the planner's reason.
 
-Targets (issue 6): success >= 95 %, median cycle <= 8 s simulated, perception + planning <= 300 ms wall.
+Targets: success >= 95 %, median cycle <= 8 s simulated, perception + planning <= 300 ms wall.
 Writes ``bench/results/cell.json`` and ``cell.png`` (``cell_quick.*`` with ``--quick``, ``NAME.*`` with ``--name``,
 so a sweep of more variants over fewer seeds can sit beside the headline run): parts cleared and pick
 success rate against the median cycle time per variant, and the parts left by cause.

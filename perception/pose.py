@@ -86,7 +86,7 @@ class PoseEstimator:
         options.inter_op_num_threads = 1
         options.log_severity_level = 3
         # Worker threads sleep as soon as a run ends instead of spinning: the PnP decoding (OpenCV threads) runs right
-        # after, and on 2 cores spinning threads made solvePnPRansac about 40x slower (41 ms against 1 ms a call).
+        # after, and on a 2-core CPU spinning threads starve it (solvePnPRansac became tens of times slower).
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             self._session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])

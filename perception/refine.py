@@ -49,11 +49,9 @@ class RefineConfig:
             next starts in rank order, until one passes: a start that fits best before ICP is not always the one
             ICP converges from (in the simulated cell, a nut estimated within millimetres was refused after ICP
             from a principal-axes start tens of degrees away), and the extra runs cost only where refinement would
-            have failed. The default tries every start: on a nut lying flat (a planar patch of ~50 points whose
-            turn about the axis the depth hardly fixes) point-to-plane ICP diverges from some starts and converges
-            from others; in the cell's first frames (seeds 0-19, floor depth removed; a one-off diagnostic against
-            the simulator's ground truth) trying all five left 5 of 40 nuts unrefined against 20 with two
-            fallbacks, at the same median time.
+            have failed. The default tries every start: on a nut lying flat (a planar patch of a few dozen points
+            whose turn about the axis the depth hardly fixes) point-to-plane ICP diverges from some starts and
+            converges from others (docs/decisions.md).
         correspondence_fractions: ICP stages: the max correspondence distance of each, x diameter (coarse to fine).
         max_iterations: ICP iterations per stage at most.
         iterations_per_call: ICP iterations per open3d call; the stage ends after a call whose last update was
@@ -428,13 +426,13 @@ class DepthRefiner:
 
         Each open3d call runs ``iterations_per_call`` iterations, and a stage ends after the call whose update was
         negligible: open3d's legacy result does not report its iteration count and its own stopping rule does not
-        know symmetry axes, and its tensor API, which does report the count, measured about ten times slower on
-        these cloud sizes. Not one iteration per call: every call builds the target's k-d tree again, which costs
-        more than an iteration (``sygrid bench perception`` times both). For a part with continuous symmetry axes
-        (``symmetry_axes`` (k, 3), object frame; ``R_frame_object`` the model's rotation in the ICP frame) the
-        rotation update is measured on the axes' directions only: about such an axis the data cannot pin the
-        pose, open3d's unregularised solve wanders there (measured: back and forth by 0.06 deg for ever on a
-        washer), and that harmless wandering must not keep the loop running.
+        know symmetry axes, and its tensor API, which does report the count, is slower on these small clouds. Not
+        one iteration per call: every call builds the target's k-d tree again, which costs more than an iteration
+        (``sygrid bench perception`` times both). For a part with continuous symmetry axes (``symmetry_axes``
+        (k, 3), object frame; ``R_frame_object`` the model's rotation in the ICP frame) the rotation update is
+        measured on the axes' directions only: about such an axis the data cannot pin the
+        pose, open3d's unregularised solve wanders there (back and forth for ever on a washer), and that harmless
+        wandering must not keep the loop running.
         """
         cfg = self.config
         T = np.eye(4)

@@ -4,7 +4,7 @@ that the next look finds a grasp.
 A parallel gripper needs room beside a part for its fingers (on the simulated 2F-85-like gripper 24 mm of pad and
 finger link per side, and a 62 x 86 mm housing behind them), so a part lying within a finger's width of a wall, or
 pressed against a neighbour that cannot be picked either, cannot be grasped at all. With ground-truth poses parts
-at the walls were most of what a pick run left in the bin (``sygrid bench cell``, 30 bins: 54 of 79 parts left).
+at the walls are most of what a pick run leaves in the bin (``sygrid bench cell``, docs/bench/cell.md).
 A nudge (for a part the planner left for ``collision_bin`` or ``collision_parts``):
 
 1. close the fingers (the two pads together are a 16 x 22 mm paddle);

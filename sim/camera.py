@@ -1,14 +1,14 @@
 """The simulated cell's cameras, rendered by MuJoCo: RGB and metric depth from one rasterised pass.
 
-Fast path: no multisampling (the cell sets ``offsamples=0``), no shadows, reflections or skybox; the platform notes
-measured about 26-30 ms for a 640x480 frame this way on two CPU cores. Depth is read from the same pass and
+Fast path: no multisampling (the cell sets ``offsamples=0``), no shadows, reflections or skybox (frame times:
+``sygrid bench sim``). Depth is read from the same pass and
 converted from MuJoCo's reversed-z depth buffer to metres along the camera z axis with the model's clip planes
 (``vis.map.znear/zfar * stat.extent``); pixels that see nothing get 0 ("no data").
 
 Threads: ``capture`` holds ``world.lock`` only while it brings the kinematics up to date and copies the scene
 (``mjv_updateScene``, well under a millisecond); rasterising runs outside it, so the world's tick thread keeps
 stepping. MuJoCo's render calls hold Python's GIL, so the camera waits for the rasteriser with ``glFinish``
-through ctypes (which releases it): a frame blocks other Python threads for about 2 ms instead of 6. On two
+through ctypes (which releases it), so a frame blocks other Python threads only while drawing is queued. On two
 cores the rasteriser still competes with the tick thread for CPU. The OpenGL context is created on the first
 ``capture`` (which also uploads the meshes, tens of milliseconds: take one frame before a tick thread starts) and
 belongs to the thread that made it: capture from one thread. The backend is ``gl_backend``, else the

@@ -9,8 +9,8 @@ Passes (Mitsuba, variant from ``choose_variant``):
 3. full masks: the same 1-spp ``shape_index`` pass per instance with that instance alone in the scene.
 
 ``scene.render.mode == "raster"`` renders with MuJoCo's offscreen rasteriser instead (``_render_raster``): flat
-colours per material, no global illumination, about 30 ms a frame; ids come from MuJoCo's segmentation pass and
-full masks from one segmentation pass per instance with the other parts moved away. The OpenGL backend is
+colours per material, no global illumination, far cheaper than path tracing; ids come from MuJoCo's segmentation
+pass and full masks from one segmentation pass per instance with the other parts moved away. The OpenGL backend is
 ``MUJOCO_GL`` (``egl`` when unset; ``osmesa`` works where EGL does not).
 
 Determinism: Mitsuba's sampler seed and every material/light draw come from ``rng``; the same rng state gives the
@@ -191,7 +191,7 @@ def render_item(
 
 def _release_jit_caches() -> None:
     """Every item is a new scene, so Dr.Jit compiles new kernels and keeps them (and their allocations) cached:
-    about 0.9 MiB per item that a long-running generator never gets back (measured by ``sygrid bench render``)."""
+    memory that a long-running generator never gets back (``sygrid bench render`` measures RSS over 300 items)."""
     import drjit as dr
 
     dr.flush_kernel_cache()
