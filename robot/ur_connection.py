@@ -89,12 +89,13 @@ def _never_destroy(client: object) -> None:
     interpreter shutdown.
 
     The crash it avoids: ur_rtde 1.6.5's destructors call ``disconnect()`` again, and when that throws (a
-    ``boost::system::system_error`` such as ``read: End of file`` on a socket the controller has closed) the exception
-    leaves a destructor, so the C++ runtime calls ``std::terminate`` and the whole process aborts (SIGABRT). It happens as soon as the last Python reference goes
-    (``close()``, ``reconnect()``, ``recover()``, or interpreter exit) for an ``RTDEIOInterface`` whose link is dead
-    (a dropped link, a stopped or restarted controller) and for any client whose own ``disconnect()`` raised.
-    Cost: the client's socket and memory for the rest of the process, one set per dropped link.
-    ``tests/test_robot_ur.py`` shuts a process down this way and checks that it exits cleanly."""
+    ``boost::system::system_error`` such as ``read: End of file`` on a socket the controller has closed) the
+    exception leaves a destructor, so the C++ runtime calls ``std::terminate`` and the whole process aborts
+    (SIGABRT). It happens as soon as the last Python reference goes (``close()``, ``reconnect()``, ``recover()``,
+    or interpreter exit) for an ``RTDEIOInterface`` whose link is dead (a dropped link, a stopped or restarted
+    controller) and for any client whose own ``disconnect()`` raised. Cost: the client's socket and memory for the
+    rest of the process, one set per dropped link. ``tests/test_robot_ur.py`` closes a robot on a dead link in a
+    child process and checks that the process exits cleanly."""
     log.info("keeping a disconnected %s alive for the life of the process (its destructor would abort)", client)
     ctypes.pythonapi.Py_IncRef(ctypes.py_object(client))
 

@@ -1,7 +1,8 @@
 """What the controller emulator needs from a simulated arm: the ``ArmBackend`` protocol, and ``KinematicBackend``,
 a perfect-tracking arm (actual = commanded) for fast protocol tests.
 
-The MuJoCo cell implements the same protocol in ``sim.controller.world_backend``.
+The MuJoCo cell implements the same protocol in ``sim.controller.world_backend``; ``sim.controller.backend_by_name``
+chooses one by name.
 """
 
 from __future__ import annotations
@@ -136,17 +137,3 @@ class KinematicBackend:
             gripper_moving=moving,
             gripper_object_detected=self._object_detected,
         )
-
-
-BACKENDS = ("kinematic", "mujoco")
-
-
-def make_backend(name: str, **kwargs: object) -> ArmBackend:
-    """``kinematic`` (``KinematicBackend(**kwargs)``) or ``mujoco`` (a fresh ``sim.world.CellWorld(**kwargs)``)."""
-    if name == "kinematic":
-        return KinematicBackend(**kwargs)  # type: ignore[arg-type]
-    if name == "mujoco":
-        from sim.controller.world_backend import make_world_backend
-
-        return make_world_backend(**kwargs)
-    raise ValueError(f"unknown backend {name!r}; choose one of: {', '.join(BACKENDS)}")
