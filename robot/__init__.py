@@ -3,7 +3,8 @@
 Import the modules themselves (nothing is imported here, so ``import robot`` stays cheap and needs no ur_rtde):
 
 - ``robot.ur``: ``URRobot`` over ur_rtde (connect, recover, checked motion with 4x4 poses); ``robot.ur_config``
-  (``URConfig``, ``WorkspaceBox``, the pre-send checks) and ``robot.ur_errors`` are re-exported by it.
+  (``URConfig``, ``WorkspaceBox``, the pre-send checks), ``robot.ur_errors``, ``robot.ur_connection`` (the clients,
+  reconnect, recovery), ``robot.ur_motion`` (a motion in flight, watched), ``robot.ur_probe`` (bounded reachability).
 - ``robot.gripper``: ``Gripper``, the Robotiq URCap socket and digital-output kinds, ``make_gripper``.
 - ``robot.calibration``, ``robot.charuco``: eye-to-hand hand-eye calibration with a ChArUco board.
 - ``robot.grasp`` (the planner), ``robot.grasps``, ``robot.grasp_geometry``, ``robot.grasp_scene``: grasp candidates

@@ -5,7 +5,7 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
 
     [cell]        kind = "sim" | "hardware"
     [sim]         host, scene, seed, unlock_delay_s         (sim cells only: the emulator on a loopback address)
-    [robot]       robot.ur.URConfig fields (host defaults to [sim] host), workspace = {lo_m, hi_m}
+    [robot]       robot.ur_config.URConfig fields (host defaults to [sim] host), workspace = {lo_m, hi_m}
     [gripper]     robot.gripper config: kind = "robotiq_socket" | "digital_output", ... (host defaults to the robot)
     [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps)
     [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)

@@ -2,6 +2,9 @@
 
 - RTDE state stream seen by a raw client (rate, p50/p99/max gap between packages) for three loads: the kinematic
   backend; the MuJoCo cell with 20 dropped parts; the same while the overhead camera renders at 5 Hz.
+- The same stream while something misbehaves, the emulator in this process (as ``tests/test_controller_protocol.py``
+  runs it): a backend whose step blocks 100 ms every 20 calls; a second client that stops reading (its packages are
+  dropped). The tests check that every tick's package arrives in order; the rates are measured here.
 - Command round trip: ``getForwardKinematics()`` through the stock ur_rtde client, p50/p99, per backend.
 - MuJoCo camera frame time at 640x480 (RGB + depth) on the 20-part cell.
 
@@ -13,6 +16,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import socket
+import struct
 import time
 from pathlib import Path
 
@@ -24,6 +29,9 @@ import numpy as np
 
 from sim.camera import SimCamera
 from sim.cell import build_cell_world
+from sim.controller import rtde_wire as wire
+from sim.controller.backend import KinematicBackend, StallingBackend
+from sim.controller.controller import EmulatedController
 from sim.controller.process import ControllerProcess
 from sim.controller.rtde_probe import RtdeProbe
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, percentile, save_results
@@ -31,6 +39,7 @@ from sygrid.bench.common import DEFAULT_RESULTS_DIR, percentile, save_results
 log = logging.getLogger(__name__)
 
 HOST = "127.0.0.61"
+HOST_FAULTS = "127.0.0.62"
 TARGETS = {"rate_hz": 500.0, "gap_p99_ms": 4.0, "fk_p50_ms": 6.0, "camera_frame_ms": 40.0}
 # (label, backend, backend kwargs)
 VARIANTS = (
@@ -79,6 +88,43 @@ def measure_controller(backend: str, backend_kwargs: dict, stream_s: float, roun
             "late_ticks": tick.late_ticks, "ticks": tick.ticks}  # fmt: skip
 
 
+def _stalled_reader(host: str) -> socket.socket:
+    """A client that asks for large packages at 500 Hz and never reads them."""
+    sock = socket.create_connection((host, 30004), timeout=2.0)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.sendall(wire.frame(wire.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2)))
+    fields = ["actual_q", "actual_qd", "target_q", "target_qd", "actual_TCP_pose", "target_TCP_pose"] * 30
+    sock.sendall(wire.frame(wire.SETUP_OUTPUTS, struct.pack(">d", 500.0) + ",".join(fields).encode()))
+    sock.sendall(wire.frame(wire.START))
+    return sock
+
+
+def _stream_in_process(ctl: EmulatedController, stream_s: float) -> dict:
+    with RtdeProbe(ctl.host) as probe:
+        probe.negotiate()
+        probe.setup_outputs(["timestamp", "actual_q", "target_q"], 500.0)
+        probe.start()
+        stream = probe.stream_timing(stream_s)
+        probe.pause()
+    return {**stream, "late_ticks": ctl.stats.late_ticks, "ticks": ctl.stats.ticks, "resyncs": ctl.stats.resyncs}
+
+
+def measure_stream_faults(stream_s: float) -> dict:
+    """The raw client's stream (``RtdeProbe.stream_timing``) beside a stalling backend and beside a client that
+    stopped reading; the emulator runs in this process."""
+    results = {}
+    with EmulatedController(StallingBackend(stall_s=0.1, every=20), host=HOST_FAULTS) as ctl:
+        results["backend stalling 100 ms every 20 steps"] = _stream_in_process(ctl, stream_s)
+    with EmulatedController(KinematicBackend(), host=HOST_FAULTS) as ctl, _stalled_reader(HOST_FAULTS):
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end and not any(c.dropped_messages for c in list(ctl.rtde.service.connections)):
+            time.sleep(0.01)
+        stream = _stream_in_process(ctl, stream_s)
+        dropped = sum(c.dropped_messages for c in list(ctl.rtde.service.connections))
+        results["beside a client that stopped reading"] = {**stream, "stalled_client_dropped": dropped}
+    return results
+
+
 def chart(results: dict):
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
     labels = list(results["controller"])
@@ -119,11 +165,18 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     for label, backend, kwargs in VARIANTS:
         print(f"measuring: {label} ...", flush=True)
         results["controller"][label] = measure_controller(backend, kwargs, args.stream_seconds, args.round_trips)
+    print("measuring: the stream beside a stalling backend and a stalled client ...", flush=True)
+    results["stream_faults"] = measure_stream_faults(args.stream_seconds)
     print(f"{'variant':<32}{'rate Hz':>9}{'gap p50':>9}{'gap p99':>9}{'gap max':>9}{'FK p50':>8}{'FK p99':>8}"
           f"{'late ticks':>12}")  # fmt: skip
     for label, r in results["controller"].items():
         print(f"{label:<32}{r['rate_hz']:>9.1f}{r['gap_p50_ms']:>9.2f}{r['gap_p99_ms']:>9.2f}{r['gap_max_ms']:>9.2f}"
               f"{r['fk_p50_ms']:>8.2f}{r['fk_p99_ms']:>8.2f}{r['late_ticks']:>7}/{r['ticks']}")  # fmt: skip
+    print(f"{'in-process emulator, kinematic':<42}{'rate Hz':>9}{'gap p99':>9}{'gap max':>9}{'skipped ticks':>15}")
+    for label, r in results["stream_faults"].items():
+        print(
+            f"{label:<42}{r['rate_hz']:>9.1f}{r['gap_p99_ms']:>9.2f}{r['gap_max_ms']:>9.2f}{r['skipped_ticks']:>15.0f}"
+        )
     cam = results["camera"]
     print(f"camera {cam['resolution']} RGB+depth: p50 {cam['frame_p50_ms']:.1f} ms, p90 {cam['frame_p90_ms']:.1f} ms")
     json_path, png_path = save_results("sim", results, chart(results), out_dir)

@@ -9,7 +9,7 @@ import signal
 import threading
 import time
 
-from sim.controller.backend import BACKENDS, make_backend
+from sim.controller.backend_by_name import BACKENDS, make_backend
 from sim.controller.controller import PROTECTIVE_STOP_FORCE_N, ControllerPorts, EmulatedController
 from sim.controller.errors import EmulatorError
 from sim.controller.process import tune_emulator_process

@@ -23,7 +23,8 @@ from robot.gripper import (
     gripper_config_from_dict,
     make_gripper,
 )
-from robot.ur import URConfig, URRobot, WorkspaceBox
+from robot.ur import URRobot
+from robot.ur_config import URConfig, WorkspaceBox
 from sim.controller import ControllerProcess
 from sygrid.errors import ConfigError
 

@@ -1,14 +1,18 @@
 """robot.ur.URRobot against the controller emulator (kinematic backend) through the stock ur_rtde client.
 
 The emulator runs in a child process (``ControllerProcess``; the client's constructors hold the GIL). Addresses:
-127.0.0.41 the cell, 127.0.0.42 nothing listening, 127.0.0.43 a port that accepts and never answers.
+127.0.0.41 the cell, 127.0.0.42 nothing listening, 127.0.0.43 a port that accepts and never answers, 127.0.0.48 the
+cell of the shutdown test (in its own process).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 
@@ -18,7 +22,9 @@ import pytest
 pytest.importorskip("rtde_control")
 dashboard_client = pytest.importorskip("dashboard_client")
 
-from robot.ur import (  # noqa: E402
+from robot.ur import URRobot  # noqa: E402
+from robot.ur_config import URConfig, WorkspaceBox, check_joint_path, trapezoid_duration_s  # noqa: E402
+from robot.ur_errors import (  # noqa: E402
     ConnectionLostError,
     MotionFailedError,
     MotionRefusedError,
@@ -26,17 +32,13 @@ from robot.ur import (  # noqa: E402
     ProtectiveStopError,
     RobotConnectionError,
     UnreachableError,
-    URConfig,
-    URRobot,
-    WorkspaceBox,
 )
-from robot.ur_config import check_joint_path, trapezoid_duration_s  # noqa: E402
 from sim.controller import ControllerProcess  # noqa: E402
 from sygrid.errors import ConfigError  # noqa: E402
 from sygrid.robots.kinematics import T_to_pose, forward_kinematics, pose_to_T  # noqa: E402
 from sygrid.transforms import make_T, rotation_about  # noqa: E402
 
-HOST, DEAD_HOST, SILENT_HOST = "127.0.0.41", "127.0.0.42", "127.0.0.43"
+HOST, DEAD_HOST, SILENT_HOST, SHUTDOWN_HOST = "127.0.0.41", "127.0.0.42", "127.0.0.43", "127.0.0.48"
 T_FLANGE_TCP = make_T(t=(0.0, 0.0, 0.145))
 BOX = WorkspaceBox((-0.75, -0.45, 0.10), (-0.25, 0.25, 0.60))
 Q_WORK = np.array([0.3, -1.2, 1.4, -1.8, -1.5708, 0.2])
@@ -189,7 +191,7 @@ def test_protective_stop_mid_move_is_reported_then_recovered(cell, at_work, capl
     assert robot.status().protective_stopped and cell.state().protective_stopped
     with pytest.raises(ProtectiveStopError, match="nothing was sent"):
         robot.move_l(T_target)
-    with caplog.at_level(logging.INFO, logger="robot.ur"):
+    with caplog.at_level(logging.INFO, logger="robot.ur_connection"):
         robot.recover()  # refused for UNLOCK_DELAY_S, as e-Series does for 5 s
     assert any("unlock refused" in r.getMessage() for r in caplog.records)
     assert not cell.state().protective_stopped and cell.state().runtime_state == 2
@@ -276,6 +278,46 @@ def test_dropped_connection_is_reconnected(cell, at_work):
     assert np.allclose(state.tcp_offset, T_to_pose(T_FLANGE_TCP))  # the TCP is set again
     robot.reconnect()
     assert robot.move_j(Q_WORK + DQ_B, 3.0, 6.0).reached
+
+
+# Connects, closes on a live link; connects again, stops the controller under the client, closes on the dead link;
+# then the interpreter shuts down. Without robot.ur_connection._never_destroy the close on the dead link aborts the
+# process (std::terminate from a ur_rtde destructor).
+SHUTDOWN_SCRIPT = """
+import time
+from robot.ur import URRobot
+from robot.ur_config import URConfig, WorkspaceBox
+from sim.controller import ControllerProcess
+
+if __name__ == "__main__":
+    config = URConfig(host=HOST, workspace=WorkspaceBox((-1.0, -1.0, -0.2), (1.0, 1.0, 1.2)))
+    with ControllerProcess(HOST) as cell:
+        robot = URRobot(config)
+        robot.connect()
+        robot.close()
+        print("closed on a live link", flush=True)
+        robot.connect()
+        cell.stop()
+        end = time.monotonic() + 5.0
+        while robot.is_connected() and time.monotonic() < end:
+            time.sleep(0.02)
+        print("link down:", not robot.is_connected(), flush=True)
+        robot.close()
+        print("closed on a dead link", flush=True)
+    print("exiting", flush=True)
+"""
+_SHUTDOWN_LINES = ("closed on a live link", "link down: True", "closed on a dead link", "exiting")
+
+
+def test_closing_on_a_live_and_a_dead_link_then_exiting_does_not_crash(tmp_path):
+    script = tmp_path / "shutdown.py"
+    script.write_text(f"HOST = {SHUTDOWN_HOST!r}\n" + SHUTDOWN_SCRIPT)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    done = subprocess.run([sys.executable, str(script)], cwd=root, env=env, capture_output=True, text=True, timeout=50)
+    assert done.returncode == 0, f"exit code {done.returncode}\nstdout:\n{done.stdout}\nstderr:\n{done.stderr}"
+    lines = [line for line in done.stdout.splitlines() if line in _SHUTDOWN_LINES]
+    assert lines == list(_SHUTDOWN_LINES), done.stdout
 
 
 @pytest.mark.timeout(10)

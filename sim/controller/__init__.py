@@ -9,7 +9,8 @@ The ur_rtde constructors hold the Python GIL while they wait for the emulator, s
 live in different processes: ``ControllerProcess`` runs one in a child process and forwards the test hooks.
 """
 
-from sim.controller.backend import ArmBackend, ArmSample, KinematicBackend, make_backend
+from sim.controller.backend import ArmBackend, ArmSample, KinematicBackend
+from sim.controller.backend_by_name import make_backend
 from sim.controller.controller import ControllerPorts, EmulatedController
 from sim.controller.errors import BackendUnavailableError, EmulatorError, MotionError
 from sim.controller.process import ControllerProcess

@@ -1,13 +1,16 @@
 """What the controller emulator needs from a simulated arm: the ``ArmBackend`` protocol, and ``KinematicBackend``,
-a perfect-tracking arm (actual = commanded) for fast protocol tests.
+a perfect-tracking arm (actual = commanded) for fast protocol tests; ``StallingBackend`` is one whose step sometimes
+blocks (load for tests and benchmarks).
 
-The MuJoCo cell implements the same protocol in ``sim.controller.world_backend``.
+The MuJoCo cell implements the same protocol in ``sim.controller.world_backend``; ``sim.controller.backend_by_name``
+chooses one by name.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 from collections.abc import Sequence
 from typing import Protocol
 
@@ -138,15 +141,20 @@ class KinematicBackend:
         )
 
 
-BACKENDS = ("kinematic", "mujoco")
+class StallingBackend(KinematicBackend):
+    """A ``KinematicBackend`` whose ``advance`` blocks for ``stall_s`` on every ``every``-th call, like a world whose
+    lock a renderer holds; declares ``step_may_block`` so the controller steps it in its own thread."""
 
+    step_may_block = True
 
-def make_backend(name: str, **kwargs: object) -> ArmBackend:
-    """``kinematic`` (``KinematicBackend(**kwargs)``) or ``mujoco`` (a fresh ``sim.world.CellWorld(**kwargs)``)."""
-    if name == "kinematic":
-        return KinematicBackend(**kwargs)  # type: ignore[arg-type]
-    if name == "mujoco":
-        from sim.controller.world_backend import make_world_backend
+    def __init__(self, stall_s: float, every: int, **kwargs: object) -> None:
+        if stall_s < 0 or every < 1:
+            raise ValueError(f"StallingBackend needs stall_s >= 0 and every >= 1, got {stall_s}, {every}")
+        super().__init__(**kwargs)  # type: ignore[arg-type]
+        self.stall_s, self.every, self.calls = stall_s, every, 0
 
-        return make_world_backend(**kwargs)
-    raise ValueError(f"unknown backend {name!r}; choose one of: {', '.join(BACKENDS)}")
+    def advance(self, targets: Sequence[tuple[np.ndarray, np.ndarray]], steps_per_target: int) -> ArmSample:
+        self.calls += 1
+        if self.calls % self.every == 0:
+            time.sleep(self.stall_s)
+        return super().advance(targets, steps_per_target)

@@ -9,7 +9,7 @@ a ``\\d+.\\d+.\\d+.\\d+`` regex and wants digits only from ``get serial number``
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from sim.controller.state import (
     ROBOT_MODE_IDLE,
@@ -19,10 +19,8 @@ from sim.controller.state import (
     RUNTIME_NAMES,
     RUNTIME_PLAYING,
 )
+from sim.controller.status import ControllerStatus
 from sim.controller.tcp_service import Connection, TcpService
-
-if TYPE_CHECKING:
-    from sim.controller.controller import EmulatedController
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +30,22 @@ _STATE_CHANGING = frozenset(
 )
 
 
+class DashboardHost(Protocol):
+    """What the dashboard needs of the controller it serves (``EmulatedController`` has it)."""
+
+    controller_version: tuple[int, int, int, int]
+    serial_number: str
+
+    def state(self) -> ControllerStatus: ...
+    def stop_program(self, reason: str) -> None: ...
+    def resume_program(self) -> bool: ...
+    def pause_program(self) -> bool: ...
+    def unlock_protective_stop(self) -> str: ...
+    def set_robot_mode(self, mode: int) -> None: ...
+
+
 class DashboardServer:
-    def __init__(self, host: str, port: int, controller: EmulatedController) -> None:
+    def __init__(self, host: str, port: int, controller: DashboardHost) -> None:
         self._ctl = controller
         self.service = TcpService("dashboard", host, port, self._serve)
 

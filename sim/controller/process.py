@@ -36,7 +36,7 @@ SWITCH_INTERVAL_S = 0.0002
 def tune_emulator_process() -> None:
     """Settings for a process that the emulator owns: short GIL slices, and a single-threaded software renderer
     (Mesa llvmpipe) for the sim camera, whose worker threads otherwise take both cores of a small machine from the
-    500 Hz tick (measured by ``sygrid bench sim``: p99 gap 5.0 ms with the default, 3.4 ms with one thread)."""
+    500 Hz tick (``sygrid bench sim`` measures the stream's gaps)."""
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     os.environ.setdefault("LP_NUM_THREADS", "1")  # read by Mesa when the first GL context is made
 
@@ -62,7 +62,7 @@ class _RingHandler(logging.Handler):
 
 
 def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict, controller_kwargs: dict) -> None:
-    from sim.controller.backend import make_backend
+    from sim.controller.backend_by_name import make_backend
     from sim.controller.controller import EmulatedController
 
     ring = _RingHandler()
@@ -185,7 +185,7 @@ def _drop_connections(ctl: Any, down_s: float) -> int:
     program and the world keep running. Returns how many client connections were closed.
 
     The listeners go down too: closing only the connections lets ur_rtde 1.6.5's own background reconnect race
-    with the client's next call, which crashed the client process (segmentation fault) in a trial."""
+    with the client's next call, which can crash the client process (segmentation fault)."""
     from sim.controller.tcp_service import TcpService, start_all
 
     services = [ctl.rtde.service, ctl.dashboard.service, *ctl.script.services]
