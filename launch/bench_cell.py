@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from robot.cell_setup import CellSetup, load_cell_setup
+from robot.pick_report import Outcome
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_chart, save_results
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
@@ -51,7 +52,7 @@ QUICK_SEEDS = 2
 @dataclass(frozen=True)
 class Variant:
     """One setting of the cell: the perception (``oracle``: ground truth; ``models``: the trained pipeline, with
-    optional overrides), and ``robot.grasp.PlannerConfig`` / ``robot.picker.PickerConfig`` fields to change."""
+    optional overrides), and ``robot.grasp.PlannerConfig`` / ``robot.pick_config.PickerConfig`` fields to change."""
 
     perception: str
     description: str
@@ -387,16 +388,21 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
             if moved
         ],
         # picks held at another width than planned (the picker's note), for how often the verify rule decided
-        "held_off_plan": [a.detail for a in report.attempts if a.outcome == "picked" and a.detail],
-        "n_tried": sum(a.outcome != "motion_refused" for a in report.attempts),
+        "held_off_plan": [a.detail for a in report.attempts if a.outcome == Outcome.PICKED and a.detail],
+        "n_tried": sum(a.outcome != Outcome.MOTION_REFUSED for a in report.attempts),
         "failures": report.failures_by_cause(),
-        "nudges": [c.nudge["outcome"] for c in cycles if c.nudge is not None],
+        "nudges": [c.nudge["outcome"].value for c in cycles if c.nudge is not None],
         "failed_attempts": [
-            {"part": obj_kind.get(a.obj_id, a.obj_id), "outcome": a.outcome, "stage": a.stage, "detail": a.detail}
+            {
+                "part": obj_kind.get(a.obj_id, a.obj_id),
+                "outcome": a.outcome.value,
+                "stage": a.stage.value,
+                "detail": a.detail,
+            }
             for a in report.attempts
-            if a.outcome != "picked"
+            if a.outcome != Outcome.PICKED
         ],
-        "stop_reason": report.stop_reason,
+        "stop_reason": report.stop_reason.value,
         "stop_detail": report.stop_detail,
         "parts_by_kind": dict(total),
         "left_by_kind": dict(left),

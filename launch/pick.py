@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from robot.cell_setup import CellSetup, load_cell_setup
-from robot.picker import STAGES, Picker, RunReport
+from robot.pick_report import RunReport, Stage, StopReason
+from robot.picker import Picker
 from sygrid.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -155,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     print_summary(report, wall)
     out_json, out_png = write_report(report, args.out, shot, picker.T_base_camera, setup, kind, models)
     print(f"wrote {out_json}\nwrote {out_png}")
-    return 0 if report.stop_reason == "bin_empty" else 1
+    return 0 if report.stop_reason == StopReason.BIN_EMPTY else 1
 
 
 def print_summary(report: RunReport, wall_s: float) -> None:
@@ -213,12 +214,12 @@ def report_figure(report: RunReport, shot: SceneShot, models: Any) -> Any:
     fig, (ax_t, ax_i) = plt.subplots(1, 2, figsize=(13, 4.8), gridspec_kw={"width_ratios": [1.1, 1]})
     idx = np.arange(len(report.cycles))
     bottom = np.zeros(len(report.cycles))
-    for stage in STAGES:
+    for stage in Stage:
         vals = np.array([c.stage_wall_s.get(stage, 0.0) for c in report.cycles])
-        ax_t.bar(idx, vals, bottom=bottom, label=stage)
+        ax_t.bar(idx, vals, bottom=bottom, label=stage.value)
         bottom += vals
     for c in report.cycles:
-        mark = "ok" if c.picked else c.end.replace("_", " ")
+        mark = "ok" if c.picked else c.end.value.replace("_", " ")
         ax_t.text(c.index, bottom[c.index], mark, ha="center", va="bottom", fontsize=7, rotation=90)
     ax_t.set(xlabel="cycle", ylabel="wall time [s]", title=f"pick cycles ({report.stop_reason})")
     ax_t.set_ylim(0.0, 1.2 * max(float(bottom.max(initial=0.0)), 1e-3))  # room for the labels above the bars

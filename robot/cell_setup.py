@@ -15,7 +15,7 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
     [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
     [planner]     robot.grasp.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
-    [picker]      robot.picker.PickerConfig fields
+    [picker]      robot.pick_config.PickerConfig fields
 
 Relative paths are taken from the configuration file's folder. Errors name the file and the field.
 """
@@ -29,7 +29,7 @@ import numpy as np
 import tomllib
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, ValidationError
 
-from robot.picker import PickerConfig
+from robot.pick_config import PickerConfig
 from robot.ur_config import URConfig
 from sygrid.errors import ConfigError
 from sygrid.scene import validation_message

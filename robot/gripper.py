@@ -214,6 +214,11 @@ class Gripper(abc.ABC):
     #: Whether ``open(width_m=...)`` can go to a given width.
     can_set_width: bool = False
 
+    @property
+    def stroke_m(self) -> float | None:
+        """The fingers' fully open width (m), None where it is not known."""
+        return None
+
     def __enter__(self) -> Gripper:
         self.connect()
         return self
@@ -261,6 +266,10 @@ class RobotiqSocketGripper(Gripper):
         self._sock: socket.socket | None = None
         self._buffer = b""
         self._lock = threading.Lock()
+
+    @property
+    def stroke_m(self) -> float:
+        return self.config.stroke_m
 
     @property
     def _where(self) -> str:

@@ -65,3 +65,7 @@ class OraclePerception:
             detections.append(det)
             poses.append(ObjectPose(T_camera_object=T_camera_obj, detection=det, score=1.0, method="oracle"))
         return OracleResult(poses, detections, {"total": 0.0})
+
+    def refine_more(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose] | None:
+        """None: ground-truth poses have nothing left to refine (``robot.pick_protocols.PerceptionLike``)."""
+        return None

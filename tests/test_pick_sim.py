@@ -1,13 +1,15 @@
 """Sim in the loop: whole pick cycles of ``robot.picker`` with the stock ur_rtde client and the gripper socket against
-the UR controller emulator (MuJoCo cell), the emulator's camera and the oracle perception (ground-truth poses:
-perception is not what is tested here), built by the demo's own ``launch.pick.open_cell`` from a cell file.
+the UR controller emulator (MuJoCo cell) and the emulator's camera, built by the demo's own ``launch.pick.open_cell``
+from a cell file.
 
-One emulator serves the module (127.0.0.70; no other test uses 127.0.0.7x): a bin of five parts dropped with a
-fixed seed. Each test puts the parts back where the drop left them (or parks some of them out of the cell) and
-then asserts what the run did: outcomes, failure causes, stop reasons, where the parts ended up. Never wall time.
+The perception is the oracle (ground-truth poses: perception is not what is tested here; the shipped models in the
+loop are ``tests/test_pick_sim_models.py``'s). One emulator serves the module (127.0.0.70; no other test module uses
+127.0.0.70): a bin of five parts dropped with a fixed seed. Each test puts the parts back where the drop left them (or
+parks some of them out of the cell) and then runs the picker.
 
-Slow by nature: the emulator runs in real time, a pick cycle is about 5 s of robot time, and the whole file needs
-about 80 s (12 cycles, a protective-stop unlock and a reconnect).
+The emulator runs in real time, so two runs of one test differ (a grasp can slip once, a part can roll): the tests
+assert what a correct picker does in every run (the bin emptied within a few cycles, the faults they inject handled,
+no protective stop of its own, a complete report), never exact sequences of outcomes or wall time.
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ import pytest
 pytest.importorskip("rtde_control")
 
 from launch.pick import open_cell
-from robot.cell_setup import load_cell_setup
+from robot.cell_setup import CellSetup, load_cell_setup
+from robot.pick_report import RunReport
 from sim.cell_config import CellConfig
 from sygrid.objects import builtin_part
 from sygrid.transforms import invert, make_T
@@ -50,17 +53,28 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory: pytest.TempPathFactory):
     """``(picker, process, T_world_obj at the start)`` of the five-part cell, built from a cell file."""
-    folder = tmp_path_factory.mktemp("pick_sim")
-    (folder / "five.json").write_text(json.dumps(SCENE))
-    text = Path("launch/cells/sim.toml").read_text()
-    text = text.replace('host = "127.0.0.50"', f'host = "{HOST}"').replace("seed = 0", f"seed = {SEED}")
-    text, n_scenes = re.subn(r"^scene = .*$", 'scene = "five.json"', text, flags=re.MULTILINE)
+    setup = _cell_setup(tmp_path_factory.mktemp("pick_sim"), SCENE, HOST, SEED)
+    with open_cell(setup, perception_kind="oracle") as (picker, process):
+        yield picker, process, process.part_poses()
+
+
+def _cell_setup(folder: Path, scene: dict, host: str, seed: int) -> CellSetup:
+    """The simulated cell's file (``launch/cells/sim.toml``, its models folder as an absolute path) with ``scene``,
+    ``host`` and ``seed``, written to ``folder``."""
+    (folder / "scene.json").write_text(json.dumps(scene))
+    cells = Path("launch/cells").resolve()
+    text = (cells / "sim.toml").read_text()
+    text, n_models = re.subn(
+        r'^models_dir = "(.*)"', lambda m: f'models_dir = "{(cells / m[1]).resolve()}"', text, flags=re.MULTILINE
+    )
+    assert n_models == 1, "the cell file's [perception] models_dir line was not found"
+    text = text.replace('host = "127.0.0.50"', f'host = "{host}"').replace("seed = 0", f"seed = {seed}")
+    text, n_scenes = re.subn(r"^scene = .*$", 'scene = "scene.json"', text, flags=re.MULTILINE)
     assert n_scenes == 1, "the cell file's [sim] scene line was not found"
     (folder / "cell.toml").write_text(text)
     setup = load_cell_setup(folder / "cell.toml")
-    assert setup.robot.host == HOST and setup.data.sim.seed == SEED
-    with open_cell(setup, perception_kind="oracle") as (picker, process):
-        yield picker, process, process.part_poses()
+    assert setup.robot.host == host and setup.data.sim.seed == seed
+    return setup
 
 
 @pytest.fixture
@@ -70,11 +84,9 @@ def fresh(cell):
     picker, process, start = cell
     picker.robot.recover()
     picker.gripper.open()
-    picker._to_observe()
+    picker.arm.to_observe()
     process.place_parts(start)
-    picker._failed_at.clear()
-    picker._nudged_at.clear()
-    picker._last_picked = None
+    picker.memory.clear()
     time.sleep(0.2)  # a few hundred physics steps: the parts are at rest where they were
     return picker, process, start
 
@@ -103,20 +115,39 @@ def _nut(process) -> int:
     return next(i for i, name in enumerate(process.part_names()) if name.endswith("hex_nut"))
 
 
+def _assert_complete(report: RunReport) -> None:
+    """No lost record: every cycle ended and is numbered in turn, every cycle but the last has its robot time (the
+    next look's), and the JSON report holds every cycle and attempt with counts that agree."""
+    assert [c.index for c in report.cycles] == list(range(len(report.cycles)))
+    assert all(c.end is not None for c in report.cycles)
+    assert all(c.sim_cycle_s is not None and c.sim_cycle_s > 0 for c in report.cycles[:-1])
+    data = json.loads(json.dumps(report.to_json(), default=float))
+    attempts = [a for c in data["cycles"] for a in c["attempts"]]
+    assert len(data["cycles"]) == len(report.cycles) and data["n_attempts"] == len(attempts) == len(report.attempts)
+    assert data["n_picked"] == sum(a["outcome"] == "picked" for a in attempts) == report.n_picked
+    assert data["stop_reason"] == report.stop_reason and all(a["stage"] for a in attempts)
+
+
+def _assert_no_protective_stop(picker, report: RunReport) -> None:
+    assert "protective_stop" not in report.failures_by_cause(), report.failures_by_cause()
+    assert not any(c.nudge is not None and c.nudge["outcome"] == "protective_stop" for c in report.cycles)
+    assert not picker.robot.is_protective_stopped()
+
+
 def test_clears_a_bin_of_five_parts(fresh):
     picker, process, start = fresh
     assert _in_bin(start).all()
-    report = picker.run(max_cycles=8)
-    assert report.stop_reason == "bin_empty", report.stop_detail
-    assert report.n_picked == 5 and [a.outcome for a in report.attempts] == ["picked"] * 5
-    assert report.failures_by_cause() == {}
+    report = picker.run(max_cycles=8)  # five picks, up to two failed cycles, the look at the empty bin
+    assert report.stop_reason == "bin_empty", (report.stop_detail, report.failures_by_cause())
     assert not _in_bin(process.part_poses()).any(), "every part has left the bin"
-    assert not picker.robot.is_protective_stopped()
+    assert report.n_picked >= 5 and report.success_rate >= 5 / 7, report.failures_by_cause()
+    _assert_no_protective_stop(picker, report)
     # the first test on this emulator: no contact of the arm with the bin ever stopped it
     assert not any("protective stop" in line for line in process.log_messages())
+    _assert_complete(report)
     # the cycle's record: robot time between two looks, and the stages that ran
-    assert len(report.sim_cycle_times_s()) == 5 and min(report.sim_cycle_times_s()) > 1.0
-    assert all(c.stage_wall_s["place"] > 0 and c.n_planned >= 1 for c in report.cycles[:5])
+    assert len(report.sim_cycle_times_s()) == report.n_picked and min(report.sim_cycle_times_s()) > 1.0
+    assert all(c.stage_wall_s["place"] > 0 and c.n_planned >= 1 for c in report.cycles if c.picked)
 
 
 def test_an_empty_bin_stops_at_once(fresh):
@@ -141,10 +172,11 @@ def test_a_gear_in_a_corner_is_nudged_out_and_then_picked(fresh):
     report = picker.run(max_cycles=5)
     first = report.cycles[0]
     assert first.end == "nudged" and first.nudge["cause"] == "collision_bin", first.plan_summary
-    assert first.nudge["outcome"] == "done" and first.attempts == []
+    assert first.attempts == []
     assert report.stop_reason == "bin_empty", report.stop_detail
-    assert report.n_picked == 1 and report.n_nudges == 1 and not _in_bin(process.part_poses()).any()
-    assert not picker.robot.is_protective_stopped()
+    assert report.n_picked >= 1 and not _in_bin(process.part_poses()).any()
+    _assert_no_protective_stop(picker, report)
+    _assert_complete(report)
 
 
 def test_an_l_bracket_standing_on_its_sheet_edges_is_picked_by_a_pinch_of_the_sheet(fresh):
@@ -160,9 +192,11 @@ def test_an_l_bracket_standing_on_its_sheet_edges_is_picked_by_a_pinch_of_the_sh
     time.sleep(0.3)
     T_bin_bracket = invert(cfg.T_world_bin) @ process.part_poses()[bracket]
     assert T_bin_bracket[2, 1] > 0.99, "the bracket fell over"
-    report = picker.run(max_cycles=3)
-    assert [a.outcome for a in report.attempts] == ["picked"], [a.detail for a in report.attempts]
+    report = picker.run(max_cycles=3)  # a pick (at most one failed cycle before it) and the look at the empty bin
+    assert report.n_picked >= 1, [(a.outcome, a.detail) for a in report.attempts]
     assert report.stop_reason == "bin_empty" and not _in_bin(process.part_poses()[[bracket]]).any()
+    _assert_no_protective_stop(picker, report)
+    _assert_complete(report)
 
 
 def test_an_unreachable_part_is_refused_with_the_reason(fresh):
@@ -175,6 +209,7 @@ def test_an_unreachable_part_is_refused_with_the_reason(fresh):
     assert report.cycles[0].n_poses == 1
     assert "unreachable" in report.stop_detail, report.stop_detail
     np.testing.assert_allclose(picker.robot.q(), q_before, atol=1e-3)  # nothing moved
+    _assert_complete(report)
 
 
 def test_a_grasp_that_slips_fails_verification_and_is_retried(fresh):
@@ -201,9 +236,12 @@ def test_a_grasp_that_slips_fails_verification_and_is_retried(fresh):
         report = picker.run(max_cycles=4)
     finally:
         del gripper.object_detected
-    assert [a.outcome for a in report.attempts] == ["slipped", "picked"], [a.detail for a in report.attempts]
-    assert report.attempts[0].stage == "verify" and "the fingers closed to" in report.attempts[0].detail
+    outcomes = [a.outcome for a in report.attempts]
+    assert outcomes[0] == "slipped" and report.attempts[0].stage == "verify", [a.detail for a in report.attempts]
+    assert "picked" in outcomes[1:], [a.detail for a in report.attempts]
     assert report.stop_reason == "bin_empty" and not _in_bin(process.part_poses()[[nut]]).any()
+    _assert_no_protective_stop(picker, report)
+    _assert_complete(report)
 
 
 def _during_first_transit(picker, action) -> list:
@@ -231,10 +269,12 @@ def test_a_protective_stop_mid_move_is_recovered_and_the_run_goes_on(fresh):
     finally:
         del picker.robot.move_j
     assert fired, "the arm never moved towards the part"
-    assert [a.outcome for a in report.attempts] == ["protective_stop", "picked"], [a.detail for a in report.attempts]
-    assert report.attempts[0].stage == "approach"
+    outcomes = [a.outcome for a in report.attempts]
+    assert outcomes[0] == "protective_stop" and report.attempts[0].stage == "approach", outcomes
+    assert "picked" in outcomes[1:], [a.detail for a in report.attempts]
     assert report.stop_reason == "bin_empty" and not picker.robot.is_protective_stopped()
     assert any("protective stop: test" in line for line in process.log_messages())
+    _assert_complete(report)
 
 
 def test_a_dropped_connection_is_reconnected_and_the_run_goes_on(fresh):
@@ -249,5 +289,8 @@ def test_a_dropped_connection_is_reconnected_and_the_run_goes_on(fresh):
         del picker.robot.move_j
     assert fired and dropped and dropped[0] >= 3  # receive, control, IO (and the dashboard, the script port)
     assert any("link down" in line for line in process.log_messages())
-    assert [a.outcome for a in report.attempts] == ["connection_lost", "picked"], report.stop_detail
+    outcomes = [a.outcome for a in report.attempts]
+    assert outcomes[0] == "connection_lost" and "picked" in outcomes[1:], (outcomes, report.stop_detail)
     assert report.stop_reason == "bin_empty" and picker.robot.is_connected()
+    _assert_no_protective_stop(picker, report)
+    _assert_complete(report)

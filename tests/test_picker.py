@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -11,7 +12,9 @@ import pytest
 from perception.camera import Frame
 from perception.results import Detection, ObjectPose
 from robot.cell_setup import load_cell_setup
-from robot.picker import Picker, PickerConfig
+from robot.pick_config import PickerConfig
+from robot.pick_report import CycleEnd, Outcome, StopReason
+from robot.picker import TRANSITIONS, CycleState, Picker
 from robot.ur_errors import MotionRefusedError, ProtectiveStopError, RecoveryError
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
@@ -40,6 +43,26 @@ class FakeBin:
         poses = [ObjectPose(det, make_T(t=(x, 0.0, 0.5)), 1.0, "fake") for x in self.parts]
         return type("R", (), {"poses": poses, "detections": [det] * len(poses), "timings_ms": {"total": 1.0}})()
 
+    def refine_more(self, poses, frame):
+        return None  # every pose is as good as it gets
+
+
+@dataclass
+class FakePlan:
+    """A plan as the picker reads it: the grasps (none: nothing safe), the parts in the bin, a summary."""
+
+    grasps: list
+    text: str = "plan"
+    n_in_bin: int = 1
+    parts: list = field(default_factory=list)
+
+    @property
+    def nothing_safe(self) -> bool:
+        return not self.grasps
+
+    def summary(self) -> str:
+        return self.text
+
 
 @dataclass
 class FakeGrasp:
@@ -67,7 +90,7 @@ class FakePlanner:
             else [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3]) for i, p in enumerate(poses)]
         )
         summary = "nothing safe: part 0: unreachable" if self.nothing_safe else f"{len(grasps)} grasps"
-        return type("P", (), {"grasps": grasps, "nothing_safe": not grasps, "summary": lambda self: summary})()
+        return FakePlan(grasps, summary, n_in_bin=len(poses))
 
     def pile_area_m2(self, depth_m, intrinsics, T_base_camera):
         return 0.0  # the fake camera's depth shows an empty bin
@@ -105,6 +128,7 @@ class FakeGripper:
     (a gripper that answers "stopped" before its fingers have moved); ``stuck`` keeps them at the part's width."""
 
     can_set_width = True
+    stroke_m = None
 
     def __init__(self, robot: FakeRobot, bin_: FakeBin, empty_once: bool = False) -> None:
         self.robot, self.bin, self.empty_once = robot, bin_, empty_once
@@ -201,7 +225,7 @@ def test_nothing_safe_among_the_refined_parts_refines_the_skipped_ones_and_plans
         def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
             refined = [p if p.details["icp"]["status"] == "refined" else None for p in poses]
             grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3]) for i, p in enumerate(refined) if p]
-            return type("P", (), {"grasps": grasps, "nothing_safe": not grasps, "summary": lambda self: "plan"})()
+            return FakePlan(grasps, n_in_bin=len(poses))
 
     bin_ = LazyBin([0.0, 0.1])
     picker = make_picker(bin_, RefinedOnly())[0]
@@ -220,8 +244,7 @@ def test_parts_seen_only_outside_the_bin_mean_the_bin_is_empty():
     class OutsidePlanner(FakePlanner):
         def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
             parts = [type("P", (), {"status": "outside_bin"})() for _ in poses]
-            return type("P", (), {"grasps": [], "nothing_safe": True, "parts": parts, "n_in_bin": 0,
-                                  "summary": lambda self: "nothing safe: part 0: outside_bin"})()  # fmt: skip
+            return FakePlan([], "nothing safe: part 0: outside_bin", n_in_bin=0, parts=parts)
 
     report = make_picker(FakeBin([0.0]), OutsidePlanner())[0].run()
     assert report.stop_reason == "bin_empty" and "outside it" in report.stop_detail and report.attempts == []
@@ -230,8 +253,7 @@ def test_parts_seen_only_outside_the_bin_mean_the_bin_is_empty():
         def pile_area_m2(self, depth_m, intrinsics, T_base_camera):
             return 5e-4
 
-    # estimates outside the bin while the depth shows it covered: parts estimated wrong, not an empty bin (the cell
-    # bench's seed 24 stopped "bin_empty" with 3 parts left, 2 of them estimated outside)
+    # estimates outside the bin while the depth shows it covered: parts estimated wrong, not an empty bin
     report = make_picker(FakeBin([0.0]), OutsideButCovered())[0].run()
     assert report.stop_reason == "parts_unseen" and report.stop_detail.startswith("no part estimated in the bin (1")
     assert report.stop_detail.endswith("5.0 cm2 of the bin covered")
@@ -255,9 +277,8 @@ def test_protective_stop_is_recovered_and_the_cycle_looks_again():
 
 
 def test_after_a_protective_stop_the_fingers_are_held_until_the_arm_is_up():
-    """Fingers that go on moving after a stop push on whatever stopped them (in the cell bench: a finger opening
-    into a wall stopped the arm again as soon as it was unlocked): hold them at their width, recover, go straight
-    up, and only then open."""
+    """Fingers that go on moving after a stop push on whatever stopped them (a finger opening into a wall stops the
+    arm again as soon as it is unlocked): hold them at their width, recover, go straight up, and only then open."""
     picker, robot = make_picker(FakeBin([0.0]), stop_once_x=0.0)
     events: list[str] = []
     gripper_open, move_l, recover = picker.gripper.open, robot.move_l, robot.recover
@@ -484,8 +505,8 @@ def test_a_part_that_keeps_failing_is_given_up_and_the_run_does_not_loop():
 
 def test_a_failing_part_found_again_by_refine_more_is_given_up():
     """The pipeline's first estimate of a skipped part lies centimetres off; refine_more puts it where two
-    attempts failed already: the refined pose is left out too (found in the cell bench: an L-bracket was tried three
-    times at one spot, and the three failed cycles ended its bin)."""
+    attempts failed already: the refined pose is left out too (else one part tried again and again at one spot
+    ends the run with failed cycles)."""
 
     class SkippedFarOff(FakeBin):
         def run(self, frame):
@@ -504,7 +525,7 @@ def test_a_failing_part_found_again_by_refine_more_is_given_up():
         def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
             grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3])
                       for i, p in enumerate(poses) if p.details["icp"]["status"] == "refined"]  # fmt: skip
-            return type("P", (), {"grasps": grasps, "nothing_safe": not grasps, "summary": lambda self: "plan"})()
+            return FakePlan(grasps, n_in_bin=len(poses))
 
     bin_ = SkippedFarOff([0.0])
     picker, _ = make_picker(bin_, RefinedOnly(), config=PickerConfig(max_failures_per_part=2, max_failed_cycles=5))
@@ -721,10 +742,45 @@ def test_no_detections_in_a_bin_the_depth_shows_is_not_empty_stops_as_parts_unse
 
 def test_the_report_picture_keeps_the_cycle_labels_inside_the_axes(tmp_path):
     from launch.pick import SceneShot, report_figure, save_report_picture
-    from robot.picker import CycleRecord, RunReport
+    from robot.pick_report import CycleRecord, RunReport
 
     cycles = [CycleRecord(k, 5.0 * k, {"approach": 3.0 + 4.0 * (k == 1), "place": 1.0}, end="failed") for k in range(3)]
     report = RunReport(cycles, "nothing_safe", "")
     timeline = report_figure(report, SceneShot(), {}).axes[0]
     assert timeline.get_ylim()[1] >= 1.2 * 8.0  # the tallest bar (8 s) with room for its label
     assert save_report_picture(report, SceneShot(), {}, tmp_path / "report.png").stat().st_size > 0
+
+
+# ---------------------------------------------------------------------------------------------- the machine itself
+
+
+def test_every_state_has_a_step_and_every_transition_is_listed():
+    picker, _ = make_picker(FakeBin())
+    assert set(TRANSITIONS) == set(CycleState)
+    assert set(picker._steps) == set(CycleState) - {CycleState.DONE}
+    reachable, todo = {CycleState.CAPTURE}, [CycleState.CAPTURE]
+    while todo:
+        for after in TRANSITIONS[todo.pop()]:
+            if after not in reachable:
+                reachable.add(after)
+                todo.append(after)
+    assert reachable == set(CycleState)  # no step the cycle cannot get to
+
+
+def test_outcomes_are_the_report_strings():
+    """The enums compare, format and serialise as the strings the JSON report and the benchmark read."""
+    bin_ = FakeBin([0.0])
+    picker, _ = make_picker(bin_)
+    picker.gripper.empty_once = True
+    report = picker.run()
+    assert report.stop_reason is StopReason.BIN_EMPTY and report.stop_reason == "bin_empty"
+    assert [a.outcome for a in report.attempts] == [Outcome.GRIPPER_EMPTY, Outcome.PICKED]
+    assert [c.end for c in report.cycles] == [CycleEnd.FAILED, CycleEnd.PICKED, CycleEnd.BIN_EMPTY]
+    assert f"{report.stop_reason}" == "bin_empty" and str(report.attempts[0].stage) == "grasp"
+    data = json.loads(json.dumps(report.to_json()))
+    assert data["stop_reason"] == "bin_empty" and data["failures_by_cause"] == {"gripper_empty": 1}
+    assert [c["end"] for c in data["cycles"]] == ["failed", "picked", "bin_empty"]
+    assert data["cycles"][0]["attempts"][0]["outcome"] == "gripper_empty"
+    assert set(data["cycles"][0]["stage_wall_s"]) == {"capture", "perceive", "plan", "approach", "grasp", "verify",
+                                                      "place", "nudge"}  # fmt: skip
+    assert all(type(k) is str for k in report.to_json()["cycles"][0]["stage_wall_s"])  # plain strings, not enums

@@ -1,0 +1,123 @@
+"""``Arm``: the pick cycle's moves outside an attempt's steps: the joint move to the observe pose (where the arm waits
+while the camera looks), a nudge's strokes, and the recovery after a protective stop or a dropped link (hold the
+fingers, recover, go straight up, let go). Joint angles in radians, heights as base z in metres; the settings are
+``PickerConfig``'s."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from robot.gripper import GripperError
+from robot.pick_config import PickerConfig
+from robot.pick_fingers import Fingers
+from robot.pick_protocols import NudgeLike, RobotLike
+from robot.pick_report import NudgeOutcome, Outcome, Stage, StageTimer
+from robot.ur_errors import (
+    ConnectionLostError,
+    MotionFailedError,
+    MotionRefusedError,
+    ProtectiveStopError,
+    RecoveryError,
+    RobotConnectionError,
+)
+
+log = logging.getLogger(__name__)
+
+
+class Arm:
+    """``robot`` and the gripper's ``fingers`` as the pick cycle moves them between attempts; ``q_observe`` (6,)."""
+
+    def __init__(self, robot: RobotLike, fingers: Fingers, config: PickerConfig, q_observe: np.ndarray) -> None:
+        self.robot, self.fingers, self.config = robot, fingers, config
+        self.q_observe = np.asarray(q_observe, dtype=float)
+        self._observe_height_m: float | None = None  # base z of the TCP at the observe pose, once it was there
+
+    def to_observe(self) -> None:
+        """The joint move to the observe pose. A protective stop on the way (the arm met a wall or a part leaving the
+        bin) is recovered once (``recover_and_back_out`` to the observe pose's height) and the joint move is made
+        again; a second one (or one before the arm was ever at the observe pose) is raised."""
+        cfg = self.config
+        try:
+            if np.max(np.abs(np.asarray(self.robot.q()) - self.q_observe)) > 1e-3:
+                self.robot.move_j(self.q_observe, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
+        except MotionFailedError as exc:
+            if not exc.recoverable or self._observe_height_m is None:
+                raise
+            log.warning("%s on the way to the observe pose (%s); recovering", motion_cause(exc), exc)
+            self.recover_and_back_out(self._observe_height_m)
+            self.robot.move_j(self.q_observe, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
+        if self._observe_height_m is None:
+            self._observe_height_m = float(np.asarray(self.robot.T_base_tcp())[2, 3])
+
+    def nudge(self, nudge: NudgeLike, timer: StageTimer) -> tuple[NudgeOutcome, str]:
+        """A nudge's strokes (timed as ``Stage.NUDGE``): close the fingers (the pads together are the paddle), joint
+        move above the press, straight lines to the press, the end of the drag and the retreat. Returns how it ended
+        and the error message; a recoverable motion failure is recovered (``recover_and_back_out`` to the retreat's
+        height)."""
+        cfg = self.config
+        try:
+            with timer(Stage.NUDGE):
+                self.fingers.gripper.close(force_n=cfg.grip_force_n)
+                self.robot.move_j(nudge.q_above, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
+                self.robot.move_l(nudge.T_base_press, nudge.speed_m_s, cfg.approach_accel_m_s2)
+                self.robot.move_l(nudge.T_base_end, nudge.speed_m_s, cfg.approach_accel_m_s2)
+                self.robot.move_l(nudge.T_base_retreat, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
+        except MotionRefusedError as exc:
+            return NudgeOutcome.MOTION_REFUSED, str(exc)
+        except MotionFailedError as exc:
+            if not exc.recoverable:
+                raise
+            outcome = NudgeOutcome(motion_cause(exc).value)
+            log.warning("nudge of part %d: %s (%s); recovering", nudge.part_index, outcome, exc)
+            self.recover_and_back_out(float(nudge.T_base_retreat[2, 3]))
+            return outcome, str(exc)
+        return NudgeOutcome.DONE, ""
+
+    def recover_and_back_out(self, safe_height_m: float) -> None:
+        """After a protective stop or a dropped link the arm is at rest somewhere on the way, perhaps with a finger
+        pressed on a wall: hold the fingers where they are, recover, go straight up to ``safe_height_m`` (base z of
+        a pose above the bin's rim), and only then let go, before the joint move to the observe pose. Fingers that
+        go on pushing would stop the arm again as soon as it is unlocked."""
+        self.fingers.hold()
+        self.recover()
+        T = np.array(self.robot.T_base_tcp())
+        T[2, 3] = max(T[2, 3], safe_height_m)
+        try:
+            self.robot.move_l(T, self.config.approach_speed_m_s, self.config.approach_accel_m_s2)
+        except MotionRefusedError as exc:
+            log.warning("cannot back out straight up after recovery (%s); going to the observe pose directly", exc)
+        except MotionFailedError as exc:
+            if not exc.recoverable:
+                raise
+            log.warning("backing out after recovery failed too (%s); recovering again", exc)
+            self.recover()
+        try:
+            self.fingers.gripper.open()
+        except GripperError as exc:
+            log.warning("the gripper did not open after recovery (%s)", exc)
+
+    def recover(self) -> None:
+        """``robot.recover()``, tried again every half second while the controller cannot be reached at all (the
+        link is down), for up to ``reconnect_timeout_s``; any other failure to recover is raised at once."""
+        deadline = time.monotonic() + self.config.reconnect_timeout_s
+        while True:
+            try:
+                self.robot.recover()
+                return
+            except RecoveryError as exc:
+                if not isinstance(exc.__cause__, RobotConnectionError) or time.monotonic() > deadline:
+                    raise
+                log.warning("cannot reach the robot yet (%s); trying again", exc)
+                time.sleep(0.5)
+
+
+def motion_cause(exc: MotionFailedError) -> Outcome:
+    """The outcome a recoverable motion failure gives an attempt."""
+    if isinstance(exc, ProtectiveStopError):
+        return Outcome.PROTECTIVE_STOP
+    if isinstance(exc, ConnectionLostError):
+        return Outcome.CONNECTION_LOST
+    return Outcome.MOTION_FAILED

@@ -1,0 +1,86 @@
+"""``PickerConfig``: the settings of the pick cycle (``robot.picker``), the ``[picker]`` section of a cell file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from sygrid.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class PickerConfig:
+    """Settings of the cycle. Speeds in m/s (straight lines) and rad/s (joint moves); None: the robot's default.
+
+    approach_speed_m_s: pre-grasp -> grasp and grasp -> lift; transit_linear_speed_m_s: lift -> pre-grasp.
+    transit_speed_rad_s: joint moves (to the lift, to the place pose). grip_force_n: closing force (None: the
+    gripper's default). max_attempts_per_cycle: planned grasps tried in one cycle before looking again.
+    slip_width_tolerance_m: after lifting, an opening smaller than the narrowest width the part can be held at
+    (``hold_any_width``; else the planned grasp width) less this means the part slipped out; hold_any_width: a part
+    held at another of its widths than the planned one is held (False: only near the planned width; the fingers
+    closing on a nut's faces instead of its flats then drop it back into the bin as "slipped"); slip_settle_s: how
+    long the gripper may report no object (its fingers settling) before the part counts as lost.
+    still_there_distance_m: a part of the same model this close to a picked one in the next frame means the pick
+    failed. max_failures_per_part / exclusion_distance_m: after this many failed attempts on parts of one model
+    within this distance of each other, parts there are no longer planned (checked on the poses planned from,
+    refined ones included).
+    open_tolerance_m / open_timeout_s: the fingers must reach a commanded opening less this within this time (a
+    gripper may report "stopped" while its fingers still move); release_tries: how often the gripper is opened at
+    the place pose before the part counts as stuck. reconnect_timeout_s: how long recovery keeps trying to reach a
+    controller that does not answer (a network link that is down). max_nudges / max_nudges_per_part: nudges per
+    run (0: never nudge) and per location (within ``exclusion_distance_m``); a nudge is not a failed cycle.
+    min_unseen_area_m2: with no part estimated in the bin, a bin whose depth shows at least this much of it covered
+    (something above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find or whose
+    estimates land outside it: the run stops with "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top
+    seen from above.
+    min_held_width_m: fingers that stopped at least this far apart hold something, even when the gripper reports no
+    object, and fingers closer than this after lifting hold nothing. A gripper detects an object when its fingers
+    stop short of the commanded position by more than a tolerance, so a thin sheet squeezed between the pads can
+    read "no object" while fingers closed on air read 0. On hardware, calibrate ``pos_closed`` so that closed on
+    air reads 0.
+    """
+
+    max_cycles: int = 50
+    max_attempts_per_cycle: int = 3
+    max_failed_cycles: int = 3
+    approach_speed_m_s: float | None = 0.25
+    transit_linear_speed_m_s: float | None = 0.5
+    approach_accel_m_s2: float | None = 1.2
+    transit_speed_rad_s: float | None = 2.0
+    transit_accel_rad_s2: float | None = 3.0
+    grip_force_n: float | None = None
+    slip_width_tolerance_m: float = 0.004
+    hold_any_width: bool = True
+    slip_settle_s: float = 0.5
+    still_there_distance_m: float = 0.01
+    max_failures_per_part: int = 2
+    exclusion_distance_m: float = 0.015
+    open_tolerance_m: float = 0.003
+    open_timeout_s: float = 2.0
+    release_tries: int = 2
+    reconnect_timeout_s: float = 30.0
+    max_nudges: int = 8
+    max_nudges_per_part: int = 2
+    min_unseen_area_m2: float = 1e-4
+    min_held_width_m: float = 0.001
+
+    def __post_init__(self) -> None:
+        for name in (
+            "max_cycles",
+            "max_attempts_per_cycle",
+            "max_failed_cycles",
+            "max_failures_per_part",
+            "release_tries",
+            "max_nudges_per_part",
+        ):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
+                raise ConfigError(f"PickerConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
+        if not isinstance(self.hold_any_width, bool):
+            raise ConfigError(f"PickerConfig.hold_any_width must be true or false, got {self.hold_any_width!r}")
+        if not (isinstance(self.max_nudges, int) and self.max_nudges >= 0):
+            raise ConfigError(f"PickerConfig.max_nudges must be an integer >= 0, got {self.max_nudges!r}")
+        for name in (
+            "slip_width_tolerance_m", "still_there_distance_m", "exclusion_distance_m", "open_tolerance_m",
+            "open_timeout_s", "slip_settle_s", "reconnect_timeout_s", "min_unseen_area_m2", "min_held_width_m",
+        ):  # fmt: skip
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"PickerConfig.{name} must be >= 0, got {getattr(self, name)!r}")

@@ -1,0 +1,230 @@
+"""What a pick run records: the outcomes (string-valued enums), one record per attempt and per cycle, and the run's
+report with its JSON form.
+
+The enums are ``str`` subclasses whose members print, format and compare as their values (``Outcome.PICKED ==
+"picked"``), so logs, the JSON report (``RunReport.to_json``) and the benchmark's readers see the plain strings.
+
+Times: ``stage_wall_s`` holds wall seconds per ``Stage``; ``sim_time_s`` is the camera's timestamp at capture
+(simulated seconds in the simulated cell, the device clock on hardware), so a cycle's robot time is the difference
+between two captures (``CycleRecord.sim_cycle_s``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from typing import Any
+
+
+class _StrEnum(str, Enum):
+    """A string-valued enum whose members print and format as their values (``enum.StrEnum`` from Python 3.11)."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+class Stage(_StrEnum):
+    """The stages a cycle's wall time is split into (``CycleRecord.stage_wall_s``); an attempt ends in one of
+    ``APPROACH``, ``GRASP``, ``VERIFY``, ``PLACE``."""
+
+    CAPTURE = "capture"
+    PERCEIVE = "perceive"
+    PLAN = "plan"
+    APPROACH = "approach"
+    GRASP = "grasp"
+    VERIFY = "verify"
+    PLACE = "place"
+    NUDGE = "nudge"
+
+
+class Outcome(_StrEnum):
+    """How one attempt (one planned grasp tried) ended: ``PICKED`` or a failure cause."""
+
+    PICKED = "picked"
+    MOTION_REFUSED = "motion_refused"  # checked and refused, nothing sent: next candidate
+    GRIPPER_EMPTY = "gripper_empty"  # closed on air (no object detected, the fingers closed)
+    SLIPPED = "slipped"  # lost the part while lifting
+    PROTECTIVE_STOP = "protective_stop"
+    CONNECTION_LOST = "connection_lost"
+    MOTION_FAILED = "motion_failed"  # another recoverable motion failure (program stopped, timeout)
+    PART_STILL_IN_BIN = "part_still_in_bin"  # placed "something", but the next look shows the part where it was
+    GRIPPER_BLOCKED = "gripper_blocked"  # the fingers did not open to the grasp's opening: nothing sent down
+    NOT_RELEASED = "not_released"  # the fingers did not open at the place pose: something is stuck in them
+
+
+class NudgeOutcome(_StrEnum):
+    """How a nudge ended (``CycleRecord.nudge["outcome"]``)."""
+
+    DONE = "done"
+    MOTION_REFUSED = "motion_refused"
+    PROTECTIVE_STOP = "protective_stop"
+    CONNECTION_LOST = "connection_lost"
+    MOTION_FAILED = "motion_failed"
+
+
+class StopReason(_StrEnum):
+    """Why a run stopped (``RunReport.stop_reason``)."""
+
+    BIN_EMPTY = "bin_empty"
+    PARTS_UNSEEN = "parts_unseen"  # no part estimated in the bin, but the depth shows something in it
+    NOTHING_SAFE = "nothing_safe"  # no safe grasp and no nudge left (the planner's reasons in the detail)
+    GAVE_UP = "gave_up"  # every part left is where too many attempts failed
+    GRIPPER_BLOCKED = "gripper_blocked"  # the fingers cannot be freed
+    MAX_CYCLES = "max_cycles"
+    TOO_MANY_FAILURES = "too_many_failures"  # too many cycles in a row without a pick
+    NEEDS_OPERATOR = "needs_operator"  # a stop the cell cannot release itself (emergency stop, arm pinned)
+
+
+class CycleEnd(_StrEnum):
+    """How one cycle ended (``CycleRecord.end``): a pick, a failed or a nudge cycle (the run goes on), or one that
+    ends the run (the same string as its ``StopReason``, see ``STOP_OF_END``)."""
+
+    PICKED = "picked"
+    FAILED = "failed"
+    NUDGED = "nudged"
+    BIN_EMPTY = "bin_empty"
+    PARTS_UNSEEN = "parts_unseen"
+    NOTHING_SAFE = "nothing_safe"
+    GAVE_UP = "gave_up"
+    GRIPPER_BLOCKED = "gripper_blocked"
+
+
+#: The cycle ends that stop the run, and the run's stop reason for each.
+STOP_OF_END: dict[CycleEnd, StopReason] = {
+    CycleEnd.BIN_EMPTY: StopReason.BIN_EMPTY,
+    CycleEnd.PARTS_UNSEEN: StopReason.PARTS_UNSEEN,
+    CycleEnd.NOTHING_SAFE: StopReason.NOTHING_SAFE,
+    CycleEnd.GAVE_UP: StopReason.GAVE_UP,
+    CycleEnd.GRIPPER_BLOCKED: StopReason.GRIPPER_BLOCKED,
+}
+
+
+@dataclass
+class Attempt:
+    """One planned grasp tried: which part, how it ended, in which stage, and the error message or the note (a
+    part held at another width than planned) where there was one."""
+
+    part_index: int
+    obj_id: int
+    outcome: Outcome
+    stage: Stage
+    detail: str = ""
+    T_base_obj: list | None = None  # where the part was estimated (for the next look and the report)
+
+
+@dataclass
+class CycleRecord:
+    """One cycle: wall seconds per stage, the camera's time at capture, what was seen and planned, the attempts.
+
+    ``end`` is None until the cycle has ended; a string given for it is read as a ``CycleEnd``."""
+
+    index: int
+    sim_time_s: float
+    stage_wall_s: dict[Stage, float] = field(default_factory=lambda: dict.fromkeys(Stage, 0.0))
+    n_detections: int = 0
+    n_poses: int = 0
+    n_planned: int = 0
+    n_excluded: int = 0  # parts left out of planning after repeated failures at their location
+    perception_ms: dict[str, float] = field(default_factory=dict)
+    plan_summary: str = ""
+    attempts: list[Attempt] = field(default_factory=list)
+    nudge: dict | None = None  # the nudge of a "nudged" cycle: part, cause, tilt, distance, outcome, detail
+    end: CycleEnd | None = None
+    sim_cycle_s: float | None = None  # filled when the next capture's time is known
+
+    def __post_init__(self) -> None:
+        if self.end is not None:
+            self.end = CycleEnd(self.end)
+
+    @property
+    def picked(self) -> bool:
+        return any(a.outcome == Outcome.PICKED for a in self.attempts)
+
+
+@dataclass
+class RunReport:
+    """A whole run: the cycles, why it stopped and the details (e.g. the planner's reasons)."""
+
+    cycles: list[CycleRecord]
+    stop_reason: StopReason
+    stop_detail: str = ""
+
+    @property
+    def attempts(self) -> list[Attempt]:
+        return [a for c in self.cycles for a in c.attempts]
+
+    @property
+    def n_picked(self) -> int:
+        return sum(a.outcome == Outcome.PICKED for a in self.attempts)
+
+    @property
+    def success_rate(self) -> float:
+        """Picks over attempts that sent motion (refused candidates moved nothing and do not count)."""
+        tried = [a for a in self.attempts if a.outcome != Outcome.MOTION_REFUSED]
+        return self.n_picked / len(tried) if tried else float("nan")
+
+    @property
+    def n_nudges(self) -> int:
+        return sum(c.nudge is not None for c in self.cycles)
+
+    def failures_by_cause(self) -> dict[str, int]:
+        """Failed attempts per ``Outcome`` value."""
+        counts: dict[str, int] = {}
+        for a in self.attempts:
+            if a.outcome != Outcome.PICKED:
+                counts[a.outcome.value] = counts.get(a.outcome.value, 0) + 1
+        return counts
+
+    def sim_cycle_times_s(self) -> list[float]:
+        """Robot time of the cycles that picked a part (camera time from their capture to the next one)."""
+        return [c.sim_cycle_s for c in self.cycles if c.picked and c.sim_cycle_s is not None]
+
+    def to_json(self) -> dict:
+        """The report as plain JSON data (the enums as their strings)."""
+        return _plain(
+            {
+                "stop_reason": self.stop_reason,
+                "stop_detail": self.stop_detail,
+                "n_picked": self.n_picked,
+                "n_attempts": len(self.attempts),
+                "n_nudges": self.n_nudges,
+                "success_rate": self.success_rate,
+                "failures_by_cause": self.failures_by_cause(),
+                "sim_cycle_times_s": self.sim_cycle_times_s(),
+                "cycles": [{**asdict(c), "picked": c.picked} for c in self.cycles],
+            }
+        )
+
+
+class StageTimer:
+    """Adds the wall time of ``with timer(stage):`` blocks to ``totals[stage]``."""
+
+    def __init__(self, totals: dict[Stage, float]) -> None:
+        self.totals = totals
+        self._stage = Stage.CAPTURE
+        self._t0 = 0.0
+
+    def __call__(self, stage: Stage) -> StageTimer:
+        self._stage = stage
+        return self
+
+    def __enter__(self) -> None:
+        self._t0 = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        self.totals[self._stage] = self.totals.get(self._stage, 0.0) + time.perf_counter() - self._t0
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with every enum member replaced by its value, in dicts (keys too) and lists."""
+    if isinstance(value, Enum):
+        return value.value
+    if isinstance(value, dict):
+        return {_plain(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
