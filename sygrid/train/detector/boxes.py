@@ -68,4 +68,3 @@ def box_ciou(box1: torch.Tensor, box2: torch.Tensor, eps: float = 1e-7) -> torch
     with torch.no_grad():
         alpha = v / (v - iou + (1 + eps))
     return iou - (rho2 / c2 + v * alpha)
-
