@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from sygrid.errors import SygridError
 from sygrid.fileio import write_bytes_atomic, write_json_atomic
+from sygrid.metrics import DetectionMetrics
 from sygrid.train.detector.augment import (
     Example,
     epoch_order,
@@ -45,7 +46,7 @@ from sygrid.train.detector.augment import (
 )
 from sygrid.train.detector.config import TrainConfig
 from sygrid.train.detector.data import DetectionDataset, open_dataset
-from sygrid.train.detector.evaluate import ValMetrics, coco_evaluate, postprocess
+from sygrid.train.detector.evaluate import coco_evaluate, val_detections
 from sygrid.train.detector.export import ExportReport, export_onnx
 from sygrid.train.detector.loss import LOSS_NAMES, SegmentationLoss, Targets
 from sygrid.train.detector.model import ModelConfig, YoloSeg, build_model, count_parameters
@@ -337,7 +338,7 @@ class _Trainer:
         }
 
     @torch.no_grad()
-    def validate(self, model: YoloSeg) -> ValMetrics:
+    def validate(self, model: YoloSeg) -> DetectionMetrics:
         """COCO mAP of ``model`` on the val split, images letterboxed as the runtime does."""
         model.eval()
         stride = max(model.strides)
@@ -356,7 +357,7 @@ class _Trainer:
                 images, _ = collate([items[j][0] for j in idx], self.cfg.channels_last)
                 output0, protos = model(images)
                 for row, j in enumerate(idx):
-                    results[j] = postprocess(
+                    results[j] = val_detections(
                         output0[row].numpy(), protos[row].numpy(), items[j][1], self.dataset.num_classes
                     )
             detections += [results[j] for j in range(len(items))]
