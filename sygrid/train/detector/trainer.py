@@ -10,11 +10,6 @@ Determinism: the weights are initialised from ``seed``; the order of an epoch an
 ``(seed, epoch, index)`` (``sygrid.train.detector.augment``), so a run resumed from ``last.pt`` sees the data an
 uninterrupted run would (no numpy generator state needs saving).
 
-Measured on this project's shared 2-core machines (batch 8, one torch thread, load about 3): 1.0 s per iteration
-for the pico network on 320 px crops at the scale of a 480 input (the defaults), 1.5 s for ``n``; 1.8 s and 3.0 s
-on whole 416 x 416 inputs. A run on 172 generated images (pico, defaults, 30 epochs, 660 iterations, 17 min) reached
-box mAP50 0.48 / mask mAP50-95 0.17 on 28 validation images, still rising; large parts (flange 0.98 AP50) learn
-first, the 1-2 cm ones (nut, washer, bolt, bracket: 0.33-0.40) last.
 """
 
 from __future__ import annotations
