@@ -9,7 +9,6 @@ seconds, the export check).
 Determinism: the weights are initialised from ``seed``; the order of an epoch and every augmentation come from
 ``(seed, epoch, index)`` (``sygrid.train.detector.augment``), so a run resumed from ``last.pt`` sees the data an
 uninterrupted run would (no numpy generator state needs saving).
-
 """
 
 from __future__ import annotations
