@@ -336,7 +336,7 @@ def test_learning_rate_warms_up_then_decays():
     assert all(a >= b for a, b in itertools.pairwise(lrs[9:])) and lrs[-1] == pytest.approx(1e-4, rel=0.05)
 
 
-@pytest.mark.slow  # two short training runs with validation and an ONNX export: about 5 s idle, 15 s on a busy machine
+@pytest.mark.slow  # two short training runs with validation and an ONNX export
 def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     out = tmp_path / "run"
     common = {
