@@ -8,7 +8,8 @@ from pathlib import Path
 
 from sygrid.errors import ConfigError
 from sygrid.objects import BUILTIN_PARTS, builtin_part
-from sygrid.objects.collision import CollisionTier, build_collision_model, select_collision_model
+from sygrid.objects.collision.build import build_collision_model, select_collision_model
+from sygrid.objects.collision.params import CollisionTier
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -13,38 +13,33 @@ Class names come from the ONNX ``metadata_props`` (ultralytics writes ``names`` 
 (``"[1, 3]"``). Each class maps to a BOP obj_id: an explicit ``class_obj_ids`` argument wins, then the ``obj_ids``
 metadata, then the built-in part of the same name, then ``class index + 1`` (with a warning).
 
-Pre-processing is ultralytics' letterbox (keep aspect ratio, pad with grey 114 around the centred image; a model
-with a fixed input is padded to that size, a dynamic one to the next multiple of the stride); post-processing is
-confidence filtering, class-aware NMS (OpenCV), then mask assembly per kept box: coefficients @ prototypes, sigmoid,
-bilinear resampling straight into the original image's pixels (upsampling and un-letterboxing in one affine warp),
-crop to the box, threshold 0.5. Masks are built only inside each box, so their cost scales with the box area.
+Pre-processing is ultralytics' letterbox (``sygrid.letterbox``: keep aspect ratio, pad with grey 114 around the
+centred image; a model with a fixed input is padded to that size, a dynamic one to the next multiple of the stride);
+post-processing (confidence filtering, class-aware NMS, masks in image pixels) is ``sygrid.detection_decode``, the
+same code that validates a model in training.
 """
 
 from __future__ import annotations
 
 import ast
 import logging
-import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import cv2
 import numpy as np
 import onnxruntime as ort
 from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
 
 from perception.results import Detection
+from sygrid.detection_decode import postprocess
 from sygrid.errors import ModelError
-from sygrid.letterbox import Letterbox, letterbox_at_scale, letterbox_geometry
-from sygrid.letterbox import letterbox as letterbox
+from sygrid.letterbox import Letterbox, letterbox, letterbox_at_scale, letterbox_geometry
 
 log = logging.getLogger(__name__)
 
 DEFAULT_INPUT_SIZE = 640  # for a model with a dynamic input and no ``imgsz`` metadata
 DEFAULT_STRIDE = 32
-MAX_NMS_CANDIDATES = 30000  # boxes entering NMS at most (highest scores first): bounds the cost of a noisy frame
-MASK_THRESHOLD = 0.5
 
 # Everything onnxruntime raises on a bad model or a failing run (its exceptions share no base class but Exception).
 _ORT_ERRORS = (
@@ -61,103 +56,10 @@ _ORT_ERRORS = (
 
 
 def to_blob(image: np.ndarray, dtype: type = np.float32) -> np.ndarray:
-    """(h, w, 3) uint8 -> (1, 3, h, w) C-contiguous in [0, 1] (a few times faster than cv2.dnn.blobFromImage)."""
+    """(h, w, 3) uint8 -> (1, 3, h, w) C-contiguous in [0, 1] (cheaper than cv2.dnn.blobFromImage)."""
     blob = np.empty((1, 3, *image.shape[:2]), dtype=dtype)
     np.multiply(image.transpose(2, 0, 1), dtype(1.0 / 255.0), out=blob[0], casting="unsafe")
     return blob
-
-
-# ---------------------------------------------------------------------------------------------------- decoding
-def decode_predictions(
-    output0: np.ndarray, num_classes: int, conf_threshold: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Candidates of one ``[1, 4 + nc + nm, A]`` (or ``[4 + nc + nm, A]``) prediction above ``conf_threshold``.
-
-    Returns ``boxes_xyxy`` (n, 4) input pixels, ``scores`` (n,), ``class_index`` (n,) int, ``coefficients`` (n, nm)
-    (nm = 0 for a detection-only model), at most ``MAX_NMS_CANDIDATES``, highest score first. Each anchor votes
-    for its best class only, as ultralytics' single-label prediction does.
-    """
-    pred = output0[0] if output0.ndim == 3 else output0
-    class_scores = pred[4 : 4 + num_classes]
-    best = class_scores.max(axis=0)  # the max over classes first: cheaper than an argmax over every anchor
-    keep = np.flatnonzero(best > conf_threshold)
-    keep = keep[np.argsort(-best[keep], kind="stable")][:MAX_NMS_CANDIDATES]
-    class_index = np.argmax(class_scores[:, keep], axis=0)
-    cx, cy, w, h = pred[0:4, keep].astype(np.float64)
-    boxes = np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2], axis=1)
-    coefficients = pred[4 + num_classes :, keep].T.astype(np.float32)
-    return boxes, best[keep].astype(np.float64), class_index.astype(np.int64), coefficients
-
-
-def class_aware_nms(
-    boxes_xyxy: np.ndarray, scores: np.ndarray, class_index: np.ndarray, iou_threshold: float, max_detections: int
-) -> np.ndarray:
-    """Indices of the boxes kept by per-class NMS (IoU > ``iou_threshold`` with a better box of the same class
-    suppresses), highest score first, at most ``max_detections``. OpenCV's batched NMS does the work."""
-    if len(boxes_xyxy) == 0:
-        return np.zeros(0, dtype=np.int64)
-    xywh = np.concatenate([boxes_xyxy[:, :2], boxes_xyxy[:, 2:] - boxes_xyxy[:, :2]], axis=1)
-    kept = np.asarray(
-        cv2.dnn.NMSBoxesBatched(
-            xywh.astype(np.float64), scores.astype(np.float32), class_index.astype(np.int32), -math.inf, iou_threshold
-        ),
-        dtype=np.int64,
-    ).reshape(-1)
-    kept = kept[np.argsort(-scores[kept], kind="stable")]
-    return kept[:max_detections]
-
-
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 0.5 * (1.0 + np.tanh(0.5 * x))  # = 1 / (1 + exp(-x)), without overflow warnings
-
-
-def assemble_mask(
-    coefficients: np.ndarray, prototypes: np.ndarray, box_image_xyxy: np.ndarray, geometry: Letterbox
-) -> np.ndarray:
-    """The (h, w) bool instance mask, in original image pixels, of one detection.
-
-    Args:
-        coefficients: (nm,) mask coefficients of the detection.
-        prototypes: (nm, mh, mw) mask prototypes covering the network input.
-        box_image_xyxy: (4,) the detection's box in image pixels: the mask is cropped to it (pixel centres inside).
-        geometry: the letterbox that made the network input.
-
-    The mask probability ``sigmoid(coefficients @ prototypes)`` is resampled bilinearly (edge pixels replicated,
-    like an ``align_corners=False`` upsampling) at each image pixel centre, mapped back through the letterbox to
-    prototype coordinates; pixels above 0.5 are the mask. Only the prototype window under the box is computed.
-    """
-    h, w = geometry.image_hw
-    mask = np.zeros((h, w), dtype=bool)
-    x0, y0, x1, y1 = (float(v) for v in box_image_xyxy)
-    # Pixels whose centre (j + 0.5) lies in [x0, x1).
-    j0, j1 = max(0, math.ceil(x0 - 0.5)), min(w, math.ceil(x1 - 0.5))
-    i0, i1 = max(0, math.ceil(y0 - 0.5)), min(h, math.ceil(y1 - 0.5))
-    if j1 <= j0 or i1 <= i0:
-        return mask
-    nm, mh, mw = prototypes.shape
-    in_h, in_w = geometry.input_hw
-    # Image pixel (j, i) centre -> prototype index coordinates: x_p = ((j + 0.5) * s_x + pad_left) * mw / in_w - 0.5.
-    ax, ay = geometry.scale_x * mw / in_w, geometry.scale_y * mh / in_h
-    bx = (0.5 * geometry.scale_x + geometry.pad_left) * mw / in_w - 0.5
-    by = (0.5 * geometry.scale_y + geometry.pad_top) * mh / in_h - 0.5
-    # The prototype window the box needs (one cell of margin for the bilinear neighbours).
-    px0 = min(max(math.floor(ax * j0 + bx), 0), mw - 1)
-    px1 = min(max(math.floor(ax * (j1 - 1) + bx) + 2, px0 + 1), mw)
-    py0 = min(max(math.floor(ay * i0 + by), 0), mh - 1)
-    py1 = min(max(math.floor(ay * (i1 - 1) + by) + 2, py0 + 1), mh)
-    window = prototypes[:, py0:py1, px0:px1].reshape(nm, -1)  # a small copy: the window under the box
-    probability = _sigmoid(coefficients @ window).reshape(py1 - py0, px1 - px0).astype(np.float32)
-    # Output pixel (u, v) = image pixel (j0 + u, i0 + v) samples the window at (ax*(j0+u) + bx - px0, ...).
-    warp = np.array([[ax, 0.0, ax * j0 + bx - px0], [0.0, ay, ay * i0 + by - py0]], dtype=np.float64)
-    patch = cv2.warpAffine(
-        probability,
-        warp,
-        (j1 - j0, i1 - i0),
-        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-    mask[i0:i1, j0:j1] = patch > MASK_THRESHOLD
-    return mask
 
 
 def _to_frame(detection: Detection, offset_xy: tuple[int, int], frame_hw: tuple[int, int]) -> Detection:
@@ -272,9 +174,8 @@ class YoloSegDetector:
         options.inter_op_num_threads = 1
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         options.log_severity_level = 3  # errors only: a model's harmless warnings must not flood the demo's log
-        # Worker threads sleep when a run ends instead of spinning: on 2 cores the spinning threads took the CPU from
-        # the mask assembly, the next session and the simulator (`sygrid bench perception`, detector at 640 px:
-        # 70.1 ms per frame with spinning, 30.5 ms without).
+        # Worker threads sleep when a run ends instead of spinning: spinning threads take the CPU from the mask
+        # assembly, the next session and the simulator on a small machine.
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
@@ -477,23 +378,22 @@ class YoloSegDetector:
         return x0, y0, x1, y1
 
     def _postprocess(self, outputs: list[np.ndarray], geometry: Letterbox) -> list[Detection]:
-        pred = outputs[0].astype(np.float32, copy=False)
-        boxes, scores, classes, coefficients = decode_predictions(pred, self.num_classes, self.conf_threshold)
-        kept = class_aware_nms(boxes, scores, classes, self.iou_threshold, self.max_detections)
-        boxes_image = geometry.boxes_to_image(boxes[kept])
-        protos = outputs[1][0].astype(np.float32, copy=False) if self.has_masks else None
-        detections = []
-        for k, idx in enumerate(kept):
-            mask = None
-            if protos is not None:
-                mask = assemble_mask(coefficients[idx], protos, boxes_image[k], geometry)
-            detections.append(
-                Detection(
-                    class_index=int(classes[idx]),
-                    obj_id=int(self.class_obj_ids[classes[idx]]),
-                    score=float(scores[idx]),
-                    bbox_xyxy=boxes_image[k],
-                    mask=mask,
-                )
+        decoded = postprocess(
+            outputs[0].astype(np.float32, copy=False),
+            outputs[1] if self.has_masks else None,
+            geometry,
+            self.num_classes,
+            self.conf_threshold,
+            self.iou_threshold,
+            self.max_detections,
+        )
+        return [
+            Detection(
+                class_index=int(c),
+                obj_id=int(self.class_obj_ids[c]),
+                score=float(decoded.scores[k]),
+                bbox_xyxy=decoded.boxes_xyxy[k],
+                mask=decoded.masks[k] if decoded.masks is not None else None,
             )
-        return detections
+            for k, c in enumerate(decoded.class_index)
+        ]

@@ -34,7 +34,7 @@ from sim import gripper_model
 from sim.cell_config import CellConfig
 from sim.cell_model import ARM_BODY_NAMES, FLANGE_SITE, build_cell_spec
 from sygrid.mjspec import add_part_body, quat_wxyz
-from sygrid.objects.collision import CollisionModel
+from sygrid.objects.collision.geometry import CollisionModel
 from sygrid.objects.model import ObjectModel
 from sygrid.robots import ur5e
 from sygrid.transforms import invert, is_rigid, make_T

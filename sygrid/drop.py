@@ -18,12 +18,9 @@ import numpy as np
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 from sygrid.objects import ContinuousSymmetry, ObjectModel, builtin_part, load_cad
-from sygrid.objects.collision import (
-    CollisionModel,
-    CollisionTier,
-    build_collision_model,
-    select_collision_model,
-)
+from sygrid.objects.collision.build import build_collision_model, select_collision_model
+from sygrid.objects.collision.geometry import CollisionModel
+from sygrid.objects.collision.params import CollisionTier
 from sygrid.physics import DropResult, Instance, simulate_drop
 from sygrid.scene import CountRange, ObjectSpec, SceneSpec, scene_to_json
 

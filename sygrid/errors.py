@@ -31,3 +31,7 @@ class ModelError(SygridError, ValueError):
 
 class DropError(SygridError, RuntimeError):
     """The physics drop could not produce a valid pile (placement failed, or the simulation became unstable)."""
+
+
+class ExportError(SygridError, RuntimeError):
+    """An exported ONNX model does not reproduce its torch model (a bug, not bad input); nothing is written."""

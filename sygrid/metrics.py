@@ -18,9 +18,10 @@ written; check it against them), spelled out so that every figure can be traced:
 
 Model points are sampled uniformly from the mesh surface with a seed (CAD meshes have too few, unevenly spread
 vertices to stand for the surface). ADD-S then carries a small positive bias even for an exact symmetric pose (the
-distance between neighbouring samples, about ``0.5 / sqrt(n / area)``): measured 0.21-0.98 mm for the built-in parts
-at the default 5000 points (about a tenth of their 2.3-9.6 mm thresholds); at 10000 the hex nut 0.18 mm and the
-flange 0.70 mm.
+distance between neighbouring samples, about ``0.5 / sqrt(n / area)``), which shrinks as ``n`` grows.
+
+Empty cases of the AP: with no detections every AP is 0 where there is ground truth (not NaN, no error); a class,
+or a whole evaluation, with no ground truth has NaN AP (COCO's -1: nothing to measure), detections or not.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from functools import lru_cache
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from pycocotools import mask as mask_utils
@@ -122,38 +123,59 @@ def coco_ground_truth(
     }
 
 
-def coco_results(detections: Sequence[Sequence[DetectionLike]], with_masks: bool) -> list[dict]:
-    """COCO result records for per-image detection lists (image ``k`` -> COCO id ``k + 1``).
+def coco_result(
+    image_index: int, obj_id: int, score: float, bbox_xyxy: np.ndarray, segmentation: dict | None = None
+) -> dict:
+    """One COCO result record: image ``image_index`` -> COCO id ``image_index + 1``, the box from ``[x0, y0, x1, y1]``
+    pixels to COCO ``[x, y, w, h]``; ``segmentation`` a COCO RLE of the mask (for a ``segm`` evaluation)."""
+    x0, y0, x1, y1 = (float(v) for v in np.asarray(bbox_xyxy, dtype=float))
+    record = {
+        "image_id": int(image_index) + 1,
+        "category_id": int(obj_id),
+        "bbox": [x0, y0, x1 - x0, y1 - y0],
+        "score": float(score),
+    }
+    if segmentation is not None:
+        record["segmentation"] = segmentation
+    return record
 
-    Boxes go from ``[x0, y0, x1, y1]`` to COCO ``[x, y, w, h]``; masks (when ``with_masks``) are RLE-encoded.
-    """
+
+def coco_results(detections: Sequence[Sequence[DetectionLike]], with_masks: bool) -> list[dict]:
+    """COCO result records (``coco_result``) for per-image detection lists; masks RLE-encoded when ``with_masks``."""
     results = []
     for k, dets in enumerate(detections):
         for det in dets:
-            x0, y0, x1, y1 = (float(v) for v in np.asarray(det.bbox_xyxy, dtype=float))
-            record = {
-                "image_id": k + 1,
-                "category_id": int(det.obj_id),
-                "bbox": [x0, y0, x1 - x0, y1 - y0],
-                "score": float(det.score),
-            }
+            rle = None
             if with_masks:
                 if det.mask is None:
                     raise ValueError(f"image {k}: a detection of obj_id {det.obj_id} has no mask")
-                record["segmentation"] = mask_utils.encode(np.asfortranarray(np.asarray(det.mask, dtype=np.uint8)))
-            results.append(record)
+                rle = mask_utils.encode(np.asfortranarray(np.asarray(det.mask, dtype=np.uint8)))
+            results.append(coco_result(k, det.obj_id, det.score, det.bbox_xyxy, rle))
     return results
 
 
-def _coco_eval(gt_dataset: dict, results: list[dict], iou_type: str) -> tuple[float, float, dict[int, tuple]]:
-    """(mAP50-95, mAP50, {obj_id: (AP50-95, AP50)}) from COCOeval; NaN where COCO reports -1 (no ground truth)."""
-    category_ids = [c["id"] for c in gt_dataset["categories"]]
+class CocoAP(NamedTuple):
+    """COCO AP of one evaluation (boxes or masks), each in [0, 1] or NaN: ``per_class`` obj_id -> (AP50-95, AP50)."""
+
+    map50_95: float
+    map50: float
+    per_class: dict[int, tuple[float, float]]
+
+
+def coco_average_precision(gt_dataset: dict, results: list[dict], iou_type: str) -> CocoAP:
+    """COCOeval of ``results`` (COCO result records) against ``gt_dataset`` (a COCO instances dict), for
+    ``iou_type`` "bbox" or "segm", over the dataset's categories.
+
+    Every category of ``gt_dataset["categories"]`` is in ``per_class``. No results: AP 0 for each category with
+    (non-crowd) ground truth, NaN for the others; the means 0, or NaN when there is no ground truth at all. With
+    results, a category without ground truth is NaN (COCO's -1) and left out of the means.
+    """
+    category_ids = [int(c["id"]) for c in gt_dataset["categories"]]
     if not results:  # COCO.loadRes cannot take an empty list; with no detections every AP is 0
-        per_class_empty = {i: (0.0, 0.0) for i in category_ids}
-        has_gt = {a["category_id"] for a in gt_dataset["annotations"] if not a["iscrowd"]}
-        per_class_empty = {i: v if i in has_gt else (math.nan, math.nan) for i, v in per_class_empty.items()}
-        value = 0.0 if has_gt else math.nan
-        return value, value, per_class_empty
+        has_gt = {a["category_id"] for a in gt_dataset["annotations"] if not a.get("iscrowd", 0)}
+        per_class_empty = {i: (0.0, 0.0) if i in has_gt else (math.nan, math.nan) for i in category_ids}
+        value = 0.0 if has_gt & set(category_ids) else math.nan
+        return CocoAP(value, value, per_class_empty)
     quiet = io.StringIO()
     with contextlib.redirect_stdout(quiet):  # pycocotools prints its progress and summary table
         coco_gt = COCO()
@@ -177,7 +199,44 @@ def _coco_eval(gt_dataset: dict, results: list[dict], iou_type: str) -> tuple[fl
             float(np.mean(p_all[p_all > -1])) if np.any(p_all > -1) else math.nan,
             float(np.mean(p_50[p_50 > -1])) if np.any(p_50 > -1) else math.nan,
         )
-    return map50_95, map50, per_class
+    return CocoAP(map50_95, map50, per_class)
+
+
+def coco_detection_metrics(
+    gt_dataset: dict, box_results: list[dict], mask_results: list[dict] | None
+) -> DetectionMetrics:
+    """Box and mask AP of COCO result records against a COCO instances dict (see ``coco_average_precision`` for
+    the empty cases). ``mask_results`` None: a detection-only evaluation, mask AP NaN. ``n_gt`` counts the non-crowd
+    annotations of the dataset's categories; ``n_detections`` the box results."""
+    box = coco_average_precision(gt_dataset, box_results, "bbox")
+    if mask_results is not None:
+        mask = coco_average_precision(gt_dataset, mask_results, "segm")
+    else:
+        mask = CocoAP(math.nan, math.nan, {i: (math.nan, math.nan) for i in box.per_class})
+    n_gt = {i: 0 for i in box.per_class}
+    for a in gt_dataset["annotations"]:
+        if not a.get("iscrowd", 0) and a["category_id"] in n_gt:
+            n_gt[a["category_id"]] += 1
+    per_class = {
+        i: {
+            "box_ap50_95": box.per_class[i][0],
+            "box_ap50": box.per_class[i][1],
+            "mask_ap50_95": mask.per_class[i][0],
+            "mask_ap50": mask.per_class[i][1],
+            "n_gt": n_gt[i],
+        }
+        for i in box.per_class
+    }
+    return DetectionMetrics(
+        box_map50_95=box.map50_95,
+        box_map50=box.map50,
+        mask_map50_95=mask.map50_95,
+        mask_map50=mask.map50,
+        per_class=per_class,
+        n_images=len(gt_dataset["images"]),
+        n_gt=sum(n_gt.values()),
+        n_detections=len(box_results),
+    )
 
 
 def detection_metrics(
@@ -193,6 +252,8 @@ def detection_metrics(
         detections: per image, the detections (obj_id, score, bbox_xyxy, mask in that image's pixels).
         obj_ids: categories to evaluate; None takes those in the ground truth and the detections.
         min_visib_fract: instances seen less than this are ignored (COCO crowd), neither needed nor penalised.
+
+    Mask AP is NaN when any detection has no mask. No detections give AP 0 (NaN where there is no ground truth).
 
     Raises:
         ValueError: the number of detection lists differs from the number of images, or a mask's shape differs
@@ -210,35 +271,8 @@ def detection_metrics(
         obj_ids = sorted(gt_ids | {int(d.obj_id) for dets in detections for d in dets})
     gt = coco_ground_truth(images, obj_ids, min_visib_fract)
     with_masks = all(d.mask is not None for dets in detections for d in dets)
-    box = _coco_eval(gt, coco_results(detections, with_masks=False), "bbox")
-    if with_masks:
-        mask = _coco_eval(gt, coco_results(detections, with_masks=True), "segm")
-    else:
-        mask = (math.nan, math.nan, {i: (math.nan, math.nan) for i in box[2]})
-    n_gt = {i: 0 for i in box[2]}
-    for a in gt["annotations"]:
-        if not a["iscrowd"] and a["category_id"] in n_gt:
-            n_gt[a["category_id"]] += 1
-    per_class = {
-        i: {
-            "box_ap50_95": box[2][i][0],
-            "box_ap50": box[2][i][1],
-            "mask_ap50_95": mask[2][i][0],
-            "mask_ap50": mask[2][i][1],
-            "n_gt": n_gt[i],
-        }
-        for i in box[2]
-    }
-    return DetectionMetrics(
-        box_map50_95=box[0],
-        box_map50=box[1],
-        mask_map50_95=mask[0],
-        mask_map50=mask[1],
-        per_class=per_class,
-        n_images=len(images),
-        n_gt=sum(n_gt.values()),
-        n_detections=sum(len(d) for d in detections),
-    )
+    mask_results = coco_results(detections, with_masks=True) if with_masks else None
+    return coco_detection_metrics(gt, coco_results(detections, with_masks=False), mask_results)
 
 
 # -------------------------------------------------------------------------------------------------------- depth

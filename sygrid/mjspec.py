@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sygrid.objects.collision import CollisionModel
+from sygrid.objects.collision.geometry import CollisionModel
 from sygrid.objects.model import ObjectModel
 
 _GEOM_TYPES = {

@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from sygrid.errors import DropError
 from sygrid.mjspec import add_open_box, add_part_body
-from sygrid.objects.collision import CollisionModel
+from sygrid.objects.collision.geometry import CollisionModel
 from sygrid.objects.model import ObjectModel
 from sygrid.scene import ContainerSpec, PhysicsSpec
 

@@ -11,15 +11,10 @@ import pytest
 import trimesh
 
 from sygrid.errors import MeshError
-from sygrid.objects.collision import (
-    CollisionModel,
-    CollisionParams,
-    CollisionTier,
-    build_collision_model,
-    points_in_convex,
-    points_in_mesh,
-    select_collision_model,
-)
+from sygrid.objects.collision.build import build_collision_model, select_collision_model
+from sygrid.objects.collision.geometry import CollisionModel
+from sygrid.objects.collision.params import CollisionParams, CollisionTier
+from sygrid.objects.inside import points_in_convex, points_in_mesh
 from sygrid.objects.model import ObjectModel
 from sygrid.objects.parts import builtin_part
 from sygrid.transforms import make_T, rotation_about

@@ -15,12 +15,10 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from perception.detector import (
-    ModelError,
-    YoloSegDetector,
-    assemble_mask,
-    letterbox_geometry,
-)
+from perception.detector import YoloSegDetector
+from sygrid.detection_decode import assemble_mask
+from sygrid.errors import ModelError
+from sygrid.letterbox import letterbox_geometry
 
 IN = 64  # network input 64 x 64, prototypes 16 x 16 (stride 4)
 NM = 32

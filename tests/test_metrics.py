@@ -104,6 +104,24 @@ def test_no_detections_and_several_images():
     assert half.box_map50 == pytest.approx(51 / 101)
 
 
+def test_empty_results_give_zero_ap_and_no_ground_truth_gives_nan():
+    image = _image([(0, 0, 10, 10)], [1])
+    m = metrics.detection_metrics([image], [[]], obj_ids=[1, 2])  # nothing detected: AP 0, not NaN, for boxes and masks
+    assert (m.box_map50_95, m.box_map50, m.mask_map50_95, m.mask_map50) == (0.0, 0.0, 0.0, 0.0)
+    assert m.per_class[1]["box_ap50_95"] == 0.0 and m.per_class[1]["mask_ap50"] == 0.0
+    assert math.isnan(m.per_class[2]["box_ap50"]) and m.per_class[2]["n_gt"] == 0  # class 2 has no ground truth
+    assert (m.n_gt, m.n_detections) == (1, 0)
+    empty = _image([], [])  # no ground truth at all: nothing to measure, with or without detections
+    for dets in ([], [_det(1, 0.9, 0, 0, 10, 10, _rect_mask(0, 0, 10, 10))]):
+        m = metrics.detection_metrics([empty], [dets], obj_ids=[1])
+        assert math.isnan(m.box_map50_95) and math.isnan(m.mask_map50) and math.isnan(m.per_class[1]["box_ap50"])
+    # Crowd-only ground truth is no ground truth either.
+    gt = metrics.coco_ground_truth([image], [1], min_visib_fract=2.0)
+    assert gt["annotations"][0]["iscrowd"] == 1
+    ap = metrics.coco_average_precision(gt, [], "bbox")
+    assert math.isnan(ap.map50_95) and math.isnan(ap.per_class[1][0])
+
+
 def test_low_visibility_instances_can_be_ignored():
     image = _image([(0, 0, 10, 10), (30, 10, 40, 20)], [1, 1])
     faint = dataclasses.replace(image.instances[1], visib_fract=0.05)

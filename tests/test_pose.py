@@ -184,10 +184,39 @@ def test_symmetric_losses_vanish_for_a_symmetric_equivalent():
 
 
 # ------------------------------------------------------------------------------- training and runtime
+def test_pose_defaults_are_the_shipped_model():
+    """The command line, a training run and the network share one set of architecture defaults: the shipped
+    model's (its metadata gives the sizes, its first convolution the width)."""
+    import argparse
+
+    from sygrid.train.pose.command import add_arguments
+    from sygrid.train.pose.config import PoseNetConfig, TrainConfig
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["--data", "d", "--out", "o"])
+    config = TrainConfig(data_dir=args.data, out_dir=args.out, input_size=args.input_size,
+                         output_stride=args.output_stride, width=args.width)  # fmt: skip
+    assert config == TrainConfig(data_dir=Path("d"), out_dir=Path("o"))
+    assert config.net_config(7) == PoseNetConfig(num_classes=7)
+    shipped = onnx.load(str(Path(__file__).resolve().parents[1] / "models" / "builtin" / "pose.onnx"))
+    info = json.loads({p.key: p.value for p in shipped.metadata_props}[POSE_METADATA_KEY])
+    stem = next(n for n in shipped.graph.node if n.op_type == "Conv")
+    (weight,) = [i for i in shipped.graph.initializer if i.name == stem.input[1]]
+    net = PoseNetConfig(num_classes=len(info["obj_ids"]))
+    assert (net.input_size, net.output_size, net.num_regions) == (
+        info["input_size"],
+        info["output_size"],
+        info["num_regions"],
+    )
+    assert net.width == weight.dims[0]
+
+
 @pytest.fixture(scope="module")
 def trained(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     pytest.importorskip("torch")
-    from sygrid.train.pose.train import TrainConfig, train
+    from sygrid.train.pose.config import TrainConfig
+    from sygrid.train.pose.train import train
 
     out = tmp_path_factory.mktemp("pose_run")
     config = TrainConfig(
@@ -214,7 +243,8 @@ def test_smoke_training_writes_checkpoints_log_and_onnx(trained: Path):
 
 def test_training_resumes_from_last_checkpoint(trained: Path, tiny_dataset: Path, tmp_path: Path):
     from sygrid.errors import ConfigError
-    from sygrid.train.pose.train import TrainConfig, train
+    from sygrid.train.pose.config import TrainConfig
+    from sygrid.train.pose.train import train
 
     base = dict(data_dir=tiny_dataset, epochs=1, batch_size=4, input_size=32, output_stride=4, width=8,
                 num_regions=8, threads=2, progress=False, val_max=6, checkpoint_every=2)  # fmt: skip

@@ -19,9 +19,9 @@ torch = pytest.importorskip("torch")
 
 from pycocotools import mask as mask_utils  # noqa: E402
 
+from sygrid.letterbox import Letterbox  # noqa: E402
 from sygrid.train.detector.assigner import TaskAlignedAssigner  # noqa: E402
 from sygrid.train.detector.augment import (  # noqa: E402
-    LetterboxGeometry,
     example_rng,
     letterbox_geometry,
     targets_from_ids,
@@ -37,7 +37,7 @@ from sygrid.train.detector.boxes import (  # noqa: E402
 )
 from sygrid.train.detector.config import MODEL_SIZES, AugmentConfig, TrainConfig  # noqa: E402
 from sygrid.train.detector.data import DetectorDataError, open_dataset, parse_data_yaml  # noqa: E402
-from sygrid.train.detector.evaluate import ImageDetections, coco_evaluate, postprocess  # noqa: E402
+from sygrid.train.detector.evaluate import ImageDetections, coco_evaluate, val_detections  # noqa: E402
 from sygrid.train.detector.export import _store_weights_as_half  # noqa: E402
 from sygrid.train.detector.loss import SegmentationLoss, Targets  # noqa: E402
 from sygrid.train.detector.model import SIZES, ModelConfig, build_model  # noqa: E402
@@ -48,8 +48,8 @@ REG_MAX = 16
 
 @pytest.fixture(autouse=True)
 def one_torch_thread():
-    """One intra-op thread: these tensors are tiny, and on a busy 2-core machine two threads wait on each other at
-    every operation (measured: a 128 x 128 forward pass 3.5 s with two threads, 22 ms with one)."""
+    """One intra-op thread: these tensors are tiny, and on a busy small machine threads wait on each other at every
+    operation."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
@@ -229,19 +229,21 @@ def test_targets_from_ids_boxes_and_coverage():
     assert float(masks[0].sum()) * 16 == 32  # coverage integrates to the pixel count
 
 
-def test_letterbox_matches_the_runtime():
-    from perception.detector import letterbox_geometry as runtime_geometry
-
-    for image_hw, size in (((480, 640), 416), ((480, 640), 480), ((120, 160), 128), ((300, 200), 320)):
-        for stride in (None, 32):
-            ours = letterbox_geometry(image_hw, size, stride)
-            theirs = runtime_geometry(image_hw, (size, size), stride)
-            assert (ours.input_hw, ours.resized_hw, ours.pad_left, ours.pad_top) == (
-                theirs.input_hw,
-                theirs.resized_hw,
-                theirs.pad_left,
-                theirs.pad_top,
-            )
+def test_letterbox_geometry_by_hand():
+    """(image_hw, side, stride) -> (input_hw, resized_hw, pad_left, pad_top), worked out from the rule: scale to fit,
+    centre, pad (with a stride, only up to the next multiple of it); an odd padding puts the extra pixel at the
+    bottom/right."""
+    cases = {
+        ((480, 640), 416, None): ((416, 416), (312, 416), 0, 52),  # scale 0.65, 104 rows of padding, 52 on top
+        ((480, 640), 416, 32): ((320, 416), (312, 416), 0, 4),  # 104 % 32 = 8 rows: 4 on top
+        ((120, 160), 128, None): ((128, 128), (96, 128), 0, 16),
+        ((120, 160), 128, 32): ((96, 128), (96, 128), 0, 0),  # 32 % 32 = 0: no padding
+        ((300, 200), 320, None): ((320, 320), (320, 213), 53, 0),  # 213.3 -> 213 columns, 107 of padding: 53 + 54
+        ((300, 200), 320, 32): ((320, 224), (320, 213), 5, 0),  # 107 % 32 = 11 columns: 5 + 6
+    }
+    for (image_hw, size, stride), expected in cases.items():
+        g = letterbox_geometry(image_hw, size, stride)
+        assert (g.input_hw, g.resized_hw, g.pad_left, g.pad_top) == expected, (image_hw, size, stride)
 
 
 def test_open_dataset_errors(tmp_path):
@@ -297,9 +299,18 @@ def test_coco_evaluate_of_the_ground_truth_is_perfect(tiny_dataset):
     assert metrics.box_map50 == pytest.approx(1.0) and metrics.mask_map50_95 == pytest.approx(1.0)
 
 
+def test_coco_evaluate_with_nothing_detected_is_zero(tiny_dataset):
+    ds = open_dataset(tiny_dataset)
+    gt = ds.coco_gt["val"]
+    nothing = ImageDetections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64), [])
+    metrics = coco_evaluate(gt, [nothing] * len(gt["images"]), ds.obj_ids)
+    assert (metrics.box_map50_95, metrics.box_map50, metrics.mask_map50_95, metrics.mask_map50) == (0, 0, 0, 0)
+    assert metrics.n_detections == 0 and metrics.n_gt > 0
+
+
 def test_postprocess_decodes_nms_and_masks():
     nc, nm = 2, 32
-    geometry = LetterboxGeometry((48, 64), (48, 64), (48, 64), 0, 0)  # identity letterbox
+    geometry = Letterbox((48, 64), (48, 64), (48, 64), 0, 0)  # identity letterbox
     output0 = np.zeros((4 + nc + nm, 4), np.float32)
     output0[:4, 0] = [20, 20, 16, 16]  # box 12..28
     output0[:4, 1] = [21, 20, 16, 16]  # a near duplicate of the same class, lower score: suppressed
@@ -309,7 +320,7 @@ def test_postprocess_decodes_nms_and_masks():
     output0[6, :] = 1.0  # every mask = prototype 0
     protos = np.full((nm, 12, 16), -10.0, np.float32)
     protos[0, 4:6, 4:6] = 10.0  # input pixels 16..24 in both axes
-    det = postprocess(output0, protos, geometry, nc, conf_threshold=0.01)
+    det = val_detections(output0, protos, geometry, nc, conf_threshold=0.01)
     assert det.classes.tolist() == [0, 1] and det.scores.tolist() == pytest.approx([0.9, 0.7])
     assert det.boxes_xyxy[0].tolist() == pytest.approx([12, 12, 28, 28])
     mask = mask_utils.decode(det.rles[0]).astype(bool)
@@ -325,7 +336,7 @@ def test_learning_rate_warms_up_then_decays():
     assert all(a >= b for a, b in itertools.pairwise(lrs[9:])) and lrs[-1] == pytest.approx(1e-4, rel=0.05)
 
 
-@pytest.mark.slow  # two short training runs with validation and an ONNX export: about 5 s idle, 15 s on a busy machine
+@pytest.mark.slow  # two short training runs with validation and an ONNX export
 def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     out = tmp_path / "run"
     common = {

@@ -13,7 +13,8 @@ import trimesh
 
 from sim.world import CellConfig, CellWorld
 from sygrid.errors import ConfigError
-from sygrid.objects.collision import ConvexPiece, build_collision_model
+from sygrid.objects.collision.build import build_collision_model
+from sygrid.objects.collision.geometry import ConvexPiece
 from sygrid.objects.model import ObjectModel
 from sygrid.robots import forward_kinematics, ik_nearest, ur5e
 from sygrid.transforms import invert, make_T, rotation_about

@@ -4,10 +4,10 @@ The public API, one explicit re-export per line (``name as name`` marks it as a 
 """
 
 from sygrid.objects.cad import load_cad as load_cad
-from sygrid.objects.collision import CollisionModel as CollisionModel
-from sygrid.objects.collision import CollisionTier as CollisionTier
-from sygrid.objects.collision import build_collision_model as build_collision_model
-from sygrid.objects.collision import select_collision_model as select_collision_model
+from sygrid.objects.collision.build import build_collision_model as build_collision_model
+from sygrid.objects.collision.build import select_collision_model as select_collision_model
+from sygrid.objects.collision.geometry import CollisionModel as CollisionModel
+from sygrid.objects.collision.params import CollisionTier as CollisionTier
 from sygrid.objects.model import ContinuousSymmetry as ContinuousSymmetry
 from sygrid.objects.model import GraspAnnotation as GraspAnnotation
 from sygrid.objects.model import ObjectModel as ObjectModel

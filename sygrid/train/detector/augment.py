@@ -23,8 +23,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from sygrid.letterbox import PAD_VALUE, letterbox
-from sygrid.letterbox import Letterbox as LetterboxGeometry
+from sygrid.letterbox import PAD_VALUE, Letterbox, letterbox
 from sygrid.letterbox import letterbox_geometry as _letterbox_geometry
 from sygrid.train.detector.config import AugmentConfig
 from sygrid.train.detector.data import DetectionDataset, load_instances
@@ -33,7 +32,7 @@ MASK_STRIDE = 4  # prototype resolution: 1/4 of the network input
 
 
 # --------------------------------------------------------------------------------------------------- geometry
-def letterbox_geometry(image_hw: tuple[int, int], size: int, stride: int | None) -> LetterboxGeometry:
+def letterbox_geometry(image_hw: tuple[int, int], size: int, stride: int | None) -> Letterbox:
     """Where an image goes in a square network input of at most ``size`` x ``size`` (the runtime's rule)."""
     return _letterbox_geometry(image_hw, (size, size), stride)
 
@@ -225,7 +224,7 @@ def _mosaic(
     return image, ids, np.concatenate(all_classes)
 
 
-def val_example(dataset: DetectionDataset, index: int, size: int, stride: int) -> tuple[Example, LetterboxGeometry]:
+def val_example(dataset: DetectionDataset, index: int, size: int, stride: int) -> tuple[Example, Letterbox]:
     """Validation example ``index``: letterboxed as the runtime does for a dynamic-input model (no augmentation)."""
     src, src_ids, classes = load_instances(dataset, "val", index)
     geometry = letterbox_geometry(src.shape[:2], size, stride)

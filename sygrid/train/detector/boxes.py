@@ -48,10 +48,6 @@ def dfl_expectation(logits: torch.Tensor, reg_max: int) -> torch.Tensor:
     return (probs * bins).sum(-1)
 
 
-def xyxy_to_cxcywh(boxes: torch.Tensor) -> torch.Tensor:
-    return torch.cat(((boxes[..., :2] + boxes[..., 2:]) / 2, boxes[..., 2:] - boxes[..., :2]), -1)
-
-
 def box_ciou(box1: torch.Tensor, box2: torch.Tensor, eps: float = 1e-7) -> torch.Tensor:
     """Complete IoU (Zheng et al. 2020) of matching ``x0, y0, x1, y1`` boxes (..., 4) -> (...): the IoU minus the
     normalised centre distance and the aspect-ratio consistency term."""
@@ -72,13 +68,3 @@ def box_ciou(box1: torch.Tensor, box2: torch.Tensor, eps: float = 1e-7) -> torch
     with torch.no_grad():
         alpha = v / (v - iou + (1 + eps))
     return iou - (rho2 / c2 + v * alpha)
-
-
-def box_iou_matrix(boxes1: torch.Tensor, boxes2: torch.Tensor) -> torch.Tensor:
-    """Plain IoU of every pair: (n, 4) x (m, 4) ``x0, y0, x1, y1`` -> (n, m)."""
-    area1 = (boxes1[:, 2] - boxes1[:, 0]).clamp(min=0) * (boxes1[:, 3] - boxes1[:, 1]).clamp(min=0)
-    area2 = (boxes2[:, 2] - boxes2[:, 0]).clamp(min=0) * (boxes2[:, 3] - boxes2[:, 1]).clamp(min=0)
-    lt = torch.maximum(boxes1[:, None, :2], boxes2[None, :, :2])
-    rb = torch.minimum(boxes1[:, None, 2:], boxes2[None, :, 2:])
-    inter = (rb - lt).clamp(min=0).prod(-1)
-    return inter / (area1[:, None] + area2[None, :] - inter + 1e-9)

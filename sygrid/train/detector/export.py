@@ -28,7 +28,7 @@ import onnxruntime as ort
 import torch
 from onnx import helper, numpy_helper
 
-from sygrid.errors import SygridError
+from sygrid.errors import ExportError
 from sygrid.fileio import write_bytes_atomic
 from sygrid.train.detector.model import YoloSeg
 
@@ -58,10 +58,6 @@ class ExportReport:
             "max_abs_diff": self.max_abs_diff,
             "metadata": self.metadata,
         }
-
-
-class ExportError(SygridError, RuntimeError):
-    """The exported model does not reproduce the torch model (a bug, not bad input)."""
 
 
 def model_metadata(names: Sequence[str], obj_ids: Sequence[int], imgsz: int, size: str) -> dict[str, str]:

@@ -9,12 +9,6 @@ seconds, the export check).
 Determinism: the weights are initialised from ``seed``; the order of an epoch and every augmentation come from
 ``(seed, epoch, index)`` (``sygrid.train.detector.augment``), so a run resumed from ``last.pt`` sees the data an
 uninterrupted run would (no numpy generator state needs saving).
-
-Measured on this project's shared 2-core machines (batch 8, one torch thread, load about 3): 1.0 s per iteration
-for the pico network on 320 px crops at the scale of a 480 input (the defaults), 1.5 s for ``n``; 1.8 s and 3.0 s
-on whole 416 x 416 inputs. A run on 172 generated images (pico, defaults, 30 epochs, 660 iterations, 17 min) reached
-box mAP50 0.48 / mask mAP50-95 0.17 on 28 validation images, still rising; large parts (flange 0.98 AP50) learn
-first, the 1-2 cm ones (nut, washer, bolt, bracket: 0.33-0.40) last.
 """
 
 from __future__ import annotations
@@ -36,6 +30,7 @@ from tqdm import tqdm
 
 from sygrid.errors import SygridError
 from sygrid.fileio import write_bytes_atomic, write_json_atomic
+from sygrid.metrics import DetectionMetrics
 from sygrid.train.detector.augment import (
     Example,
     epoch_order,
@@ -45,7 +40,7 @@ from sygrid.train.detector.augment import (
 )
 from sygrid.train.detector.config import TrainConfig
 from sygrid.train.detector.data import DetectionDataset, open_dataset
-from sygrid.train.detector.evaluate import ValMetrics, coco_evaluate, postprocess
+from sygrid.train.detector.evaluate import coco_evaluate, val_detections
 from sygrid.train.detector.export import ExportReport, export_onnx
 from sygrid.train.detector.loss import LOSS_NAMES, SegmentationLoss, Targets
 from sygrid.train.detector.model import ModelConfig, YoloSeg, build_model, count_parameters
@@ -337,7 +332,7 @@ class _Trainer:
         }
 
     @torch.no_grad()
-    def validate(self, model: YoloSeg) -> ValMetrics:
+    def validate(self, model: YoloSeg) -> DetectionMetrics:
         """COCO mAP of ``model`` on the val split, images letterboxed as the runtime does."""
         model.eval()
         stride = max(model.strides)
@@ -356,7 +351,7 @@ class _Trainer:
                 images, _ = collate([items[j][0] for j in idx], self.cfg.channels_last)
                 output0, protos = model(images)
                 for row, j in enumerate(idx):
-                    results[j] = postprocess(
+                    results[j] = val_detections(
                         output0[row].numpy(), protos[row].numpy(), items[j][1], self.dataset.num_classes
                     )
             detections += [results[j] for j in range(len(items))]

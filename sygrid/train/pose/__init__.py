@@ -1,2 +1,3 @@
-"""GDR-Net-style 6D pose training (torch): data, network, losses, loop, ONNX export, and the ``sygrid train pose``
-command. torch is imported by the modules that need it, not here."""
+"""GDR-Net-style 6D pose training (torch): configuration (``config``, standard library only), data, network,
+losses, loop, ONNX export, and the ``sygrid train pose`` command. torch is imported by the modules that need it,
+not here."""

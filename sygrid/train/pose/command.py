@@ -1,31 +1,56 @@
 """``sygrid train pose --data DIR --out DIR``: train the GDR-Net-style pose network on DIR/bop, export OUT/pose.onnx.
 
-Writes OUT/last.pt (resume with ``--resume``), OUT/best.pt, OUT/pose.onnx and OUT/train_log.json.
+Writes OUT/last.pt (resume with ``--resume``), OUT/best.pt, OUT/pose.onnx and OUT/train_log.json. Argument parsing
+only imports the standard library (the defaults come from ``config.TrainConfig``); torch is imported when the command
+runs.
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import fields
 from pathlib import Path
 
 from sygrid.errors import ConfigError
+from sygrid.train.pose.config import TrainConfig
+
+DEFAULTS = {f.name: f.default for f in fields(TrainConfig)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset folder written by 'sygrid generate'")
     parser.add_argument("--out", type=Path, required=True, help="output folder (checkpoints, ONNX, log)")
-    parser.add_argument("--epochs", type=int, default=30, help="passes over the training instances (default 30)")
-    parser.add_argument("--input-size", type=int, default=64, help="RoI side in pixels (default 64)")
-    parser.add_argument("--output-stride", type=int, default=4, choices=(2, 4, 8), help="input / dense output size")
-    parser.add_argument("--width", type=int, default=16, help="backbone width, channels of the first stage")
-    parser.add_argument("--batch", type=int, default=32, help="batch size (default 32)")
-    parser.add_argument("--lr", type=float, default=1e-3, help="AdamW base learning rate (default 1e-3)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--epochs", type=int, default=DEFAULTS["epochs"], help="passes over the training instances (%(default)s)"
+    )
+    parser.add_argument(
+        "--input-size", type=int, default=DEFAULTS["input_size"], help="RoI side in pixels (%(default)s)"
+    )
+    parser.add_argument(
+        "--output-stride",
+        type=int,
+        default=DEFAULTS["output_stride"],
+        choices=(2, 4, 8),
+        help="input / dense output size (%(default)s)",
+    )
+    parser.add_argument(
+        "--width", type=int, default=DEFAULTS["width"], help="backbone width, channels of the first stage (%(default)s)"
+    )
+    parser.add_argument("--batch", type=int, default=DEFAULTS["batch_size"], help="batch size (%(default)s)")
+    parser.add_argument("--lr", type=float, default=DEFAULTS["lr"], help="AdamW base learning rate (%(default)s)")
+    parser.add_argument("--seed", type=int, default=DEFAULTS["seed"])
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    parser.add_argument(
+        "--threads", type=int, default=DEFAULTS["threads"], help="torch CPU threads (default: torch's choice)"
+    )
     parser.add_argument("--max-iters", type=int, default=None, help="stop after this many iterations in all")
-    parser.add_argument("--val-max", type=int, default=500, help="validation instances (default 500)")
-    parser.add_argument("--min-visib", type=float, default=0.2, help="least visible fraction of a trained instance")
+    parser.add_argument("--val-max", type=int, default=DEFAULTS["val_max"], help="validation instances (%(default)s)")
+    parser.add_argument(
+        "--min-visib",
+        type=float,
+        default=DEFAULTS["min_visib_fract"],
+        help="least visible fraction of a trained instance (%(default)s)",
+    )
     parser.add_argument(
         "--objects", nargs="+", default=None, help="obj_ids or built-in part names to train for (default: all)"
     )
@@ -51,7 +76,7 @@ def _obj_ids(values: list[str] | None) -> tuple[int, ...] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sygrid.train.pose.train import TrainConfig, train  # torch is imported only when training runs
+    from sygrid.train.pose.train import train  # torch is imported only when training runs
 
     config = TrainConfig(
         data_dir=args.data,

@@ -12,7 +12,7 @@ import onnx
 import onnxruntime as ort
 import torch
 
-from sygrid.errors import SygridError
+from sygrid.errors import ExportError
 from sygrid.fileio import write_bytes_atomic
 from sygrid.pose_geometry import POSE_INPUTS, POSE_METADATA_KEY, POSE_ONNX_FORMAT, POSE_OUTPUTS
 from sygrid.train.pose.model import PoseNet, PoseNetForExport
@@ -20,10 +20,6 @@ from sygrid.train.pose.objects import ObjectTables
 
 OPSET = 17
 EXPORT_TOLERANCE = 1e-4  # max |onnxruntime - torch| over every output
-
-
-class ExportError(SygridError, RuntimeError):
-    """The exported graph does not reproduce the torch model."""
 
 
 def pose_metadata(net: PoseNet, tables: ObjectTables, pad_scale: float) -> dict:

@@ -14,27 +14,13 @@ image, so the targets are ambiguous and each loss takes the minimum over the equ
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 (the torch convention)
 
+from sygrid.train.pose.config import LossWeights
 from sygrid.train.pose.model import rot6d_to_matrix
 from sygrid.train.pose.objects import ObjectTables
-
-
-@dataclass(frozen=True)
-class LossWeights:
-    xyz: float = 1.0
-    mask: float = 1.0
-    region: float = 1.0
-    rotation: float = 1.0
-    centre: float = 1.0
-    depth: float = 1.0
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 class PoseLoss(nn.Module):

@@ -14,45 +14,15 @@ Shapes: image (B, 3, S, S) RGB in [0, 1]; coord2d (B, 2, s, s) normalised camera
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 (the torch convention)
 
+from sygrid.train.pose.config import PoseNetConfig
+
 _MEAN = (0.485, 0.456, 0.406)  # ImageNet statistics: a conventional, harmless input scaling
 _STD = (0.229, 0.224, 0.225)
-
-
-@dataclass(frozen=True)
-class PoseNetConfig:
-    """Architecture. ``width``: channels of the first stage (stages have 1, 2, 4, 8 x width); ``num_regions``:
-    surface regions; ``pnp_channels``: convolution width of the Patch-PnP head; ``decoder_convs``: 3x3
-    convolutions per upsampling step of the geometry head."""
-
-    num_classes: int
-    input_size: int = 64
-    output_size: int = 32
-    width: int = 24
-    num_regions: int = 32
-    pnp_channels: int = 96
-    pnp_hidden: int = 256
-    decoder_convs: int = 1
-
-    def __post_init__(self) -> None:
-        ratio = self.input_size // max(self.output_size, 1)
-        if self.input_size % 16 or ratio not in (2, 4, 8) or self.input_size != ratio * self.output_size:
-            raise ValueError(
-                f"input_size {self.input_size} must be a multiple of 16 and output_size {self.output_size} the input "
-                "size divided by 2, 4 or 8"
-            )
-        if self.output_size < 8:
-            raise ValueError(f"output_size must be >= 8 for the Patch-PnP head, got {self.output_size}")
-        if self.num_classes < 1 or self.num_regions < 1:
-            raise ValueError(f"num_classes and num_regions must be >= 1, got {self.num_classes}, {self.num_regions}")
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 def _conv_bn(c_in: int, c_out: int, stride: int = 1, kernel: int = 3) -> nn.Sequential:

@@ -16,7 +16,7 @@ import io
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,66 +28,17 @@ from sygrid.fileio import write_bytes_atomic, write_json_atomic
 from sygrid.metrics import pose_errors, pose_metrics_table
 from sygrid.objects.model import ObjectModel
 from sygrid.pose_geometry import decode_direct, decode_pnp
+from sygrid.train.pose.config import TrainConfig
 from sygrid.train.pose.data import CoordinateRenderer, InstanceCrop, SampleConfig, collate, index_split, make_sample
 from sygrid.train.pose.export import export_onnx
-from sygrid.train.pose.losses import LossWeights, PoseLoss
-from sygrid.train.pose.model import PoseNet, PoseNetConfig, PoseNetForExport
+from sygrid.train.pose.losses import PoseLoss
+from sygrid.train.pose.model import PoseNet, PoseNetForExport
 from sygrid.train.pose.objects import ObjectTables, build_tables, load_bop_models
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "sygrid-pose-checkpoint/1"
 _ARCH_KEYS = ("input_size", "output_stride", "width", "num_regions")
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything a training run depends on. Sizes in pixels; ``objects`` None trains every part of the dataset.
-
-    ``epochs`` passes over the training instances (``max_iters`` caps the iterations); ``output_stride``: input
-    size / dense output size; ``width``: backbone width; ``val_max``: validation instances used (spread evenly);
-    ``checkpoint_every``: iterations between checkpoints.
-    """
-
-    data_dir: Path
-    out_dir: Path
-    epochs: int = 30
-    batch_size: int = 32
-    input_size: int = 64
-    output_stride: int = 4
-    width: int = 16
-    num_regions: int = 32
-    lr: float = 1e-3
-    weight_decay: float = 1e-2
-    warmup_iters: int = 300
-    seed: int = 0
-    threads: int | None = None
-    max_iters: int | None = None
-    objects: tuple[int, ...] | None = None
-    min_visib_fract: float = 0.2
-    val_max: int = 500
-    checkpoint_every: int = 200
-    sym_steps: int = 36
-    progress: bool = True
-    loss_weights: LossWeights = field(default_factory=LossWeights)
-
-    def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "checkpoint_every", "sym_steps"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.max_iters is not None and self.max_iters < 1:
-            raise ConfigError(f"max_iters must be >= 1, got {self.max_iters}")
-        if self.output_stride not in (2, 4, 8) or self.input_size % (4 * self.output_stride):
-            raise ConfigError(
-                f"input_size {self.input_size} / output_stride {self.output_stride}: the stride must be 2, 4 or 8 "
-                "and the input size a multiple of 16 and of 4 x stride"
-            )
-
-    def as_json(self) -> dict:
-        d = asdict(self)
-        d["data_dir"], d["out_dir"] = str(self.data_dir), str(self.out_dir)
-        d["objects"] = None if self.objects is None else list(self.objects)
-        return d
 
 
 @dataclass
@@ -202,7 +153,7 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
 
     models = load_bop_models(bop / "models", config.objects)
     tables = build_tables(models, config.num_regions, sym_steps=config.sym_steps, seed=config.seed)
-    sample_cfg = SampleConfig(input_size=config.input_size, output_size=config.input_size // config.output_stride)
+    sample_cfg = SampleConfig(input_size=config.input_size, output_size=config.output_size)
     train_crops = index_split(
         bop, "train_pbr", tables.obj_ids, sample_cfg, config.min_visib_fract, progress=config.progress
     )
@@ -219,13 +170,7 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
     log.info("pose training: %d train instances, %d validation instances, obj_ids %s", len(train_crops),
              len(val_crops), list(tables.obj_ids))  # fmt: skip
 
-    net_cfg = PoseNetConfig(
-        num_classes=tables.num_classes,
-        input_size=config.input_size,
-        output_size=config.input_size // config.output_stride,
-        width=config.width,
-        num_regions=config.num_regions,
-    )
+    net_cfg = config.net_config(tables.num_classes)
     net = PoseNet(net_cfg)
     criterion = PoseLoss(tables, config.loss_weights)
     optimizer = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
