@@ -2,8 +2,8 @@
 the dense targets (object coordinates, visible mask) ray-cast from the ground-truth pose.
 
 Indexing reads each image once and keeps, per instance, only a crop large enough for every zoom-in the
-augmentation can draw, at native resolution and PNG-compressed in memory (measured 8 kB per instance on raster
-renders against 50 kB raw; decoding costs about 0.4 ms), so an epoch needs no disk access.
+augmentation can draw, at native resolution and PNG-compressed in memory (several times smaller than raw, and
+cheap to decode), so an epoch needs no disk access.
 
 Targets are exact rather than warped from full-resolution maps: the object coordinates of each output cell are the
 first hit of the ray through the cell centre with the model at its ground-truth pose (open3d's ``RaycastingScene``,
