@@ -591,11 +591,18 @@ def test_with_max_planned_parts_the_best_parts_are_planned_and_the_rest_skipped(
     assert skipped, "a part that cannot beat the planned one is not checked at all"
 
 
-def test_grasps_too_thin_for_the_object_detection_are_not_used(planner):
+def test_grasps_narrower_than_min_grasp_width_are_not_used(planner):
+    """A sheet pinch (2 mm across the L-bracket's sheet) is a candidate by default (``min_grasp_width_m`` 0) and is
+    dropped, with every other candidate narrower than the minimum, when the minimum is above it."""
     bracket = builtin_part("l_bracket")
-    assert (grasp_candidates(bracket, PARAMS, cache_dir=planner.cache_dir).width_m < 0.004).any()  # across the sheet
-    p = GraspPlanner([bracket], PlannerConfig(grasp_params=PARAMS), cache_dir=planner.cache_dir)
-    assert len(p.candidates(4)) and p.candidates(4).width_m.min() >= p.config.min_grasp_width_m
+    all_widths = grasp_candidates(bracket, PARAMS, cache_dir=planner.cache_dir).width_m
+    assert (all_widths < 0.004).any() and (all_widths >= 0.004).any()  # across the sheet, and across the bracket
+    pinching = GraspPlanner([bracket], PlannerConfig(grasp_params=PARAMS), cache_dir=planner.cache_dir)
+    assert len(pinching.candidates(4)) == len(all_widths)
+    no_pinch = PlannerConfig(grasp_params=PARAMS, min_grasp_width_m=0.004)
+    p = GraspPlanner([bracket], no_pinch, cache_dir=planner.cache_dir)
+    assert len(p.candidates(4)) == int((all_widths >= 0.004).sum())
+    assert p.candidates(4).width_m.min() >= 0.004
 
 
 def test_an_unreachable_part_gives_nothing_safe_with_the_reason(planner):
