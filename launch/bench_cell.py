@@ -52,7 +52,8 @@ QUICK_SEEDS = 2
 @dataclass(frozen=True)
 class Variant:
     """One setting of the cell: the perception (``oracle``: ground truth; ``models``: the trained pipeline, with
-    optional overrides), and ``robot.grasp.PlannerConfig`` / ``robot.pick_config.PickerConfig`` fields to change."""
+    optional overrides), and ``robot.grasp_config.PlannerConfig`` / ``robot.pick_config.PickerConfig`` fields to
+    change."""
 
     perception: str
     description: str

@@ -53,7 +53,7 @@ def open_cell(
 ) -> Iterator[tuple[Picker, Any]]:
     """Starts (sim) or connects to (hardware) everything the cell file names; yields ``(picker, process)``
     (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit."""
-    from robot.grasp import GraspPlanner
+    from robot.grasp_planner import GraspPlanner
     from robot.gripper import make_gripper
     from robot.nudge import NudgePlanner
     from robot.ur import URRobot

@@ -7,6 +7,8 @@ Import the modules themselves (nothing is imported here, so ``import robot`` sta
   reconnect, recovery), ``robot.ur_motion`` (a motion in flight, watched), ``robot.ur_probe`` (bounded reachability).
 - ``robot.gripper``: ``Gripper``, the Robotiq URCap socket and digital-output kinds, ``make_gripper``.
 - ``robot.calibration``, ``robot.charuco``: eye-to-hand hand-eye calibration with a ChArUco board.
-- ``robot.grasp`` (the planner), ``robot.grasps``, ``robot.grasp_geometry``, ``robot.grasp_scene``: grasp candidates
-  and planning.
+- ``robot.grasp_planner`` (``GraspPlanner``), with its settings (``robot.grasp_config``), results
+  (``robot.grasp_plan``), scene (``robot.grasp_scene``), collision checks (``robot.grasp_collision``), waypoints and IK
+  (``robot.grasp_waypoints``); the grasp candidates (``robot.grasp_candidates``, ``robot.grasp_set``,
+  ``robot.grasp_cache``) and the gripper's boxes (``robot.grasp_geometry``).
 """

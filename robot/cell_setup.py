@@ -14,7 +14,7 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
                   min_fitness, mask_erosion_px (refinement settings)
     [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
     [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
-    [planner]     robot.grasp.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
+    [planner]     robot.grasp_config.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
     [picker]      robot.pick_config.PickerConfig fields
 
 Relative paths are taken from the configuration file's folder. Errors name the file and the field.
@@ -35,7 +35,7 @@ from sygrid.errors import ConfigError
 from sygrid.scene import validation_message
 
 if TYPE_CHECKING:
-    from robot.grasp import PlannerConfig
+    from robot.grasp_config import PlannerConfig
 
 
 class _Strict(BaseModel):
@@ -150,8 +150,8 @@ class CellSetup:
         self.planner_config()  # bad [bin], [place] or [planner] fields fail here, before anything starts
 
     def planner_config(self) -> PlannerConfig:
-        """``robot.grasp.PlannerConfig`` from [bin], [place], [planner] and the robot's workspace."""
-        from robot.grasp import PlannerConfig
+        """``robot.grasp_config.PlannerConfig`` from [bin], [place], [planner] and the robot's workspace."""
+        from robot.grasp_config import PlannerConfig
         from robot.grasp_scene import BinGeometry
 
         d, fields = self.data, {"workspace": self.robot.workspace, **self.planner_overrides}

@@ -2,9 +2,8 @@
 
 The gripper is a handful of boxes in the TCP frame (``GraspAnnotation``'s convention: z the approach direction,
 pointing into the part; x the line between the pads; origin between the pads): two pads, two finger links, the
-housing and the wrist (coupling plus the UR wrist-3 link). Defaults are the simulated 2F-85-like gripper
-(``sim.gripper_model``; ``robot`` may not import ``sim``, so the numbers are repeated here and a test keeps them
-equal).
+housing and the wrist (coupling plus the UR wrist-3 link). Defaults are the cell's 2F-85-like gripper
+(``sygrid.robots.gripper_2f85``, which the simulated gripper is built from too).
 
 Why boxes and hand-written maths: FCL is not installed and trimesh's collision manager needs it; the planner asks the
 same few questions of hundreds of grasps against thousands of points at once, which numpy does in a few array
@@ -28,7 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from sygrid.errors import ConfigError
-from sygrid.transforms import make_T
+from sygrid.robots import gripper_2f85, ur5e
+from sygrid.robots.kinematics import link_transforms
+from sygrid.transforms import make_T, transform_points
 
 # Number of boxes returned by GripperGeometry.boxes, in this order.
 BOX_NAMES = ("pad_pos", "pad_neg", "link_pos", "link_neg", "housing", "wrist")
@@ -40,22 +41,21 @@ BODY_BOXES = slice(4, 6)
 class GripperGeometry:
     """Collision boxes of a two-finger parallel gripper, metres, in the TCP frame (z approach, x between the pads).
 
-    Defaults: the simulated 2F-85-like gripper (``sim.gripper_model``): pads 8 x 22 x 40 mm centred on the TCP,
-    finger links 16 mm thick behind them, a 86 x 62 mm housing from 30 mm to 130 mm behind the TCP, and the
-    coupling plus UR wrist-3 link (80 x 80 mm, 100 mm long) behind the flange, which is ``tcp_offset_m`` behind the
-    TCP.
+    Defaults: the cell's 2F-85-like gripper (``sygrid.robots.gripper_2f85``: pads and finger links, the housing),
+    and the coupling plus UR wrist-3 link as one box (80 x 80 mm, from the housing's back to 100 mm behind the
+    flange, which is ``tcp_offset_m`` behind the TCP).
     """
 
-    stroke_m: float = 0.085
-    tcp_offset_m: float = 0.145
-    pad_thickness_m: float = 0.008
-    pad_width_m: float = 0.022
-    pad_length_m: float = 0.040
-    link_thickness_m: float = 0.016
-    link_width_m: float = 0.022
-    link_z_range_m: tuple[float, float] = (-0.043, 0.009)
-    housing_half_xy_m: tuple[float, float] = (0.043, 0.031)
-    housing_z_range_m: tuple[float, float] = (-0.130, -0.030)
+    stroke_m: float = gripper_2f85.STROKE_M
+    tcp_offset_m: float = gripper_2f85.TCP_OFFSET_M
+    pad_thickness_m: float = gripper_2f85.PAD_THICKNESS_M
+    pad_width_m: float = gripper_2f85.PAD_WIDTH_M
+    pad_length_m: float = gripper_2f85.PAD_LENGTH_M
+    link_thickness_m: float = gripper_2f85.LINK_THICKNESS_M
+    link_width_m: float = gripper_2f85.LINK_WIDTH_M
+    link_z_range_m: tuple[float, float] = gripper_2f85.LINK_Z_RANGE_M
+    housing_half_xy_m: tuple[float, float] = gripper_2f85.HOUSING_HALF_XY_M
+    housing_z_range_m: tuple[float, float] = gripper_2f85.HOUSING_Z_RANGE_M
     wrist_half_xy_m: tuple[float, float] = (0.040, 0.040)
     wrist_z_range_m: tuple[float, float] = (-0.245, -0.130)
 
@@ -137,6 +137,22 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     ]
     stacked = np.stack(corners, axis=-2)  # (..., b, 8, 3)
     return stacked.reshape(*stacked.shape[:-3], -1, 3)
+
+
+def part_box_tcp(T_base_tcp: np.ndarray, T_base_obj: np.ndarray, bounds_m: np.ndarray) -> np.ndarray:
+    """``(k, 2, 3)`` the axis-aligned box, in each grasp's TCP frame (``T_base_tcp`` ``(k, 4, 4)``), around a part's
+    bounds (``(2, 3)``, object frame; the part at ``T_base_obj``): what the gripper carries out of the bin."""
+    lo, hi = np.asarray(bounds_m, dtype=float)
+    corners_obj = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners_base = transform_points(T_base_obj, corners_obj)
+    T_inv = np.linalg.inv(T_base_tcp)
+    local = np.einsum("kij,pj->kpi", T_inv[:, :3, :3], corners_base) + T_inv[:, None, :3, 3]
+    return np.stack([local.min(axis=1), local.max(axis=1)], axis=1)
+
+
+def rotate(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(k, p, 3)`` points rotated by each ``T[k]``'s rotation (a batched matrix product: faster than einsum)."""
+    return np.matmul(points, np.swapaxes(T[:, :3, :3], 1, 2))
 
 
 def required_backoff_m(
@@ -233,8 +249,7 @@ def obb_gap_m(
 
 
 #: The wrist links (wrist 1, 2, 3) whose boxes the planner keeps clear of the bin walls: near a wall, with an inclined
-#: approach, the wrist reaches over the rim before the fingers do (the emulator's protective stops named
-#: wrist_2_link against a bin wall). Indices into ``ur5e.LINK_NAMES``.
+#: approach, the wrist reaches over the rim before the fingers do. Indices into ``ur5e.LINK_NAMES``.
 WRIST_LINKS = (3, 4, 5)
 
 
@@ -242,8 +257,6 @@ def link_frames(q: np.ndarray) -> np.ndarray:
     """``(n, 6, 4, 4)`` ``T_base_link`` of the six arm links at configurations ``q`` ``(n, 6)``: each link's body
     frame is its joint frame, DH frame ``i`` (``link_transforms``) turned by ``q_i`` (as ``sim.cell_model`` builds
     it), so ``ur5e.LINK_CYLINDERS_M[i + 1]`` are in it."""
-    from sygrid.robots.kinematics import link_transforms
-
     q = np.atleast_2d(np.asarray(q, dtype=float))
     c, s = np.cos(q), np.sin(q)
     Rz = np.zeros((*q.shape, 4, 4))
@@ -258,7 +271,7 @@ def wrist_link_frames(q: np.ndarray) -> np.ndarray:
 
 
 #: The upper arm and forearm: on a joint move between the tray and a grasp far into the bin the elbow can swing
-#: low over the tray (the emulator's protective stops named upper_arm_link against a tray wall).
+#: low over the tray.
 ELBOW_LINKS = (1, 2)
 
 
@@ -266,8 +279,6 @@ def lowest_elbow_point_m(q: np.ndarray) -> np.ndarray:
     """``(n,)`` the lowest point (base-frame z, m) of the upper arm's and forearm's collision cylinders at each
     configuration ``q`` ``(n, 6)``; exact for the cylinders: an end's z less the radius times the sine of the
     axis's tilt from vertical."""
-    from sygrid.robots import ur5e
-
     frames = link_frames(q)
     lowest = np.full(len(frames), np.inf)
     for i in ELBOW_LINKS:
@@ -284,8 +295,6 @@ def lowest_elbow_point_m(q: np.ndarray) -> np.ndarray:
 def wrist_link_boxes_m() -> np.ndarray:
     """``(3, 2, 3)`` ``[lo, hi]`` of each wrist link's collision cylinders (``ur5e.LINK_CYLINDERS_M``, all along the
     link frame's z) as one box in that link's body frame (``link_frames``)."""
-    from sygrid.robots import ur5e
-
     boxes = []
     for i in WRIST_LINKS:
         cyl = ur5e.LINK_CYLINDERS_M[i + 1]  # index 0 is the robot base

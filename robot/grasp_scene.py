@@ -1,9 +1,12 @@
-"""What the grasp planner knows of the scene besides the parts' poses: the bin, and the depth camera's points.
+"""What the grasp planner knows of the scene besides the parts' poses: the bin, the depth camera's points, and the
+obstacles they make together with the estimated parts.
 
 The bin is an open box (``sygrid.mjspec.open_box_parts``, the same five boxes the simulated cell and the
 generator's drop build), given by the pose of the centre of its inner floor in the robot base frame. The depth
 frame becomes points in the base frame; the points that are the bin itself (floor, walls, anything outside it)
-are dropped, because the planner checks the bin exactly from its geometry, and what is left is the pile.
+are dropped, because the planner checks the bin exactly from its geometry, and what is left is the pile. The pile's
+points and a sample of every estimated part's surface are the obstacles (``scene_obstacles``); a part with them
+above much of its top is covered (``covered_fraction``).
 """
 
 from __future__ import annotations
@@ -11,11 +14,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
 from sygrid.mjspec import open_box_parts
 from sygrid.transforms import invert, is_rigid, make_T, transform_points
+
+_NEIGHBOUR_SAMPLES = 400  # of a part's surface sample, the points it contributes as obstacles
+_COVER_CELL_M = 0.004  # height-map cell of the covered test
+_UPWARD_COS = 0.5  # a surface point faces up when its normal is within 60 degrees of up
 
 
 def _default_bin_pose() -> np.ndarray:
@@ -107,6 +115,36 @@ class BinGeometry:
             & (points_bin[:, 2] > surface_tolerance_m)
         )
 
+    def pile_points_from_depth(
+        self,
+        depth_m: np.ndarray,
+        intrinsics: CameraIntrinsics | np.ndarray,
+        T_base_camera: np.ndarray,
+        stride_px: int,
+        surface_tolerance_m: float,
+    ) -> np.ndarray:
+        """``(n, 3)`` the points of a depth frame (``depth_points``, every ``stride_px``-th pixel) that are the pile
+        (``pile_points``), in the bin frame."""
+        T_bin_camera = invert(self.T_base_bin) @ T_base_camera
+        points_bin = depth_points(depth_m, intrinsics, T_bin_camera, stride_px)
+        return points_bin[self.in_pile_bin_frame(points_bin, surface_tolerance_m)]
+
+    def pile_area_m2(
+        self,
+        depth_m: np.ndarray,
+        intrinsics: CameraIntrinsics | np.ndarray,
+        T_base_camera: np.ndarray,
+        stride_px: int,
+        surface_tolerance_m: float,
+    ) -> float:
+        """How much of the bin the depth frame shows covered by something above its floor (m2: the footprints of
+        the pile's depth pixels, ``pile_points_from_depth``, at their distance from the camera)."""
+        points_bin = self.pile_points_from_depth(depth_m, intrinsics, T_base_camera, stride_px, surface_tolerance_m)
+        K = intrinsics.K if isinstance(intrinsics, CameraIntrinsics) else np.asarray(intrinsics, dtype=float)
+        camera_bin = (invert(self.T_base_bin) @ T_base_camera)[:3, 3]
+        distance2 = np.sum((points_bin - camera_bin) ** 2, axis=1)
+        return float(distance2.sum() * stride_px**2 / (K[0, 0] * K[1, 1]))
+
 
 def depth_points(
     depth_m: np.ndarray,
@@ -148,3 +186,66 @@ def depth_points(
     for i in range(3):
         out[:, i] = T[i, 0] * x + T[i, 1] * y + T[i, 2] * z + T[i, 3]
     return out
+
+
+def pile_cloud(
+    bin_geometry: BinGeometry | None,
+    depth_m: np.ndarray,
+    intrinsics: CameraIntrinsics | np.ndarray,
+    T_base_camera: np.ndarray,
+    stride_px: int,
+    surface_tolerance_m: float,
+) -> np.ndarray:
+    """``(n, 3)`` a depth frame's points of the pile (``BinGeometry.pile_points_from_depth``) in the base frame;
+    without a bin, all its points (``depth_points``)."""
+    if bin_geometry is None:
+        return depth_points(depth_m, intrinsics, T_base_camera, stride_px)
+    points_bin = bin_geometry.pile_points_from_depth(depth_m, intrinsics, T_base_camera, stride_px, surface_tolerance_m)
+    return transform_points(bin_geometry.T_base_bin, points_bin)
+
+
+def scene_obstacles(
+    cloud: np.ndarray, surfaces: list[np.ndarray | None], own_points_tolerance_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every obstacle point of the scene, ``(m, 3)`` base frame, with the index of the part it belongs to (``(m,)``,
+    -1: none): the ``cloud`` points (``(n, 3)``; a point within ``own_points_tolerance_m`` of a part's estimated
+    surface belongs to the nearest such part) and a sample of each part's estimated surface (``surfaces[i]``:
+    ``(s, 3)`` base frame, None for a part without a model), which also stands for its unseen sides."""
+    known = [i for i, s in enumerate(surfaces) if s is not None]
+    owner = np.full(len(cloud), -1)
+    if len(cloud) and known:
+        points = np.concatenate([surfaces[i] for i in known])
+        labels = np.concatenate([np.full(len(surfaces[i]), i) for i in known])
+        dist, nearest = cKDTree(points).query(cloud, k=1, distance_upper_bound=own_points_tolerance_m)
+        hit = np.isfinite(dist)
+        owner[hit] = labels[nearest[hit]]
+    samples = [surfaces[i][:_NEIGHBOUR_SAMPLES] for i in known]
+    points = np.concatenate([cloud, *samples]) if samples else cloud
+    owner = np.concatenate([owner, *[np.full(len(s), i) for i, s in zip(known, samples, strict=True)]])
+    return points, owner
+
+
+def covered_fraction(
+    surface_obj: np.ndarray,
+    normals_obj: np.ndarray,
+    T_base_obj: np.ndarray,
+    obstacles: np.ndarray,
+    up: np.ndarray,
+    cover_tolerance_m: float,
+) -> float:
+    """Share of a part's upward-facing surface points (``surface_obj`` and their ``normals_obj``, ``(n, 3)`` object
+    frame; the part at ``T_base_obj``) with an obstacle point (``(m, 3)`` base frame) more than
+    ``cover_tolerance_m`` above them (along ``up``, in the same cell of a height map); 0 when there are none."""
+    normals = normals_obj @ T_base_obj[:3, :3].T
+    top = transform_points(T_base_obj, surface_obj[normals @ up > _UPWARD_COS])
+    if not len(top) or not len(obstacles):
+        return 0.0
+    lo = top[:, :2].min(axis=0) - _COVER_CELL_M
+    shape = np.ceil((top[:, :2].max(axis=0) + _COVER_CELL_M - lo) / _COVER_CELL_M).astype(int) + 1
+    over = obstacles[np.all((obstacles[:, :2] >= lo) & (obstacles[:, :2] < lo + shape * _COVER_CELL_M), axis=1)]
+    cells = np.clip(np.floor((over[:, :2] - lo) / _COVER_CELL_M).astype(int), 0, shape - 1)
+    height = np.full(shape, -np.inf)
+    np.maximum.at(height, (cells[:, 0], cells[:, 1]), over @ up)
+    top_cells = np.floor((top[:, :2] - lo) / _COVER_CELL_M).astype(int)
+    above = height[top_cells[:, 0], top_cells[:, 1]] > top @ up + cover_tolerance_m
+    return float(above.mean())

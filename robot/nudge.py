@@ -31,7 +31,7 @@ or a compliant pad); the simulated cell's stiff position control presses the 2 m
 Candidates (tilt, turn of the paddle about the approach, where on the part's top to press, how far back the
 straight lines start) are tried in ``NudgeConfig``'s order; the first whose gripper boxes keep ``bin_clearance_m``
 from the walls along the whole motion, whose wrist links clear the walls, whose joint moves in and out are clear
-(``GraspPlanner.transit_gap_m``, ``elbow_clear``) and whose straight lines stay on one IK branch is the nudge.
+(``CollisionChecker.transit_gap_m``, ``elbow_clear``) and whose straight lines stay on one IK branch is the nudge.
 Hand-written, like the grasp planner's checks, for the same reason: these are a few box-against-box tests per
 candidate, which the planner's numpy maths already answers.
 """
@@ -46,8 +46,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from robot.grasp import GraspPlan, GraspPlanner, PartEstimate
 from robot.grasp_geometry import GripperGeometry, box_corners
+from robot.grasp_plan import GraspPlan, PartEstimate
+from robot.grasp_planner import GraspPlanner
 from sygrid.errors import ConfigError
 from sygrid.robots.kinematics import ik_nearest
 from sygrid.transforms import invert, make_T, transform_points
@@ -259,7 +260,8 @@ class NudgePlanner:
         stays above the floor at the press (the part is not too thin to press)."""
         pcfg = self.planner.config
         closed = pcfg.gripper.boxes(0.0)
-        if self.planner.wall_gap_m(np.stack([T_press, T_end]), np.stack([closed, closed])).min() < pcfg.bin_clearance_m:
+        gap = self.planner.collision.wall_gap_m(np.stack([T_press, T_end]), np.stack([closed, closed]))
+        if gap.min() < pcfg.bin_clearance_m:
             return False
         return bool(pcfg.bin.height_above_floor_m(transform_points(T_press, box_corners(closed))).min() >= 0.0)
 
@@ -287,11 +289,11 @@ class NudgePlanner:
             q.append(ik_nearest(X, q[-1], T_flange_tcp, limits))
             if q[-1] is None or np.abs(q[-1] - q[-2]).max() > cfg.max_joint_step_rad:
                 return None
-        if planner.wrist_gap_m(np.stack(q)).min() < pcfg.bin_clearance_m:
+        if planner.collision.wrist_gap_m(np.stack(q)).min() < pcfg.bin_clearance_m:
             return None
         clearance = pcfg.transit_clearance_m or 0.0
         for qa, qb in ((q_from, q[0]), (q[3], q_after)):
-            if planner.transit_gap_m(qa, qb, closed) < clearance or not planner.elbow_clear(qa, qb):
+            if planner.collision.transit_gap_m(qa, qb, closed) < clearance or not planner.collision.elbow_clear(qa, qb):
                 return None
         return {
             "T_base_above": T_above, "T_base_press": T_press, "T_base_end": T_end, "T_base_retreat": T_retreat,

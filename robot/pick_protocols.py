@@ -79,7 +79,7 @@ class PerceptionLike(Protocol):
 
 
 class GraspLike(Protocol):
-    """``robot.grasp.PlannedGrasp``: the poses of the approach (pre-grasp, grasp, lift: base frame), the joint
+    """``robot.grasp_plan.PlannedGrasp``: the poses of the approach (pre-grasp, grasp, lift: base frame), the joint
     angles of the lift and place poses, and the widths: opening (the approach was checked with the fingers this far
     apart), the planned grasp width and the narrowest width the part can be held at."""
 
@@ -108,7 +108,7 @@ class GraspLike(Protocol):
 
 
 class PlanLike(Protocol):
-    """``robot.grasp.GraspPlan``: the grasps best first (empty: nothing is safe to pick), how many of the parts
+    """``robot.grasp_plan.GraspPlan``: the grasps best first (empty: nothing is safe to pick), how many of the parts
     planned from lie in the bin (0: the bin is empty whatever else the camera saw), and a one-line summary."""
 
     @property
@@ -121,8 +121,8 @@ class PlanLike(Protocol):
 
 
 class PlannerLike(Protocol):
-    """``robot.grasp.GraspPlanner``: plans from poses in the camera frame; ``pile_area_m2`` is how much of the bin
-    (m2) the depth frame shows covered by something above its floor."""
+    """``robot.grasp_planner.GraspPlanner``: plans from poses in the camera frame; ``pile_area_m2`` is how much of
+    the bin (m2) the depth frame shows covered by something above its floor."""
 
     def plan(
         self,

@@ -9,9 +9,9 @@ saturates and squeezes with the grip force (unless the part is within ``force_n 
 about 2 mm at full force). Grasps hold only by contact and friction (rubber-like pads, friction 1.0, torsional
 friction on). The drive's reflected inertia is an armature on the finger joints (non-backdrivable in reality).
 
-Geometry, in the flange frame (z out of the flange, x along the line between the pads): a coupling and a housing
-up to z = 0.115 m, pads 40 mm long and 22 mm wide from z = 0.125 m to 0.165 m. The TCP is the pad centre,
-``T_FLANGE_TCP``: z along the approach direction, x along the line between the pads, as ``GraspAnnotation`` wants.
+Geometry: ``sygrid.robots.gripper_2f85`` (the planner's collision boxes are built from the same numbers), placed in
+the flange frame (z out of the flange, x along the line between the pads): a coupling, the housing, and per finger
+a pad and a finger link. The TCP is the pad centre, ``gripper_2f85.T_FLANGE_TCP``.
 """
 
 from __future__ import annotations
@@ -21,16 +21,12 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from sygrid.transforms import make_T
+from sygrid.robots import gripper_2f85
 
-STROKE_M = 0.085  #: fully open width between the pads
 MIN_FORCE_N, MAX_FORCE_N = 20.0, 235.0  #: grip force range (force on each pad)
 MIN_SPEED_M_S, MAX_SPEED_M_S = 0.02, 0.15  #: closing/opening speed range
 MASS_KG = 0.925
 PAD_FRICTION = 1.0
-#: Pad centre in the flange frame: the tool centre point for grasps.
-T_FLANGE_TCP = make_T(t=(0.0, 0.0, 0.145))
-T_FLANGE_TCP.flags.writeable = False
 
 # Servo: position gain (N/m) and damping (N s/m) on the width; with the armature below it is critically damped
 # and stable at a 2 ms step.
@@ -77,10 +73,15 @@ def add_gripper(
     body.ipos = [0.0, 0.0, 0.06]
     body.inertia = [1.2e-3, 1.2e-3, 8e-4]
     box, cyl = mujoco.mjtGeom.mjGEOM_BOX, mujoco.mjtGeom.mjGEOM_CYLINDER
+    g = gripper_2f85
+    coupling = [0, 0, 0, 0, 0, g.COUPLING_LENGTH_M]
     body.add_geom(
-        name=f"{prefix}_coupling", type=cyl, fromto=[0, 0, 0, 0, 0, 0.015], size=[0.0375, 0, 0], rgba=_HOUSING_RGBA
+        name=f"{prefix}_coupling", type=cyl, fromto=coupling, size=[g.COUPLING_RADIUS_M, 0, 0], rgba=_HOUSING_RGBA
     )
-    body.add_geom(name=f"{prefix}_housing", type=box, pos=[0, 0, 0.065], size=[0.043, 0.031, 0.05], rgba=_HOUSING_RGBA)
+    housing_z, housing_half_z = _flange_z_span(g.HOUSING_Z_RANGE_M)
+    housing_size = [*g.HOUSING_HALF_XY_M, housing_half_z]
+    body.add_geom(name=f"{prefix}_housing", type=box, pos=[0, 0, housing_z], size=housing_size, rgba=_HOUSING_RGBA)
+    link_z, link_half_z = _flange_z_span(g.LINK_Z_RANGE_M)
 
     for k, sign in enumerate((1.0, -1.0)):
         finger = body.add_body(name=names.finger_bodies[k])
@@ -92,7 +93,7 @@ def add_gripper(
             name=names.finger_joints[k],
             type=mujoco.mjtJoint.mjJNT_SLIDE,
             axis=[sign, 0.0, 0.0],
-            range=[0.0, STROKE_M / 2],
+            range=[0.0, gripper_2f85.STROKE_M / 2],
             limited=mujoco.mjtLimited.mjLIMITED_TRUE,
             armature=_FINGER_ARMATURE_KG,
             damping=1.0,
@@ -101,8 +102,8 @@ def add_gripper(
         finger.add_geom(
             name=f"{names.finger_bodies[k]}_pad",
             type=box,
-            pos=[sign * 0.004, 0, 0.145],
-            size=[0.004, 0.011, 0.02],
+            pos=[sign * g.PAD_THICKNESS_M / 2, 0, g.TCP_OFFSET_M],
+            size=[g.PAD_THICKNESS_M / 2, g.PAD_WIDTH_M / 2, g.PAD_LENGTH_M / 2],
             friction=[PAD_FRICTION, 0.005, 0.0001],
             condim=4,
             solref=pad_solref,
@@ -111,8 +112,8 @@ def add_gripper(
         finger.add_geom(
             name=f"{names.finger_bodies[k]}_link",
             type=box,
-            pos=[sign * 0.016, 0, 0.128],
-            size=[0.008, 0.011, 0.026],
+            pos=[sign * (g.PAD_THICKNESS_M + g.LINK_THICKNESS_M / 2), 0, link_z],
+            size=[g.LINK_THICKNESS_M / 2, g.LINK_WIDTH_M / 2, link_half_z],
             rgba=_HOUSING_RGBA,
         )
 
@@ -131,7 +132,7 @@ def add_gripper(
     servo.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
     servo.forcerange = [-MAX_FORCE_N, MAX_FORCE_N]
     servo.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
-    servo.ctrlrange = [0.0, STROKE_M]
+    servo.ctrlrange = [0.0, gripper_2f85.STROKE_M]
     spec.add_exclude(bodyname1=names.finger_bodies[0], bodyname2=names.finger_bodies[1])
     return names
 
@@ -145,7 +146,7 @@ class GripperController:
     def __init__(self, names: GripperNames, dt_s: float) -> None:
         self.names = names
         self._dt_s = dt_s
-        self._target_width_m = STROKE_M
+        self._target_width_m = gripper_2f85.STROKE_M
         self._setpoint_m = 0.0  # the servo's moving set point; starts closed, like the compiled model
         self._restart_from_width = False
         self._speed_m_s = MAX_SPEED_M_S
@@ -168,7 +169,7 @@ class GripperController:
 
     def command(self, model: mujoco.MjModel, width_m: float, speed_m_s: float, force_n: float) -> None:
         """Moves the fingers to ``width_m`` at ``speed_m_s``, squeezing with at most ``force_n`` per pad."""
-        _check_range("width_m", width_m, 0.0, STROKE_M)
+        _check_range("width_m", width_m, 0.0, gripper_2f85.STROKE_M)
         _check_range("speed_m_s", speed_m_s, MIN_SPEED_M_S, MAX_SPEED_M_S)
         _check_range("force_n", force_n, MIN_FORCE_N, MAX_FORCE_N)
         self._target_width_m, self._speed_m_s, self._force_n = float(width_m), float(speed_m_s), float(force_n)
@@ -180,7 +181,7 @@ class GripperController:
             # A new request starts from where the fingers are: after squeezing a part the set point lies at the
             # closed end, and opening from there kept the servo stalled (reported as "stopped on an object while
             # opening") until the set point had travelled back up to the part's width.
-            self._setpoint_m = float(np.clip(self.width_m(data), 0.0, STROKE_M))
+            self._setpoint_m = float(np.clip(self.width_m(data), 0.0, gripper_2f85.STROKE_M))
             self._restart_from_width = False
         step = self._speed_m_s * self._dt_s
         self._setpoint_m += float(np.clip(self._target_width_m - self._setpoint_m, -step, step))
@@ -188,7 +189,7 @@ class GripperController:
 
     def reset(self, data: mujoco.MjData, width_m: float) -> None:
         """Puts the fingers at ``width_m`` at rest, commanded to stay there."""
-        _check_range("width_m", width_m, 0.0, STROKE_M)
+        _check_range("width_m", width_m, 0.0, gripper_2f85.STROKE_M)
         data.qpos[self._qadr] = width_m / 2
         data.qvel[self._dofadr] = 0.0
         self._target_width_m = self._setpoint_m = float(width_m)
@@ -228,6 +229,13 @@ class GripperController:
     def pad_geoms(self) -> frozenset[int]:
         """Geom ids of both fingers (pads and links)."""
         return self._pad_geoms
+
+
+def _flange_z_span(z_range_tcp_m: tuple[float, float]) -> tuple[float, float]:
+    """A z span given in the TCP frame as the centre (flange frame) and half length of a geom. The dimensions are
+    whole micrometres: rounding to the nanometre drops the float error of the frame change."""
+    lo, hi = z_range_tcp_m
+    return round(gripper_2f85.TCP_OFFSET_M + (lo + hi) / 2, 9), round((hi - lo) / 2, 9)
 
 
 def _check_range(name: str, value: float, lo: float, hi: float) -> None:

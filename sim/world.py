@@ -36,7 +36,7 @@ from sim.cell_model import ARM_BODY_NAMES, FLANGE_SITE, build_cell_spec
 from sygrid.mjspec import add_part_body, quat_wxyz
 from sygrid.objects.collision.geometry import CollisionModel
 from sygrid.objects.model import ObjectModel
-from sygrid.robots import ur5e
+from sygrid.robots import gripper_2f85, ur5e
 from sygrid.transforms import invert, is_rigid, make_T
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,7 @@ class CellWorld:
         self._qd_ref = np.zeros(6)
         self._qdd_ref = np.zeros(6)
         self._t_ref = 0.0
-        self._gripper.reset(self.data, gripper_model.STROKE_M)
+        self._gripper.reset(self.data, gripper_2f85.STROKE_M)
         self.reset_arm(ur5e.HOME_Q)
 
     # ------------------------------------------------------------------------------------------ time
@@ -91,7 +91,7 @@ class CellWorld:
     @property
     def T_flange_tcp(self) -> np.ndarray:
         """The gripper's tool centre point (pad centre) in the flange frame."""
-        return np.array(gripper_model.T_FLANGE_TCP)
+        return np.array(gripper_2f85.T_FLANGE_TCP)
 
     def step(self, n: int = 1) -> None:
         """Advances ``n`` physics steps of ``dt_s``, running the arm and gripper controllers every step."""

@@ -12,7 +12,9 @@ import pytest
 import trimesh
 
 from perception.results import Detection, ObjectPose
-from robot.grasp import REJECTION_CAUSES, GraspPlanner, PartEstimate, PlannerConfig
+from robot.grasp_cache import resolve_cache_dir
+from robot.grasp_candidates import antipodal_grasps, deduplicate, expand_by_symmetry, grasp_candidates
+from robot.grasp_config import PlannerConfig
 from robot.grasp_geometry import (
     ELBOW_LINKS,
     WRIST_LINKS,
@@ -23,15 +25,10 @@ from robot.grasp_geometry import (
     required_backoff_m,
     wrist_link_frames,
 )
+from robot.grasp_plan import REJECTION_CAUSES, PartEstimate
+from robot.grasp_planner import GraspPlanner
 from robot.grasp_scene import BinGeometry, depth_points
-from robot.grasps import (
-    GraspSetParams,
-    antipodal_grasps,
-    deduplicate,
-    expand_by_symmetry,
-    grasp_candidates,
-    resolve_cache_dir,
-)
+from robot.grasp_set import GraspSetParams
 from sygrid.camera import CameraIntrinsics, unproject_depth
 from sygrid.errors import ConfigError
 from sygrid.objects import GraspAnnotation, ObjectModel, builtin_part
@@ -216,23 +213,26 @@ def test_declared_grasps_are_used_expanded_and_measured(tmp_path):
 
 
 def test_defaults_match_the_simulated_cell():
-    """robot may not import sim; the planner's defaults repeat its numbers, and this keeps them equal."""
+    """The planner's gripper boxes lie where the simulated gripper's geoms are (both are built from
+    ``sygrid.robots.gripper_2f85``, each in its own frame), its stroke is the simulated fingers' travel, and its bin
+    and place pose are the simulated cell's (robot may not import sim: those numbers are repeated)."""
     from sim.cell_config import CellConfig
-    from sim.gripper_model import STROKE_M, T_FLANGE_TCP, add_gripper
+    from sim.gripper_model import add_gripper
 
     g = GripperGeometry()
-    assert g.stroke_m == STROKE_M
-    np.testing.assert_allclose(g.T_flange_tcp, T_FLANGE_TCP)
     spec = mujoco.MjSpec()
     add_gripper(spec, spec.worldbody, pad_solref=[0.004, 1.0])
     model = spec.compile()
+    travel = [model.joint(f"gripper_finger_{k}_joint").range[1] - model.joint(f"gripper_finger_{k}_joint").range[0]
+              for k in "ab"]  # fmt: skip
+    assert sum(travel) == pytest.approx(g.stroke_m, abs=1e-12)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)  # fingers closed: the pads' inner faces at x = 0
     boxes = dict(zip(("pad_pos", "pad_neg", "link_pos", "link_neg", "housing"), g.boxes(0.0)[:5], strict=True))
     names = {"pad_pos": "finger_a_pad", "pad_neg": "finger_b_pad", "link_pos": "finger_a_link"}
     names |= {"link_neg": "finger_b_link", "housing": "housing"}
     for box, geom in names.items():
-        centre = data.geom(f"gripper_{geom}").xpos - T_FLANGE_TCP[:3, 3]
+        centre = data.geom(f"gripper_{geom}").xpos - g.T_flange_tcp[:3, 3]
         half = model.geom(f"gripper_{geom}").size
         np.testing.assert_allclose(boxes[box][0], centre - half, atol=1e-9, err_msg=box)
         np.testing.assert_allclose(boxes[box][1], centre + half, atol=1e-9, err_msg=box)
@@ -465,7 +465,7 @@ def test_wrist_boxes_follow_the_simulated_arm_and_cover_its_wrist(planner):
             qs.append(q)
     qs = np.array(qs)
     frames = wrist_link_frames(qs)
-    gaps = planner.wrist_gap_m(qs)
+    gaps = planner.collision.wrist_gap_m(qs)
     T_base_world = invert(world.config.T_world_base)
     touching = []
     for q, T_links, gap in zip(qs, frames, gaps, strict=True):
@@ -560,15 +560,15 @@ def test_the_early_wall_check_only_refuses_grasps_that_hit_a_wall_at_every_backo
             ],
             axis=1,
         )
-        d_min = np.maximum(planner._floor_backoff(T, boxes, np.clip(-T[:, 2, 2], 0.0, 1.0)), 0.0)
-        hit = planner._walls_at_every_backoff(T, boxes, d_min, grasps.contact_z_m, sweep)
+        d_min = np.maximum(planner.collision.floor_backoff(T, boxes, np.clip(-T[:, 2, 2], 0.0, 1.0)), 0.0)
+        hit = planner.collision.walls_at_every_backoff(T, boxes, d_min, grasps.contact_z_m, sweep)
         d_max = g.pad_length_m / 2 - grasps.contact_z_m[:, 0] - cfg.min_engagement_m
         for k in np.flatnonzero(hit & (d_max >= d_min)):
             for d in np.linspace(d_min[k], d_max[k], 5):
                 back = make_T(t=(0.0, 0.0, -d))
                 swept = boxes[k].copy()
                 swept[:, 0, 2] -= sweep
-                assert planner.wall_gap_m((T[k] @ back)[None], swept[None])[0] < cfg.bin_clearance_m
+                assert planner.collision.wall_gap_m((T[k] @ back)[None], swept[None])[0] < cfg.bin_clearance_m
             refused += 1
     assert refused > 10
 
@@ -591,11 +591,18 @@ def test_with_max_planned_parts_the_best_parts_are_planned_and_the_rest_skipped(
     assert skipped, "a part that cannot beat the planned one is not checked at all"
 
 
-def test_grasps_too_thin_for_the_object_detection_are_not_used(planner):
+def test_grasps_narrower_than_min_grasp_width_are_not_used(planner):
+    """A sheet pinch (2 mm across the L-bracket's sheet) is a candidate by default (``min_grasp_width_m`` 0) and is
+    dropped, with every other candidate narrower than the minimum, when the minimum is above it."""
     bracket = builtin_part("l_bracket")
-    assert (grasp_candidates(bracket, PARAMS, cache_dir=planner.cache_dir).width_m < 0.004).any()  # across the sheet
-    p = GraspPlanner([bracket], PlannerConfig(grasp_params=PARAMS), cache_dir=planner.cache_dir)
-    assert len(p.candidates(4)) and p.candidates(4).width_m.min() >= p.config.min_grasp_width_m
+    all_widths = grasp_candidates(bracket, PARAMS, cache_dir=planner.cache_dir).width_m
+    assert (all_widths < 0.004).any() and (all_widths >= 0.004).any()  # across the sheet, and across the bracket
+    pinching = GraspPlanner([bracket], PlannerConfig(grasp_params=PARAMS), cache_dir=planner.cache_dir)
+    assert len(pinching.candidates(4)) == len(all_widths)
+    no_pinch = PlannerConfig(grasp_params=PARAMS, min_grasp_width_m=0.004)
+    p = GraspPlanner([bracket], no_pinch, cache_dir=planner.cache_dir)
+    assert len(p.candidates(4)) == int((all_widths >= 0.004).sum())
+    assert p.candidates(4).width_m.min() >= 0.004
 
 
 def test_an_unreachable_part_gives_nothing_safe_with_the_reason(planner):

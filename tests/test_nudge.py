@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 
 from perception.results import Detection, ObjectPose
-from robot.grasp import GraspPlanner, PartEstimate, PlannerConfig
+from robot.grasp_config import PlannerConfig
 from robot.grasp_geometry import box_corners
-from robot.grasps import GraspSetParams
+from robot.grasp_plan import PartEstimate
+from robot.grasp_planner import GraspPlanner
+from robot.grasp_set import GraspSetParams
 from robot.nudge import NudgeConfig, NudgePlanner
 from sygrid.errors import ConfigError
 from sygrid.objects import builtin_part
@@ -65,7 +67,7 @@ def test_a_gear_in_a_corner_is_pressed_on_its_top_and_dragged_away_from_both_wal
     # every pose of the motion keeps the closed gripper off the walls, and the joint solutions reach the poses
     Ts = np.stack([nudge.T_base_above, nudge.T_base_press, nudge.T_base_end, nudge.T_base_retreat])
     closed = np.broadcast_to(g.boxes(0.0), (4, 6, 2, 3))
-    assert planner.wall_gap_m(Ts, closed).min() >= planner.config.bin_clearance_m
+    assert planner.collision.wall_gap_m(Ts, closed).min() >= planner.config.bin_clearance_m
     qs = np.stack([nudge.q_above, nudge.q_press, nudge.q_end, nudge.q_retreat])
     np.testing.assert_allclose(forward_kinematics(qs, g.T_flange_tcp), Ts, atol=1e-6)
     # where the drag leaves the gear, the planner finds a grasp

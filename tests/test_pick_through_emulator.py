@@ -15,14 +15,13 @@ rtde_control = pytest.importorskip("rtde_control")
 from sim.cell import build_cell_world  # noqa: E402
 from sim.cell_config import CellConfig  # noqa: E402
 from sim.controller import ControllerProcess  # noqa: E402
-from sim.gripper_model import T_FLANGE_TCP  # noqa: E402
+from sygrid.robots.gripper_2f85 import PAD_LENGTH_M, T_FLANGE_TCP  # noqa: E402
 from sygrid.robots.kinematics import T_to_pose  # noqa: E402
 from sygrid.scene import parse_scene  # noqa: E402
 from sygrid.transforms import invert, make_T  # noqa: E402
 
 HOST = "127.0.0.31"
 SCENE = {"name": "one_nut", "objects": [{"builtin": "hex_nut", "count": 1}]}
-PAD_HALF_LENGTH_M = 0.02  # sim.gripper_model: 40 mm pads centred on the TCP
 CLEARANCE_M = 0.06  # from the part centre to every bin wall, so open fingers clear the walls
 pytestmark = pytest.mark.timeout(120)
 
@@ -59,9 +58,9 @@ def test_client_picks_a_dropped_part_and_it_lifts_by_friction(monkeypatch, tmp_p
         try:
             assert c.setTcp(T_to_pose(T_FLANGE_TCP))
             top_down = np.diag([1.0, -1.0, -1.0])  # tool z down, pads closing along world x
-            # Pads reach PAD_HALF_LENGTH_M below the TCP: grasp the nut's upper part, pads clear of the bin floor.
+            # Pads reach half their length below the TCP: grasp the nut's upper part, pads clear of the bin floor.
             floor_z = CellConfig().T_world_bin[2, 3]  # the bin's inner floor in the default cell
-            tcp_z = max(start[2, 3], floor_z + PAD_HALF_LENGTH_M + 0.002)
+            tcp_z = max(start[2, 3], floor_z + PAD_LENGTH_M / 2 + 0.002)
             grasp = make_T(top_down, [start[0, 3], start[1, 3], tcp_z])  # robot base = world origin here
             above = make_T(top_down, start[:3, 3] + [0, 0, 0.12])
             with socket.create_connection((HOST, 63352), timeout=2.0) as sock:

@@ -565,7 +565,7 @@ def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
 
 
 def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
-    from robot.grasp import PlannerConfig
+    from robot.grasp_config import PlannerConfig
 
     hw = load_cell_setup("launch/cells/ur5e_oak.toml").planner_config()
     default = PlannerConfig()  # the simulated cell's bin and tray, which the hardware file starts from

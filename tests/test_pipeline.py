@@ -158,7 +158,7 @@ class _RecordingRefiner:
 
 def test_max_refined_refines_the_nearest_parts_until_enough_are_refined():
     from perception.results import Detection, ObjectPose
-    from robot.grasp import _refined
+    from robot.grasp_planner import _refined
     from sygrid.camera import CameraIntrinsics
 
     depth = np.zeros((40, 60), np.float32)

@@ -16,9 +16,9 @@ from typing import Protocol
 
 import numpy as np
 
-from sygrid.robots import ur5e
+from sygrid.robots import gripper_2f85, ur5e
 
-GRIPPER_STROKE_M = 0.085  # Robotiq 2F-85 fully open
+GRIPPER_STROKE_M = gripper_2f85.STROKE_M  # fully open
 
 
 @dataclasses.dataclass(frozen=True)

@@ -20,8 +20,8 @@ Antipodal generation (``antipodal_grasps``), in the object frame:
 4. Score: the friction-cone margin, how close the centre of mass lies to the grasp axis (less torque), the contact
    area; all in [0, 1], averaged.
 
-The finished set (generated or declared, expanded, de-duplicated) is cached on disk keyed by the mesh's content
-hash and every parameter, written atomically; a cache that cannot be read or written costs a rebuild, not the
+The finished set (generated or declared, expanded, de-duplicated) is cached on disk (``robot.grasp_cache``) keyed by
+the mesh's content hash and every parameter; a cache that cannot be read or written costs a rebuild, not the
 result.
 """
 
@@ -29,143 +29,29 @@ from __future__ import annotations
 
 import hashlib
 import importlib.metadata
-import io
 import json
 import logging
-import os
 import time
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from robot.grasp_geometry import GripperGeometry, required_backoff_m
+from robot.grasp_cache import load_entry, resolve_cache_dir, save_entry
+from robot.grasp_geometry import required_backoff_m
+from robot.grasp_set import GraspSet, GraspSetParams
 from sygrid.errors import ConfigError
-from sygrid.fileio import write_bytes_atomic
-from sygrid.objects.model import GraspAnnotation, ObjectModel
+from sygrid.objects.model import ObjectModel
 
 log = logging.getLogger(__name__)
 
 _CACHE_FORMAT = "sygrid-grasps/1"
-_CACHE_ENV = "SYGRID_CACHE_DIR"  # root shared by SyGRID caches; grasp sets go to its "grasps" folder
 _RAY_START_M = 1e-6  # rays start this far inside the surface, so they do not hit their own face
 _BATCH = 48  # grasp frames analysed at once against the dense surface sample (memory: batch x samples x 3)
 _SIGN_REF = np.array([0.8017837, 0.5345225, 0.2672612])  # any fixed direction; sets the sign of the pad axis
-
-
-@dataclass(frozen=True)
-class GraspSetParams:
-    """How candidates are generated, expanded and de-duplicated. Every field is part of the cache key.
-
-    friction_coefficient: pad-part friction; the friction cone's half angle is ``atan`` of it.
-    n_surface_samples: surface points whose inward rays seed the pairs. n_dense_samples: surface points for the
-    contact and self-collision analysis (each stands for ``area / n`` of surface). n_approach: approach directions
-    around each pair's axis (16: every 22.5 degrees, so 0, 22.5 and 45 degrees of tilt within the planner's cone).
-    contact_tolerance_m: how far from a pad's plane the surface still counts as touching (rubber pads).
-    min_contact_area_m2 / contact_area_saturation_m2: the least area each pad must touch, and the area at which the
-    score stops growing. min_engagement_m: the least length (along the approach) over which both
-    pads touch. open_clearance_m: per side, how much wider than the part the gripper opens to come in (5 mm: more
-    than a pose error of a few millimetres, and each millimetre more keeps the fingers off more neighbours);
-    min_open_clearance_m: the least per-side margin a part must leave in the stroke. self_clearance_m: distance kept
-    between the gripper and the part outside the contacts. dedup_position_m / dedup_angle_deg: candidates closer
-    than this (position and axes) are one. continuous_steps: samples of a continuous symmetry (every 360/steps
-    degrees). seed: the sampler's seed.
-    """
-
-    friction_coefficient: float = 0.4
-    n_surface_samples: int = 400
-    n_dense_samples: int = 3000
-    n_approach: int = 16
-    contact_tolerance_m: float = 0.001
-    min_contact_area_m2: float = 6e-6
-    contact_area_saturation_m2: float = 60e-6
-    min_engagement_m: float = 0.002
-    min_width_m: float = 0.002
-    open_clearance_m: float = 0.005
-    min_open_clearance_m: float = 0.003
-    self_clearance_m: float = 0.001
-    dedup_position_m: float = 0.004
-    dedup_angle_deg: float = 15.0
-    continuous_steps: int = 36
-    seed: int = 0
-    gripper: GripperGeometry = field(default_factory=GripperGeometry)
-
-    def __post_init__(self) -> None:
-        if not self.friction_coefficient > 0:
-            raise ConfigError(f"GraspSetParams.friction_coefficient must be > 0, got {self.friction_coefficient}")
-        for name in ("n_surface_samples", "n_dense_samples", "n_approach", "continuous_steps"):
-            if int(getattr(self, name)) < 1:
-                raise ConfigError(f"GraspSetParams.{name} must be >= 1, got {getattr(self, name)}")
-        for name in (
-            "contact_tolerance_m", "min_contact_area_m2", "contact_area_saturation_m2", "min_engagement_m",
-            "min_width_m", "open_clearance_m", "min_open_clearance_m", "self_clearance_m", "dedup_position_m",
-            "dedup_angle_deg",
-        ):  # fmt: skip
-            if getattr(self, name) < 0:
-                raise ConfigError(f"GraspSetParams.{name} must be >= 0, got {getattr(self, name)}")
-
-    @property
-    def cone_half_angle_rad(self) -> float:
-        return float(np.arctan(self.friction_coefficient))
-
-    @property
-    def max_width_m(self) -> float:
-        """The widest part that still leaves ``min_open_clearance_m`` per side in the stroke."""
-        return self.gripper.stroke_m - 2.0 * self.min_open_clearance_m
-
-
-@dataclass(frozen=True, eq=False)
-class GraspSet:
-    """Grasp candidates of one part, in its object frame. All arrays have ``n`` rows.
-
-    T_obj_grasp: ``(n, 4, 4)`` TCP poses. width_m: ``(n,)`` the part's width between the pads. opening_m: ``(n,)``
-    how far to open before coming in. score: ``(n,)`` quality in [0, 1]. contact_z_m: ``(n, 2)`` the span
-    ``[lo, hi]`` along the grasp's z over which both pads touch the part (in the grasp frame; the pads span
-    ``+-pad_length / 2``). source: ``"antipodal"`` or ``"declared"``.
-    """
-
-    T_obj_grasp: np.ndarray
-    width_m: np.ndarray
-    opening_m: np.ndarray
-    score: np.ndarray
-    contact_z_m: np.ndarray
-    source: str = "antipodal"
-
-    def __post_init__(self) -> None:
-        n = len(self.T_obj_grasp)
-        shapes = {
-            "T_obj_grasp": (np.shape(self.T_obj_grasp), (n, 4, 4)),
-            "width_m": (np.shape(self.width_m), (n,)),
-            "opening_m": (np.shape(self.opening_m), (n,)),
-            "score": (np.shape(self.score), (n,)),
-            "contact_z_m": (np.shape(self.contact_z_m), (n, 2)),
-        }
-        for name, (got, want) in shapes.items():
-            if got != want:
-                raise ValueError(f"GraspSet.{name} must have shape {want}, got {got}")
-        for name in shapes:
-            value = np.array(getattr(self, name), dtype=float)  # private, read-only copies
-            value.flags.writeable = False
-            object.__setattr__(self, name, value)
-
-    def __len__(self) -> int:
-        return len(self.T_obj_grasp)
-
-    def subset(self, index: np.ndarray) -> GraspSet:
-        """The candidates at ``index`` (an index array or a boolean mask)."""
-        return GraspSet(
-            self.T_obj_grasp[index], self.width_m[index], self.opening_m[index], self.score[index],
-            self.contact_z_m[index], self.source,
-        )  # fmt: skip
-
-    def to_annotations(self) -> tuple[GraspAnnotation, ...]:
-        """The candidates as ``GraspAnnotation`` (pose, width, score), e.g. to declare them on a model."""
-        return tuple(
-            GraspAnnotation(T.copy(), float(w), float(s))
-            for T, w, s in zip(self.T_obj_grasp, self.width_m, self.score, strict=True)
-        )
 
 
 # ---------------------------------------------------------------------------------------------- public API
@@ -178,7 +64,8 @@ def grasp_candidates(
     use_cache: bool = True,
 ) -> GraspSet:
     """``model``'s grasp candidates: its declared grasps (``model.grasps``) when it has any, else antipodal grasps
-    from its mesh; expanded by its symmetries and de-duplicated. Cached on disk (see ``resolve_cache_dir``).
+    from its mesh; expanded by its symmetries and de-duplicated. Cached on disk (``robot.grasp_cache``), keyed by
+    the mesh, its declared grasps and symmetries, and every parameter.
 
     Raises:
         ConfigError: ``params`` is not a ``GraspSetParams``, or a declared grasp is wider than the stroke allows.
@@ -189,7 +76,7 @@ def grasp_candidates(
     key = _cache_key(model, params)
     path = resolve_cache_dir(cache_dir) / f"{model.content_hash[:16]}-{key[:16]}.npz"
     if use_cache:
-        cached = _load_cached(path, key)
+        cached = load_entry(path, key, _from_arrays)
         if cached is not None:
             log.debug("grasp cache hit for %s: %s", model.name, path)
             return cached
@@ -201,7 +88,7 @@ def grasp_candidates(
         model.name, len(result), result.source, len(base), time.perf_counter() - start,
     )  # fmt: skip
     if use_cache:
-        _save_cached(path, key, result)
+        save_entry(path, key, _to_arrays(result))
     return result
 
 
@@ -314,17 +201,6 @@ def deduplicate(grasps: GraspSet, params: GraspSetParams | None = None) -> Grasp
     if len(grasps) == 0:
         return grasps
     return grasps.subset(_suppress_near(_grasp_features(grasps, params), grasps.score))
-
-
-def resolve_cache_dir(cache_dir: Path | str | None = None) -> Path:
-    """The grasp cache folder: ``cache_dir``, else ``$SYGRID_CACHE_DIR/grasps``, else ``~/.cache/sygrid/grasps``.
-    The environment is read at each call, never at import."""
-    if cache_dir is not None:
-        return Path(cache_dir).expanduser()
-    root = os.environ.get(_CACHE_ENV)
-    if root:
-        return Path(root).expanduser() / "grasps"
-    return Path.home() / ".cache" / "sygrid" / "grasps"
 
 
 # ---------------------------------------------------------------------------------------------- geometry
@@ -531,37 +407,21 @@ def _trimesh_version() -> str:
         return "unknown"
 
 
-def _save_cached(path: Path, key: str, grasps: GraspSet) -> None:
-    buffer = io.BytesIO()
-    np.savez(
-        buffer,
-        key=np.array(key),
-        source=np.array(grasps.source),
-        T_obj_grasp=grasps.T_obj_grasp,
-        width_m=grasps.width_m,
-        opening_m=grasps.opening_m,
-        score=grasps.score,
-        contact_z_m=grasps.contact_z_m,
-    )
-    try:
-        write_bytes_atomic(path, buffer.getvalue())
-    except OSError as exc:  # a read-only or full cache folder costs a rebuild next time, not the result
-        log.warning("could not write the grasp cache entry %s: %s", path, exc)
-        return
-    log.debug("wrote grasp cache entry %s", path)
+def _to_arrays(grasps: GraspSet) -> dict[str, np.ndarray]:
+    """A grasp set as the cache stores it."""
+    return {
+        "source": np.array(grasps.source),
+        "T_obj_grasp": grasps.T_obj_grasp,
+        "width_m": grasps.width_m,
+        "opening_m": grasps.opening_m,
+        "score": grasps.score,
+        "contact_z_m": grasps.contact_z_m,
+    }
 
 
-def _load_cached(path: Path, key: str) -> GraspSet | None:
-    if not path.exists():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            if str(npz["key"]) != key:
-                raise ValueError("the key stored in the file does not match its name")
-            return GraspSet(
-                npz["T_obj_grasp"], npz["width_m"], npz["opening_m"], npz["score"], npz["contact_z_m"],
-                str(npz["source"]),
-            )  # fmt: skip
-    except (OSError, ValueError, KeyError) as exc:
-        log.warning("ignoring the unreadable grasp cache entry %s (%s); rebuilding it", path, exc)
-        return None
+def _from_arrays(arrays: Mapping[str, np.ndarray]) -> GraspSet:
+    """``_to_arrays``' inverse (``ValueError``/``KeyError`` on a malformed entry)."""
+    return GraspSet(
+        arrays["T_obj_grasp"], arrays["width_m"], arrays["opening_m"], arrays["score"], arrays["contact_z_m"],
+        str(arrays["source"]),
+    )  # fmt: skip
