@@ -10,31 +10,23 @@ from __future__ import annotations
 
 import io
 import logging
-import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
 
-from sygrid.fileio import write_bytes_atomic
+from sygrid.fileio import cache_dir_for, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
-_CACHE_ENV = "SYGRID_CACHE_DIR"  # root shared by SyGRID caches; grasp sets go to its "grasps" folder
 
 T = TypeVar("T")
 
 
 def resolve_cache_dir(cache_dir: Path | str | None = None) -> Path:
-    """The grasp cache folder: ``cache_dir``, else ``$SYGRID_CACHE_DIR/grasps``, else ``~/.cache/sygrid/grasps``.
-    The environment is read at each call, never at import."""
-    if cache_dir is not None:
-        return Path(cache_dir).expanduser()
-    root = os.environ.get(_CACHE_ENV)
-    if root:
-        return Path(root).expanduser() / "grasps"
-    return Path.home() / ".cache" / "sygrid" / "grasps"
+    """The grasp cache folder (``sygrid.fileio.cache_dir_for("grasps", cache_dir)``)."""
+    return cache_dir_for("grasps", cache_dir)
 
 
 def save_entry(path: Path, key: str, arrays: Mapping[str, np.ndarray]) -> None:

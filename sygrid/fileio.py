@@ -11,6 +11,20 @@ from typing import Any
 
 from sygrid.errors import ConfigError
 
+CACHE_ENV = "SYGRID_CACHE_DIR"  # the root shared by the project's on-disk caches
+
+
+def cache_dir_for(kind: str, cache_dir: str | Path | None = None) -> Path:
+    """The cache folder of ``kind`` (e.g. "collision", "grasps"): ``cache_dir`` when given, else
+    ``$SYGRID_CACHE_DIR/<kind>``, else ``~/.cache/sygrid/<kind>``. The environment is read at each call, never at
+    import."""
+    if cache_dir is not None:
+        return Path(cache_dir).expanduser()
+    root = os.environ.get(CACHE_ENV)
+    if root:
+        return Path(root).expanduser() / kind
+    return Path.home() / ".cache" / "sygrid" / kind
+
 
 def write_bytes_atomic(path: str | Path, payload: bytes) -> Path:
     """Bytes to ``path`` through a temporary file in the same folder, fsync, and an atomic rename."""

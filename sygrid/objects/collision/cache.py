@@ -9,7 +9,6 @@ import importlib.metadata
 import io
 import json
 import logging
-import os
 import zipfile
 from dataclasses import asdict
 from functools import cache
@@ -17,25 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
-from sygrid.fileio import write_bytes_atomic, write_json_atomic
+from sygrid.fileio import cache_dir_for, write_bytes_atomic, write_json_atomic
 from sygrid.objects.collision.geometry import CollisionModel, ConvexPiece, Fidelity, PrimitiveGeom
 from sygrid.objects.collision.params import CollisionParams, CollisionTier
 
 log = logging.getLogger(__name__)
 
 _CACHE_FORMAT = "sygrid-collision/1"
-_CACHE_ENV = "SYGRID_CACHE_DIR"  # a root shared by SyGRID caches; collision models go to its "collision" folder
 
 
 def resolve_cache_dir(cache_dir: Path | str | None = None) -> Path:
-    """The collision cache folder: ``cache_dir``, else ``$SYGRID_CACHE_DIR/collision``, else
-    ``~/.cache/sygrid/collision``. The environment is read at each call, never at import."""
-    if cache_dir is not None:
-        return Path(cache_dir).expanduser()
-    root = os.environ.get(_CACHE_ENV)
-    if root:
-        return Path(root).expanduser() / "collision"
-    return Path.home() / ".cache" / "sygrid" / "collision"
+    """The collision cache folder (``sygrid.fileio.cache_dir_for("collision", cache_dir)``)."""
+    return cache_dir_for("collision", cache_dir)
 
 
 @cache
