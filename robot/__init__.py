@@ -11,4 +11,10 @@ Import the modules themselves (nothing is imported here, so ``import robot`` sta
   (``robot.grasp_plan``), scene (``robot.grasp_scene``), collision checks (``robot.grasp_collision``), waypoints and IK
   (``robot.grasp_waypoints``); the grasp candidates (``robot.grasp_candidates``, ``robot.grasp_set``,
   ``robot.grasp_cache``) and the gripper's boxes (``robot.grasp_geometry``).
+- ``robot.nudge``: pushing a part off a wall or a neighbour with the closed fingers.
+- ``robot.picker``: the pick cycle as a state machine (``Picker``), with its settings (``robot.pick_config``), the
+  interfaces it calls (``robot.pick_protocols``), its records and outcomes (``robot.pick_report``), and its helpers
+  for the fingers (``robot.pick_fingers``), the arm's moves (``robot.pick_arm``) and per-part memory
+  (``robot.pick_memory``).
+- ``robot.cell_setup``: a cell file (TOML) read into the settings of every part above.
 """
