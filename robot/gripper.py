@@ -42,6 +42,7 @@ from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
 from sygrid.errors import ConfigError, SygridError
+from sygrid.robots import gripper_2f85
 
 log = logging.getLogger(__name__)
 
@@ -95,11 +96,11 @@ class RobotiqGripperConfig:
     activation_timeout_s: float = 5.0
     #: Extra time allowed beyond a full stroke at the commanded speed.
     move_margin_s: float = 2.0
-    stroke_m: float = 0.085
+    stroke_m: float = gripper_2f85.STROKE_M
     pos_open: int = 0
     pos_closed: int = 255
-    speed_range_m_s: tuple[float, float] = (0.02, 0.15)
-    force_range_n: tuple[float, float] = (20.0, 235.0)
+    speed_range_m_s: tuple[float, float] = gripper_2f85.SPEED_RANGE_M_S
+    force_range_n: tuple[float, float] = gripper_2f85.FORCE_RANGE_N
     speed_m_s: float = 0.1
     force_n: float = 100.0
 

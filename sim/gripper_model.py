@@ -23,8 +23,8 @@ import numpy as np
 
 from sygrid.robots import gripper_2f85
 
-MIN_FORCE_N, MAX_FORCE_N = 20.0, 235.0  #: grip force range (force on each pad)
-MIN_SPEED_M_S, MAX_SPEED_M_S = 0.02, 0.15  #: closing/opening speed range
+MIN_FORCE_N, MAX_FORCE_N = gripper_2f85.FORCE_RANGE_N
+MIN_SPEED_M_S, MAX_SPEED_M_S = gripper_2f85.SPEED_RANGE_M_S
 MASS_KG = 0.925
 PAD_FRICTION = 1.0
 

@@ -16,12 +16,13 @@ import time
 from sim.controller.backend import GRIPPER_STROKE_M
 from sim.controller.stepper import BackendRunner
 from sim.controller.tcp_service import Connection, TcpService
+from sygrid.robots import gripper_2f85
 
 log = logging.getLogger(__name__)
 
 ACTIVATION_S = 0.1  # time from SET ACT 1 until STA reads 3
-_SPEED_M_S = (0.020, 0.150)
-_FORCE_N = (20.0, 235.0)
+_SPEED_M_S = gripper_2f85.SPEED_RANGE_M_S
+_FORCE_N = gripper_2f85.FORCE_RANGE_N
 _VARIABLES = ("ACT", "GTO", "ATR", "ARD", "MOD", "POS", "SPE", "FOR", "STA", "PRE", "OBJ", "FLT")
 
 

@@ -14,6 +14,9 @@ from sygrid.transforms import make_T
 
 #: Fully open width between the pads.
 STROKE_M = 0.085
+#: Grip force range (force on each pad) and finger speed range of the 2F-85 (Robotiq's specification).
+FORCE_RANGE_N = (20.0, 235.0)
+SPEED_RANGE_M_S = (0.02, 0.15)
 #: The TCP (the pads' centre) along the flange z axis.
 TCP_OFFSET_M = 0.145
 #: The TCP in the flange frame (read-only).
