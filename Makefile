@@ -4,10 +4,15 @@ VENV := .venv
 export MUJOCO_GL ?= egl
 export RAY_AUTH_MODE ?= disabled
 
-.PHONY: setup demo test lint bench models models-sim-cell
+.PHONY: setup lock demo test lint bench models models-sim-cell
 
 setup:
 	@bash scripts/setup.sh
+
+# Re-resolve the pinned versions (constraints.txt) from pyproject.toml in a scratch venv; review the diff, then
+# `make test` (set-up reinstalls .venv from the new pins).
+lock:
+	bash scripts/lock.sh
 
 demo: setup
 	$(VENV)/bin/sygrid demo

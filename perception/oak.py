@@ -30,7 +30,6 @@ from datetime import timedelta
 from types import ModuleType
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 
 from perception.camera import Camera, Frame
@@ -144,39 +143,6 @@ def depth_mm_to_m(depth_mm: np.ndarray) -> np.ndarray:
     if depth_mm.dtype != np.uint16 or depth_mm.ndim != 2:
         raise ValueError(f"depth must be a (H, W) uint16 image in millimetres, got {depth_mm.dtype} {depth_mm.shape}")
     return depth_mm.astype(np.float32) * np.float32(0.001)
-
-
-def register_depth(
-    depth_m: np.ndarray,
-    K_depth: np.ndarray,
-    K_rgb: np.ndarray,
-    T_rgb_depth: np.ndarray,
-    rgb_size: tuple[int, int],
-    dilate: bool = False,
-) -> np.ndarray:
-    """Re-projects a depth map (float32 metres, 0 = no data) from the depth camera into the RGB camera: each pixel
-    is lifted to a 3D point with ``K_depth``, moved by ``T_rgb_depth`` (metres) and projected with ``K_rgb`` into
-    an image of ``rgb_size`` (width, height), the nearest surface winning where several land on one pixel. This is
-    the alignment the device performs; this host version (OpenCV's ``registerDepth``) aligns depth recorded in
-    another camera's frame and checks the maths. ``dilate`` fills the one-pixel holes of upsampling."""
-    depth_m = np.asarray(depth_m, dtype=np.float32)
-    if depth_m.ndim != 2:
-        raise ValueError(f"depth_m must be (H, W) metres, got shape {depth_m.shape}")
-    T = np.asarray(T_rgb_depth, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ValueError(f"T_rgb_depth must be 4x4, got shape {T.shape}")
-    registered = cv2.registerDepth(
-        np.asarray(K_depth, dtype=np.float64),
-        np.asarray(K_rgb, dtype=np.float64),
-        np.zeros(5),
-        T,
-        depth_m,
-        (int(rgb_size[0]), int(rgb_size[1])),
-        depthDilation=dilate,
-    )
-    registered = np.asarray(registered, dtype=np.float32)
-    registered[~np.isfinite(registered)] = 0.0  # OpenCV marks empty pixels with NaN; the project's "no data" is 0
-    return registered
 
 
 # ---------------------------------------------------------------------------------------------- the camera
@@ -342,6 +308,9 @@ def _build_pipeline(dai: ModuleType, pipeline: Any, plan: OakPipelinePlan) -> An
     stereo.setLeftRightCheck(True)  # depth alignment needs it, and it removes occlusion artefacts
     sync = pipeline.create(dai.node.Sync)
     sync.setSyncThreshold(timedelta(seconds=plan.sync_threshold_s))
+    # Depth is aligned to the colour camera on the device in both branches (StereoDepth re-projects into CAM_A at
+    # rgb_size; ImageAlign warps depth onto rgb_out's frames), so the host gets depth pixel-for-pixel with RGB and
+    # does no registration of its own (``_to_frame`` checks the sizes match).
     if plan.depth_alignment == "stereo_depth":
         stereo.setDepthAlign(rgb_socket)
         stereo.setOutputSize(*plan.rgb_size)

@@ -6,7 +6,8 @@ Import the modules themselves (nothing is imported here, so ``import robot`` sta
   (``URConfig``, ``WorkspaceBox``, the pre-send checks), ``robot.ur_errors``, ``robot.ur_connection`` (the clients,
   reconnect, recovery), ``robot.ur_motion`` (a motion in flight, watched), ``robot.ur_probe`` (bounded reachability).
 - ``robot.gripper``: ``Gripper``, the Robotiq URCap socket and digital-output kinds, ``make_gripper``.
-- ``robot.calibration``, ``robot.charuco``: eye-to-hand hand-eye calibration with a ChArUco board.
+- ``robot.calibration`` (pose set, capture, file), ``robot.hand_eye`` (the solver), ``robot.charuco``: eye-to-hand
+  hand-eye calibration with a ChArUco board.
 - ``robot.grasp_planner`` (``GraspPlanner``), with its settings (``robot.grasp_config``), results
   (``robot.grasp_plan``), scene (``robot.grasp_scene``), collision checks (``robot.grasp_collision``), waypoints and IK
   (``robot.grasp_waypoints``); the grasp candidates (``robot.grasp_candidates``, ``robot.grasp_set``,

@@ -1,49 +1,26 @@
-"""Eye-to-hand hand-eye calibration: a ChArUco board on the flange, a fixed camera, ``T_base_camera`` out.
+"""Eye-to-hand hand-eye calibration, the procedure: a ChArUco board on the flange, a fixed camera, ``T_base_camera``
+out, kept in a JSON file.
 
-The procedure: ``generate_pose_set`` makes flange poses that show the board to the camera from varied angles
-(within a workspace box, reachable); ``collect_samples`` moves the robot through them, captures a ``Frame`` at each,
-detects the board (``cv2.aruco.CharucoDetector``) and estimates ``T_camera_board`` (``cv2.solvePnP`` on the
-matched ChArUco corners); ``solve_hand_eye`` turns the pairs (``T_base_flange``, ``T_camera_board``) into
-``T_base_camera`` with OpenCV's hand-eye solvers and keeps the method whose result reprojects the board corners
-best; optionally (``refine=True``) it then fits ``T_base_camera`` and ``T_flange_board`` by least squares to every
-detected corner. ``calibrate`` runs all three. ``save_calibration``/``load_calibration`` keep the result in JSON
-with its residuals and the board definition.
-
-Eye-to-hand with OpenCV's eye-in-hand solver: ``cv2.calibrateHandEye`` solves ``T_gripper_camera`` from
-``T_base_gripper`` and ``T_camera_target``; fed the inverted robot poses ``T_flange_base`` it returns
-``T_base_camera`` (the camera is then "on" the base, seen from the flange). The unknown board mount comes out as
-``T_flange_board``.
+``generate_pose_set`` makes flange poses that show the board to the camera from varied angles (within a workspace
+box, reachable); ``collect_samples`` moves the robot through them, captures a ``Frame`` at each, detects the board
+and estimates ``T_camera_board`` (``robot.charuco``); ``robot.hand_eye.solve_hand_eye`` turns the pairs
+(``T_base_flange``, ``T_camera_board``) into ``T_base_camera``. ``calibrate`` runs all three.
+``save_calibration``/``load_calibration`` keep the result in JSON with its residuals and the board definition.
 
 Motion and capture stay abstract (``FlangeRobot``: ``move_to`` and ``T_base_flange``; ``capture``: any callable
 returning a ``Frame``), so the same code drives the simulated cell (``sim.world.CellWorld`` already has
 ``T_base_flange``) and a real UR5e. Frames must be undistorted (``CameraIntrinsics`` has no distortion model).
-
-OpenCV 5.0.0.93's Python wheel lacks ``cv2.calibrateHandEye`` (opencv/opencv#29565, fixed after that release):
-where it is missing, the linear step falls back to Park and Martin's closed form written here with scipy (rotation
-by orthogonal Procrustes on the log-rotations of relative motions, translation by linear least squares); it gives
-the same result as OpenCV's PARK (checked against opencv-contrib 4.14).
-
-Refinement is off by default, on measurements in the simulated cell (12 poses, 640x480, 3 seeds): with image noise
-only (sigma 4 grey levels) it cuts the error from 0.16-0.63 mm / 0.01-0.02 deg to about 0.05 mm / 0.006 deg, but
-with noise in the robot's reported flange poses (0.2 mm, 0.02 deg) it fits that noise and ends at 0.5-1.0 mm /
-0.06-0.15 deg, where the linear result stays at 0.3-0.6 mm / 0.01-0.03 deg. A real robot's kinematic error is of
-that order or larger, so the linear result is the safer default; turn refinement on for a robot whose reported
-poses are much better than the camera's corner detection.
 """
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-import cv2
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from perception.camera import Frame
@@ -51,15 +28,14 @@ from robot.charuco import (
     DEFAULT_MAX_PNP_RMS_PX,
     DEFAULT_MIN_CORNERS,
     BoardDetector,
-    BoardObservation,
     CharucoBoard,
     _as_float,
     _as_int,
-    detect_board,
 )
+from robot.hand_eye import MIN_POSES, CalibrationError, HandEyeCalibration, HandEyeSample, solve_hand_eye
 from robot.ur_config import WorkspaceBox
 from sygrid.camera import CameraIntrinsics, project_points
-from sygrid.errors import ConfigError, SygridError
+from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 from sygrid.transforms import invert, is_rigid, make_T, rotation_angle_deg, transform_points
 
@@ -67,35 +43,15 @@ log = logging.getLogger(__name__)
 
 FILE_FORMAT = "sygrid.hand_eye_calibration"
 FILE_VERSION = 1
-#: OpenCV's hand-eye methods, by the names this module uses.
-OPENCV_METHODS = ("TSAI", "PARK", "HORAUD", "ANDREFF", "DANIILIDIS")
-#: The scipy fallback's name (used where ``cv2.calibrateHandEye`` is missing).
-FALLBACK_METHOD = "PARK_MARTIN_SCIPY"
-MIN_POSES = 3  # two relative motions with non-parallel rotation axes is the minimum of AX = XB
 
 __all__ = [
-    "FALLBACK_METHOD",
-    "OPENCV_METHODS",
-    "BoardObservation",
-    "CalibrationError",
-    "CharucoBoard",
     "FlangeRobot",
-    "HandEyeCalibration",
-    "HandEyeSample",
-    "WorkspaceBox",
-    "available_methods",
     "calibrate",
     "collect_samples",
-    "detect_board",
     "generate_pose_set",
     "load_calibration",
     "save_calibration",
-    "solve_hand_eye",
 ]
-
-
-class CalibrationError(SygridError, RuntimeError):
-    """The calibration could not produce a trustworthy result (too few usable poses, degenerate motion)."""
 
 
 # ---------------------------------------------------------------------------------------------- pose set
@@ -220,14 +176,6 @@ class FlangeRobot(Protocol):
     def T_base_flange(self) -> np.ndarray: ...
 
 
-@dataclass(frozen=True, eq=False)
-class HandEyeSample:
-    """One usable pose: where the flange was and how the camera saw the board."""
-
-    T_base_flange: np.ndarray
-    observation: BoardObservation
-
-
 def collect_samples(
     robot: FlangeRobot,
     capture: Callable[[], Frame],
@@ -270,126 +218,6 @@ def collect_samples(
     return samples, intrinsics, skipped
 
 
-# ---------------------------------------------------------------------------------------------- solving
-
-
-@dataclass(frozen=True, eq=False)
-class HandEyeCalibration:
-    """The result: ``T_base_camera``, the board mount ``T_flange_board`` found with it, and the residuals.
-
-    ``per_pose_reprojection_rms_px``: RMS distance (pixels) between the detected corners and the corners projected
-    through ``inv(T_base_camera) @ T_base_flange @ T_flange_board``, per pose. ``flange_board_spread_mm/deg``: per
-    pose, how far ``inv(T_base_flange) @ T_base_camera @ T_camera_board`` (the mount implied by that pose alone)
-    lies from ``T_flange_board``. ``method_rms_px``: the overall reprojection RMS of every linear method tried.
-    """
-
-    T_base_camera: np.ndarray
-    T_flange_board: np.ndarray
-    method: str
-    refined: bool
-    board: CharucoBoard
-    intrinsics: CameraIntrinsics
-    per_pose_reprojection_rms_px: tuple[float, ...]
-    flange_board_spread_mm: tuple[float, ...]
-    flange_board_spread_deg: tuple[float, ...]
-    method_rms_px: dict[str, float] = field(default_factory=dict)
-    skipped: tuple[str, ...] = ()
-
-    @property
-    def reprojection_rms_px(self) -> float:
-        """Overall RMS reprojection error over all poses (pixels)."""
-        return float(np.sqrt(np.mean(np.square(self.per_pose_reprojection_rms_px))))
-
-    @property
-    def n_poses(self) -> int:
-        return len(self.per_pose_reprojection_rms_px)
-
-    def to_json(self) -> dict[str, Any]:
-        K = self.intrinsics
-        return {
-            "format": FILE_FORMAT,
-            "version": FILE_VERSION,
-            "T_base_camera": self.T_base_camera.tolist(),
-            "T_flange_board": self.T_flange_board.tolist(),
-            "method": self.method,
-            "refined": self.refined,
-            "residuals": {
-                "reprojection_rms_px": self.reprojection_rms_px,
-                "per_pose_reprojection_rms_px": list(self.per_pose_reprojection_rms_px),
-                "flange_board_spread_mm": list(self.flange_board_spread_mm),
-                "flange_board_spread_deg": list(self.flange_board_spread_deg),
-                "max_flange_board_spread_mm": max(self.flange_board_spread_mm),
-                "max_flange_board_spread_deg": max(self.flange_board_spread_deg),
-                "method_rms_px": dict(self.method_rms_px),
-            },
-            "n_poses": self.n_poses,
-            "skipped_poses": list(self.skipped),
-            "board": self.board.to_json(),
-            "intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "width": K.width, "height": K.height},
-        }
-
-
-def solve_hand_eye(
-    samples: Sequence[HandEyeSample],
-    board: CharucoBoard,
-    intrinsics: CameraIntrinsics,
-    *,
-    methods: Sequence[str] | None = None,
-    refine: bool = False,
-    skipped: Sequence[str] = (),
-) -> HandEyeCalibration:
-    """``T_base_camera`` from the samples: every linear method in ``methods`` (default: OpenCV's five, or the
-    scipy fallback where ``cv2.calibrateHandEye`` is missing), the one with the lowest reprojection RMS kept, then
-    with ``refine`` a least-squares fit of ``T_base_camera`` and ``T_flange_board`` to every detected corner (best
-    when the robot's poses are much more accurate than the corners; see the module docstring)."""
-    if len(samples) < MIN_POSES:
-        raise CalibrationError(f"hand-eye calibration needs at least {MIN_POSES} usable poses, got {len(samples)}")
-    methods = list(methods) if methods is not None else list(available_methods())
-    unknown = [m for m in methods if m not in (*OPENCV_METHODS, FALLBACK_METHOD)]
-    if unknown or not methods:
-        raise ValueError(f"unknown hand-eye methods {unknown}; valid: {[*OPENCV_METHODS, FALLBACK_METHOD]}")
-    F = np.array([s.T_base_flange for s in samples])
-    C = np.array([s.observation.T_camera_board for s in samples])
-    _check_motion(F)
-    corners_board = board.corners_board()
-    obs = [(corners_board[s.observation.corner_ids], s.observation.corners_px) for s in samples]
-    K = intrinsics.K
-
-    candidates: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
-    for method in methods:
-        X = _linear_hand_eye(method, F, C)
-        if X is None:
-            log.warning("hand-eye method %s gave no solution", method)
-            continue
-        Y = _mean_mount(F, C, X)
-        rms = _overall_rms(_per_pose_rms(K, F, X, Y, obs))
-        candidates[method] = (X, Y, rms)
-        log.info("hand-eye %s: reprojection %.3f px", method, rms)
-    if not candidates:
-        raise CalibrationError(f"no hand-eye method gave a solution (tried {methods})")
-    best = min(candidates, key=lambda m: candidates[m][2])
-    X, Y, _ = candidates[best]
-    if refine:
-        X, Y = _refine(K, F, X, Y, obs)
-    per_pose = _per_pose_rms(K, F, X, Y, obs)
-    Y_i = np.array([invert(f) @ X @ c for f, c in zip(F, C, strict=True)])
-    spread_mm = 1000.0 * np.linalg.norm(Y_i[:, :3, 3] - Y[:3, 3], axis=1)
-    spread_deg = [rotation_angle_deg(y[:3, :3], Y[:3, :3]) for y in Y_i]
-    return HandEyeCalibration(
-        T_base_camera=X,
-        T_flange_board=Y,
-        method=best,
-        refined=refine,
-        board=board,
-        intrinsics=intrinsics,
-        per_pose_reprojection_rms_px=tuple(float(r) for r in per_pose),
-        flange_board_spread_mm=tuple(float(s) for s in spread_mm),
-        flange_board_spread_deg=tuple(float(s) for s in spread_deg),
-        method_rms_px={m: float(c[2]) for m, c in candidates.items()},
-        skipped=tuple(skipped),
-    )
-
-
 def calibrate(
     robot: FlangeRobot,
     capture: Callable[[], Frame],
@@ -414,132 +242,37 @@ def calibrate(
     return solve_hand_eye(samples, board, intrinsics, refine=refine, skipped=skipped)
 
 
-def available_methods() -> tuple[str, ...]:
-    """The linear hand-eye methods this OpenCV build offers (the scipy fallback where it has none)."""
-    return OPENCV_METHODS if hasattr(cv2, "calibrateHandEye") else (FALLBACK_METHOD,)
-
-
-def _linear_hand_eye(method: str, F: np.ndarray, C: np.ndarray) -> np.ndarray | None:
-    """``T_base_camera`` from (n, 4, 4) ``T_base_flange`` and ``T_camera_board`` by one linear method."""
-    if method == FALLBACK_METHOD:
-        return _park_martin(F, C)
-    if not hasattr(cv2, "calibrateHandEye"):
-        raise CalibrationError(
-            f"hand-eye method {method} needs cv2.calibrateHandEye, which this OpenCV build ({cv2.__version__}) lacks "
-            f"(opencv/opencv#29565); use {FALLBACK_METHOD}"
-        )
-    F_inv = np.array([invert(f) for f in F])  # eye-to-hand: the robot poses inverted (see the module docstring)
-    R, t = cv2.calibrateHandEye(
-        list(F_inv[:, :3, :3]),
-        list(F_inv[:, :3, 3:]),
-        list(C[:, :3, :3]),
-        list(C[:, :3, 3:]),
-        method=getattr(cv2, f"CALIB_HAND_EYE_{method}"),
-    )
-    X = make_T(R, np.asarray(t).reshape(3))
-    return X if np.all(np.isfinite(X)) and is_rigid(X, atol=1e-4) else None
-
-
-def _relative_motions(F: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``A X = X B`` over every pair of poses: ``A = F_j F_i^-1`` (base frame), ``B = C_j C_i^-1`` (camera frame).
-    (From ``F_i Y = X C_i`` for the fixed unknowns X = T_base_camera and Y = T_flange_board.)"""
-    pairs = list(itertools.combinations(range(len(F)), 2))
-    A = np.array([F[j] @ invert(F[i]) for i, j in pairs])
-    B = np.array([C[j] @ invert(C[i]) for i, j in pairs])
-    return A, B
-
-
-def _park_martin(F: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """Park and Martin's closed form (1994): ``log R_A = R_X log R_B`` solved by orthogonal Procrustes (scipy's
-    ``align_vectors``), then ``(R_A - I) t_X = R_X t_B - t_A`` by linear least squares. Written here only because
-    OpenCV 5.0.0's wheel lacks ``calibrateHandEye`` (opencv/opencv#29565)."""
-    A, B = _relative_motions(F, C)
-    alpha = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
-    beta = Rotation.from_matrix(B[:, :3, :3]).as_rotvec()
-    R_X = Rotation.align_vectors(alpha, beta)[0].as_matrix()
-    M = (A[:, :3, :3] - np.eye(3)).reshape(-1, 3)
-    rhs = (B[:, :3, 3] @ R_X.T - A[:, :3, 3]).reshape(-1)
-    t_X = np.linalg.lstsq(M, rhs, rcond=None)[0]
-    return make_T(R_X, t_X)
-
-
-def _check_motion(F: np.ndarray) -> None:
-    """AX = XB needs rotations about at least two non-parallel axes; refuse a pose set that lacks them."""
-    A_rot = Rotation.from_matrix(np.array([f[:3, :3] for f in F[1:]]) @ F[0, :3, :3].T)
-    angles = A_rot.magnitude()
-    if np.max(angles) < math.radians(5.0):
-        raise CalibrationError(
-            f"the flange rotated at most {math.degrees(np.max(angles)):.1f} deg across the poses; hand-eye "
-            "calibration needs rotations of tens of degrees about different axes"
-        )
-    axes = A_rot.as_rotvec()[angles > math.radians(2.0)]
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    if np.linalg.svd(axes, compute_uv=False)[1] < 0.1:
-        raise CalibrationError("the flange rotated about a single axis only; vary the tilt direction of the poses")
-
-
-def _mean_mount(F: np.ndarray, C: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """``T_flange_board`` implied by X: the mean of ``F_i^-1 X C_i`` (rotation mean by scipy, translation mean)."""
-    Y = np.array([invert(f) @ X @ c for f, c in zip(F, C, strict=True)])
-    return make_T(Rotation.from_matrix(Y[:, :3, :3]).mean().as_matrix(), Y[:, :3, 3].mean(axis=0))
-
-
-def _per_pose_rms(
-    K: np.ndarray, F: np.ndarray, X: np.ndarray, Y: np.ndarray, obs: list[tuple[np.ndarray, np.ndarray]]
-) -> np.ndarray:
-    X_inv = invert(X)
-    out = []
-    for f, (p_board, px) in zip(F, obs, strict=True):
-        r = project_points(K, transform_points(X_inv @ f @ Y, p_board)) - px
-        out.append(np.sqrt(np.mean(np.sum(r**2, axis=1))))
-    return np.array(out)
-
-
-def _overall_rms(per_pose: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(per_pose))))
-
-
-def _refine(
-    K: np.ndarray, F: np.ndarray, X: np.ndarray, Y: np.ndarray, obs: list[tuple[np.ndarray, np.ndarray]]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares (scipy) on every corner's reprojection error over the 12 parameters of X and Y: the maximum
-    likelihood estimate when the pixels are noisy and the robot poses exact (it fits any robot pose error too)."""
-
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return (
-            make_T(Rotation.from_rotvec(x[0:3]).as_matrix(), x[3:6]),
-            make_T(Rotation.from_rotvec(x[6:9]).as_matrix(), x[9:12]),
-        )
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        X_, Y_ = unpack(x)
-        X_inv = invert(X_)
-        return np.concatenate(
-            [
-                (project_points(K, transform_points(X_inv @ f @ Y_, p_board)) - px).ravel()
-                for f, (p_board, px) in zip(F, obs, strict=True)
-            ]
-        )
-
-    x0 = np.concatenate(
-        [
-            Rotation.from_matrix(X[:3, :3]).as_rotvec(),
-            X[:3, 3],
-            Rotation.from_matrix(Y[:3, :3]).as_rotvec(),
-            Y[:3, 3],
-        ]
-    )
-    # x_scale: radians vs metres; the board is tens of centimetres from the camera.
-    result = least_squares(residuals, x0, method="lm", x_scale=np.tile([0.01, 0.01, 0.01, 0.005, 0.005, 0.005], 2))
-    return unpack(result.x)
-
-
 # ---------------------------------------------------------------------------------------------- file
 
 
 def save_calibration(path: str | Path, calibration: HandEyeCalibration) -> Path:
     """Writes the calibration JSON atomically (a reader sees the old file or the new one)."""
-    return write_json_atomic(path, calibration.to_json())
+    return write_json_atomic(path, _to_json(calibration))
+
+
+def _to_json(cal: HandEyeCalibration) -> dict[str, Any]:
+    K = cal.intrinsics
+    return {
+        "format": FILE_FORMAT,
+        "version": FILE_VERSION,
+        "T_base_camera": cal.T_base_camera.tolist(),
+        "T_flange_board": cal.T_flange_board.tolist(),
+        "method": cal.method,
+        "refined": cal.refined,
+        "residuals": {
+            "reprojection_rms_px": cal.reprojection_rms_px,
+            "per_pose_reprojection_rms_px": list(cal.per_pose_reprojection_rms_px),
+            "flange_board_spread_mm": list(cal.flange_board_spread_mm),
+            "flange_board_spread_deg": list(cal.flange_board_spread_deg),
+            "max_flange_board_spread_mm": max(cal.flange_board_spread_mm),
+            "max_flange_board_spread_deg": max(cal.flange_board_spread_deg),
+            "method_rms_px": dict(cal.method_rms_px),
+        },
+        "n_poses": cal.n_poses,
+        "skipped_poses": list(cal.skipped),
+        "board": cal.board.to_json(),
+        "intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "width": K.width, "height": K.height},
+    }
 
 
 def load_calibration(path: str | Path) -> HandEyeCalibration:

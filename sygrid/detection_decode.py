@@ -121,17 +121,24 @@ def assemble_mask(
     py1 = min(max(math.floor(ay * (i1 - 1) + by) + 2, py0 + 1), mh)
     window = prototypes[:, py0:py1, px0:px1].reshape(nm, -1)  # a small copy: the window under the box
     probability = _sigmoid(coefficients @ window).reshape(py1 - py0, px1 - px0).astype(np.float32)
-    # Output pixel (u, v) = image pixel (j0 + u, i0 + v) samples the window at (ax*(j0+u) + bx - px0, ...).
-    warp = np.array([[ax, 0.0, ax * j0 + bx - px0], [0.0, ay, ay * i0 + by - py0]], dtype=np.float64)
-    patch = cv2.warpAffine(
-        probability,
-        warp,
-        (j1 - j0, i1 - i0),
-        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
+    # Output pixel (u, v) = image pixel (j0 + u, i0 + v) samples the window at (ax*(j0+u) + bx - px0, ...). Bilinear
+    # by hand, separable: cv2.warpAffine quantises sample positions to 1/32 pixel, which moves mask borders by a
+    # pixel on small parts.
+    patch = _bilinear_rows(_bilinear_rows(probability, ay * np.arange(i0, i1) + by - py0).T,
+                           ax * np.arange(j0, j1) + bx - px0).T  # fmt: skip
     mask[i0:i1, j0:j1] = patch > MASK_THRESHOLD
     return mask
+
+
+def _bilinear_rows(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``values`` (n, m) linearly interpolated at the fractional row coordinates ``rows`` (k,), edge rows replicated:
+    (k, m)."""
+    n = values.shape[0]
+    r = np.clip(rows, 0.0, n - 1.0)
+    lo = np.minimum(np.floor(r).astype(np.int64), n - 1)
+    hi = np.minimum(lo + 1, n - 1)
+    t = (r - lo)[:, None]
+    return values[lo] * (1.0 - t) + values[hi] * t
 
 
 def postprocess(

@@ -8,27 +8,21 @@ import json
 import math
 from pathlib import Path
 
+import cv2
 import mujoco
 import numpy as np
 import pytest
 
 from robot.calibration import (
-    FALLBACK_METHOD,
-    OPENCV_METHODS,
-    BoardObservation,
-    CalibrationError,
-    CharucoBoard,
-    HandEyeSample,
-    WorkspaceBox,
-    available_methods,
     calibrate,
     collect_samples,
-    detect_board,
     generate_pose_set,
     load_calibration,
     save_calibration,
-    solve_hand_eye,
 )
+from robot.charuco import BoardObservation, CharucoBoard, detect_board
+from robot.hand_eye import OPENCV_METHODS, CalibrationError, HandEyeSample, solve_hand_eye
+from robot.ur_config import WorkspaceBox
 from sim.camera import SimCamera
 from sim.cell_config import BoardPlate, CellConfig
 from sim.cell_model import CALIBRATION_BOARD
@@ -112,24 +106,49 @@ def _synthetic_samples(
     return samples
 
 
-def test_solver_recovers_exact_synthetic_poses_with_every_available_method() -> None:
+def _count_opencv_calls(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Wraps ``cv2.calibrateHandEye`` to record the method flag of every call (the solver's only path)."""
+    calls: list[int] = []
+    real = cv2.calibrateHandEye
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs["method"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "calibrateHandEye", spy)
+    return calls
+
+
+def test_solver_recovers_exact_synthetic_poses_with_every_opencv_method(monkeypatch: pytest.MonkeyPatch) -> None:
     rng = np.random.default_rng(3)
     K = CameraIntrinsics.from_fov(640, 480, 45.0)
     T_base_camera = make_T(rotation_about([1, 0.2, 0], 3.0), (-0.5, 0.02, 0.92))
     T_flange_board = make_T(rotation_about([1, 0, 0], math.pi), (-0.12, 0.09, 0.17))
     samples = _synthetic_samples(rng, 8, T_base_camera, T_flange_board, K)
-    methods = available_methods()
-    assert set(methods) == set(OPENCV_METHODS) or methods == (FALLBACK_METHOD,)
+    calls = _count_opencv_calls(monkeypatch)
     for refine in (False, True):
+        calls.clear()
         cal = solve_hand_eye(samples, BOARD, K, refine=refine)
-        assert set(cal.method_rms_px) == set(methods)
+        assert calls == [getattr(cv2, f"CALIB_HAND_EYE_{m}") for m in OPENCV_METHODS]
+        assert set(cal.method_rms_px) == set(OPENCV_METHODS) and cal.method in OPENCV_METHODS
         np.testing.assert_allclose(cal.T_base_camera, T_base_camera, atol=1e-6)
         np.testing.assert_allclose(cal.T_flange_board, T_flange_board, atol=1e-6)
         assert cal.reprojection_rms_px < 1e-3
         assert max(cal.flange_board_spread_mm) < 1e-3 and max(cal.flange_board_spread_deg) < 1e-4
-    # The scipy fallback solves the same problem wherever OpenCV's solver is present too.
-    fallback = solve_hand_eye(samples, BOARD, K, methods=[FALLBACK_METHOD], refine=False)
-    np.testing.assert_allclose(fallback.T_base_camera, T_base_camera, atol=1e-6)
+    # One method on its own.
+    calls.clear()
+    park = solve_hand_eye(samples, BOARD, K, methods=["PARK"])
+    assert calls == [cv2.CALIB_HAND_EYE_PARK] and park.method == "PARK"
+    np.testing.assert_allclose(park.T_base_camera, T_base_camera, atol=1e-6)
+
+
+def test_solver_without_opencv_hand_eye_names_the_cause(monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(3)
+    K = CameraIntrinsics.from_fov(640, 480, 45.0)
+    samples = _synthetic_samples(rng, 4, make_T(t=(-0.5, 0.0, 0.9)), make_T(t=(0.0, 0.0, 0.17)), K)
+    monkeypatch.delattr(cv2, "calibrateHandEye")
+    with pytest.raises(CalibrationError, match=r"no cv2\.calibrateHandEye(.|\n)*constraints\.txt"):
+        solve_hand_eye(samples, BOARD, K)
 
 
 def test_solver_refuses_degenerate_motion_and_too_few_poses() -> None:
@@ -227,7 +246,7 @@ def test_rendered_board_is_detected_at_its_true_pose(board_cell: tuple[CellWorld
 
 
 def test_calibration_in_the_simulated_cell_recovers_the_camera_pose(
-    board_cell: tuple[CellWorld, SimCamera, np.ndarray], tmp_path: Path
+    board_cell: tuple[CellWorld, SimCamera, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     world, camera, T_flange_board = board_cell
     T_base_camera_true = invert(world.T_world_base) @ world.config.T_world_camera
@@ -239,9 +258,11 @@ def test_calibration_in_the_simulated_cell_recovers_the_camera_pose(
         workspace=WORKSPACE, reachable=_reachable,
     )  # fmt: skip
     arm = _SimArm(world)
+    calls = _count_opencv_calls(monkeypatch)
     cal = calibrate(arm, camera.capture, BOARD, poses)
     assert arm.moves == 12 and cal.n_poses >= 10 and not cal.refined
-    assert cal.method in available_methods() and set(cal.method_rms_px) == set(available_methods())
+    assert len(calls) == len(OPENCV_METHODS)  # solved by cv2.calibrateHandEye, every method
+    assert cal.method in OPENCV_METHODS and set(cal.method_rms_px) == set(OPENCV_METHODS)
     err_mm, err_deg = _pose_error(cal.T_base_camera, T_base_camera_true)
     print(f"hand-eye error against the true camera pose: {err_mm:.3f} mm, {err_deg:.4f} deg ({cal.n_poses} poses)")
     assert err_mm < MAX_ERROR_MM and err_deg < MAX_ERROR_DEG, (err_mm, err_deg)

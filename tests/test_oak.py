@@ -1,10 +1,8 @@
 """The OAK camera without a device: configuration, the pipeline plan per platform, intrinsics from a depthai
-calibration (a real ``dai.CalibrationHandler`` filled on the host), depth units, the depth-to-RGB registration maths
-on a synthetic plane, and the error when no device is connected."""
+calibration (a real ``dai.CalibrationHandler`` filled on the host), depth units, and the error when no device is
+connected."""
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import pytest
@@ -22,10 +20,8 @@ from perception.oak import (
     depth_mm_to_m,
     oak_intrinsics,
     plan_pipeline,
-    register_depth,
 )
 from sygrid.errors import ConfigError, SygridError
-from sygrid.transforms import make_T, rotation_about
 
 dai = pytest.importorskip("depthai")
 
@@ -93,39 +89,6 @@ def test_depth_millimetres_to_metres() -> None:
     assert np.count_nonzero(depth == 0) == 2
     with pytest.raises(ValueError, match="uint16"):
         depth_mm_to_m(np.zeros((4, 4), dtype=np.float32))
-
-
-def _plane_depth(K: np.ndarray, size: tuple[int, int], n: np.ndarray, c: float) -> np.ndarray:
-    """Depth (z) of the plane n . p = c seen by a pinhole camera K at size (w, h)."""
-    w, h = size
-    u, v = np.meshgrid(np.arange(w), np.arange(h))
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((h, w))], axis=-1)
-    return (c / (rays @ n)).astype(np.float32)
-
-
-def test_depth_registration_to_rgb_on_a_tilted_plane() -> None:
-    K_depth = np.array([[450.0, 0.0, 319.5], [0.0, 450.0, 199.5], [0.0, 0.0, 1.0]])  # 640x400 stereo
-    K_rgb = np.array([[900.0, 0.0, 639.5], [0.0, 900.0, 359.5], [0.0, 0.0, 1.0]])  # 1280x720 colour
-    T_rgb_depth = make_T(rotation_about([0.0, 1.0, 0.3], math.radians(2.0)), (-0.0375, 0.002, 0.001))
-    n = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
-    c = 0.6  # the plane n . p = c in the depth camera's frame (metres)
-    depth = _plane_depth(K_depth, (640, 400), n, c)
-    depth[:50, :80] = 0.0  # a hole: no data must stay no data
-    n_rgb = T_rgb_depth[:3, :3] @ n
-    expected = _plane_depth(K_rgb, (1280, 720), n_rgb, c + n_rgb @ T_rgb_depth[:3, 3])
-
-    registered = register_depth(depth, K_depth, K_rgb, T_rgb_depth, (1280, 720), dilate=True)
-    assert registered.shape == (720, 1280) and registered.dtype == np.float32
-    valid = registered > 0
-    assert valid.mean() > 0.9
-    assert np.abs(registered[valid] - expected[valid]).max() < 1e-3  # nearest-pixel projection: well under 1 mm
-    # Without the translation, the result would be off by the baseline's parallax: the test sees the extrinsics.
-    no_shift = register_depth(depth, K_depth, K_rgb, make_T(T_rgb_depth[:3, :3]), (1280, 720), dilate=True)
-    both = valid & (no_shift > 0)
-    assert np.abs(no_shift[both] - expected[both]).max() > 5e-3
-    # The hole maps to a region without data around where its pixels project.
-    corner = register_depth(depth, K_depth, K_rgb, T_rgb_depth, (1280, 720))[:60, :100]
-    assert np.count_nonzero(corner) == 0
 
 
 def test_no_device_gives_a_clear_error() -> None:
