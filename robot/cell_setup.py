@@ -132,9 +132,9 @@ class CellSetup:
             if data.camera.kind != "sim":
                 raise ConfigError(f"{where}: camera.kind must be 'sim' in a simulated cell, got {data.camera.kind!r}")
             sensor_preset(data.camera.sensor, f"{where}: camera.sensor")
-        elif data.camera.sensor != "ideal":
-            raise ConfigError(f"{where}: camera.sensor is for the simulated camera; a real camera is its own sensor")
         else:
+            if data.camera.sensor != "ideal":
+                raise ConfigError(f"{where}: camera.sensor is for the simulated camera (a real one is its own sensor)")
             if data.perception.kind == "oracle":
                 raise ConfigError(f"{where}: perception.kind = 'oracle' exists only in the simulated cell")
             if data.calibration.source == "sim":
