@@ -219,15 +219,15 @@ def format_table(report: dict) -> str:
 def format_comparison(reports: list[dict]) -> str:
     """One row per report (the same images through different sensors): detection, pose and depth side by side."""
     lines = [
-        f"{'sensor':<11}{'box mAP50':>10}{'mask mAP50-95':>14}{'ADD(-S)<0.1d':>14}{'re med deg':>11}{'te med mm':>10}"
-        f"{'AbsRel':>8}{'delta1':>8}{'fill':>8}{'sensor ms':>10}"
+        f"{'sensor':<11}{'box mAP50':>11}{'mask mAP50-95':>15}{'ADD(-S)<0.1d':>14}{'re med deg':>12}{'te med mm':>11}"
+        f"{'AbsRel':>9}{'delta1':>8}{'fill':>8}{'sensor ms':>11}"
     ]
     for r in reports:
         det, pose, d = r["detection"], r["pose"]["all"], r["depth"]
         lines.append(
-            f"{r['sensor']:<11}{det['box_map50']:>10.3f}{det['mask_map50_95']:>14.3f}{_pct(pose['add_recall']):>14}"
-            f"{pose['median_re_deg']:>11.2f}{pose['median_te_mm']:>10.2f}{d['abs_rel']:>8.4f}{_pct(d['delta1']):>8}"
-            f"{_pct(d['fill_rate']):>8}{r['sensor_ms_median']:>10.1f}"
+            f"{r['sensor']:<11}{det['box_map50']:>11.3f}{det['mask_map50_95']:>15.3f}{_pct(pose['add_recall']):>14}"
+            f"{pose['median_re_deg']:>12.2f}{pose['median_te_mm']:>11.2f}{d['abs_rel']:>9.4f}{_pct(d['delta1']):>8}"
+            f"{_pct(d['fill_rate']):>8}{r['sensor_ms_median']:>11.1f}"
         )
     return "\n".join(lines)
 

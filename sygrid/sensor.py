@@ -153,7 +153,7 @@ class SensorModel:
         metal_mask: np.ndarray | None = None,
     ) -> np.ndarray:
         """The sensed (H, W) float32 depth, metres, 0 = no data (see the module doc for the effects)."""
-        z = np.asarray(depth_m, dtype=np.float64)
+        z = np.asarray(depth_m, dtype=np.float32)
         if z.ndim != 2:
             raise ValueError(f"depth_m must be (H, W), got shape {z.shape}")
         if self.baseline_m == 0:
@@ -163,30 +163,31 @@ class SensorModel:
             if arr is not None and np.shape(arr)[:2] != (h, w):
                 raise ValueError(f"{what} must be {h}x{w} like depth_m, got shape {np.shape(arr)}")
         valid = np.isfinite(z) & (z > 0)
-        z = np.where(valid, z, 0.0)
+        z = np.where(valid, z, np.float32(0.0))
         image_px_per_stereo_px = intrinsics.fx / self.stereo_focal_px
-        fb = self.focal_baseline_px_m
-        with np.errstate(divide="ignore"):
-            disparity = np.where(valid, fb / np.where(valid, z, 1.0), 0.0)
-        disparity = disparity + rng.normal(0.0, self.disparity_bias_px) if self.disparity_bias_px else disparity
+        fb = np.float32(self.focal_baseline_px_m)
+        disparity = fb / np.where(valid, z, np.float32(np.inf))  # 0 where there is no data
+        if self.disparity_bias_px:
+            disparity += np.float32(rng.normal(0.0, self.disparity_bias_px))
         if self.disparity_noise_px:
             corr = self.noise_corr_px * image_px_per_stereo_px
-            disparity = disparity + self.disparity_noise_px * correlated_normal(rng, (h, w), corr)
+            disparity += np.float32(self.disparity_noise_px) * correlated_normal(rng, (h, w), corr)
         if self.disparity_step_px:
-            disparity = np.round(disparity / self.disparity_step_px) * self.disparity_step_px
+            step = np.float32(self.disparity_step_px)
+            disparity = np.round(disparity / step) * step
         keep = valid & (disparity > 0) & (disparity <= self.max_disparity_px)
-        sensed = np.where(keep, fb / np.where(keep, disparity, 1.0), 0.0)
+        sensed = fb / np.where(keep, disparity, np.float32(np.inf))
         if self.max_depth_m:
             keep &= sensed <= self.max_depth_m
 
         edges = depth_edges(z, self.edge_rel_jump)
-        u = rng.random((h, w))
+        u = rng.random((h, w), dtype=np.float32)
         keep &= ~(edges & (u < self.edge_dropout))
         flying = edges & (u >= self.edge_dropout) & (u < self.edge_dropout + self.flying_pixel_fraction)
         if flying.any():
-            lo = ndimage.minimum_filter(np.where(valid, z, np.inf), size=3)
+            lo = ndimage.minimum_filter(np.where(valid, z, np.float32(np.inf)), size=3)
             hi = ndimage.maximum_filter(z, size=3)
-            t = rng.random((h, w))
+            t = rng.random((h, w), dtype=np.float32)
             sensed = np.where(flying, lo + t * (hi - lo), sensed)
         if self.second_camera_side:
             keep &= ~occlusion_shadow(z, intrinsics.fx * self.baseline_m, self.second_camera_side)
@@ -202,9 +203,9 @@ class SensorModel:
             patches = patchy_mask(rng, (h, w), self.specular_dropout, self.dropout_corr_px)
             keep &= ~(np.asarray(metal_mask, dtype=bool) & patches)
         if self.hole_fraction and self.hole_radius_px:
-            seeds = rng.random((h, w)) < self.hole_fraction
+            seeds = rng.random((h, w), dtype=np.float32) < self.hole_fraction
             keep &= ~ndimage.binary_dilation(seeds, iterations=self.hole_radius_px)
-        return np.where(keep, sensed, 0.0).astype(np.float32)
+        return np.where(keep, sensed, np.float32(0.0))
 
     def sense_rgb(self, rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The sensed (H, W, 3) uint8 image: exposure gain and white balance, then shot and read noise, in linear
@@ -218,8 +219,10 @@ class SensorModel:
         if self.shot_noise_dn or self.read_noise_dn:
             sigma = np.sqrt(np.float32(self.shot_noise_dn) * signal + np.float32(self.read_noise_dn**2))
             signal += sigma * rng.standard_normal(img.shape, dtype=np.float32)
-        index = np.clip(np.rint(signal * _LUT_STEPS_PER_DN), 0, len(_LINEAR_TO_SRGB_U8) - 1).astype(np.int32)
-        return _LINEAR_TO_SRGB_U8[index]
+        signal *= _LUT_STEPS_PER_DN
+        signal += 0.5  # rounds in the truncating cast below
+        np.clip(signal, 0, len(_LINEAR_TO_SRGB_U8) - 1, out=signal)
+        return _LINEAR_TO_SRGB_U8[signal.astype(np.int32)]
 
 
 # ------------------------------------------------------------------------------------------------------ presets
@@ -332,7 +335,7 @@ def patchy_mask(rng: np.random.Generator, shape: tuple[int, int], fraction: floa
 def depth_edges(depth_m: np.ndarray, rel_jump: float) -> np.ndarray:
     """(H, W) bool: valid pixels with a 4-neighbour whose depth differs by more than ``rel_jump`` of the nearer
     one, or that has no data."""
-    z = np.asarray(depth_m, dtype=np.float64)
+    z = np.asarray(depth_m)
     valid = z > 0
     edge = np.zeros(z.shape, dtype=bool)
     for axis in (0, 1):
