@@ -1,6 +1,9 @@
 """``sygrid eval --data DIR --models DIR``: the perception pipeline's accuracy and speed on a generated dataset.
 
 Prints box/mask mAP and per-part ADD(-S) recall, median rotation and translation errors, and writes them as JSON.
+``--sensor ideal,oak-d`` runs the same images through each named sensor model (``sygrid.sensor`` presets, seeded
+per image from ``--sensor-seed``): one report per sensor, with the sensed depth's AbsRel and delta1 against the
+exact depth, and a table of the sensors side by side.
 """
 
 from __future__ import annotations
@@ -8,9 +11,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from perception.evaluation import EvalSettings, evaluate, format_table
+from perception.evaluation import EvalSettings, evaluate, format_comparison, format_table
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
+from sygrid.errors import ConfigError
 from sygrid.fileio import write_json_atomic
+from sygrid.sensor import SENSOR_PRESETS, sensor_preset
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,14 +28,41 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     refine.add_argument("--refine", dest="refine", action="store_true", default=None, help="ICP on depth")
     refine.add_argument("--no-refine", dest="refine", action="store_false")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
-    parser.add_argument("--out", type=Path, default=None, help="JSON report (default: DATA/eval_<models>.json)")
+    parser.add_argument(
+        "--sensor",
+        default="ideal",
+        help=f"sensor model(s) the frames go through, comma-separated (default ideal: the stored frames); "
+        f"{', '.join(SENSOR_PRESETS)}",
+    )
+    parser.add_argument("--sensor-seed", type=int, default=0, help="seeds the sensor models, with each image's ids")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="JSON report (default: DATA/eval_<models>[_<sensor>].json)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
+    sensors = [name.strip() for name in args.sensor.split(",") if name.strip()]
+    if not sensors or len(set(sensors)) != len(sensors):
+        raise ConfigError(f"--sensor: expected distinct sensor names, got {args.sensor!r}")
+    for name in sensors:
+        sensor_preset(name, "--sensor")
     overrides = PipelineOverrides(pose_method=args.pose_method, refine=args.refine, num_threads=args.threads)
     pipeline = PerceptionPipeline.from_folder(args.models, overrides)
-    report = evaluate(pipeline, args.data, EvalSettings(split=args.split, max_images=args.max_images))
-    print(format_table(report))
-    out = args.out or args.data / f"eval_{args.models.name}.json"
-    print(f"wrote {write_json_atomic(out, report)}")
+    reports = []
+    for name in sensors:
+        settings = EvalSettings(split=args.split, max_images=args.max_images, sensor=name, sensor_seed=args.sensor_seed)
+        report = evaluate(pipeline, args.data, settings)
+        print(format_table(report))
+        print(f"wrote {write_json_atomic(_out_path(args, name, len(sensors)), report)}")
+        reports.append(report)
+    if len(reports) > 1:
+        print(format_comparison(reports))
     return 0
+
+
+def _out_path(args: argparse.Namespace, sensor: str, n_sensors: int) -> Path:
+    """``--out`` (or DATA/eval_<models>.json) for a lone ideal sensor; otherwise the sensor's name is appended."""
+    out = args.out or args.data / f"eval_{args.models.name}.json"
+    if n_sensors == 1 and (sensor == "ideal" or args.out is not None):
+        return out
+    return out.with_name(f"{out.stem}_{sensor}{out.suffix}")

@@ -25,6 +25,7 @@ from robot.cell_setup import CellSetup, load_cell_setup
 from robot.pick_report import RunReport, Stage, StopReason
 from robot.picker import Picker
 from sygrid.errors import ConfigError
+from sygrid.sensor import sensor_preset, sensor_rng
 
 log = logging.getLogger(__name__)
 
@@ -75,13 +76,15 @@ def open_cell(
                     unlock_delay_s=d.sim.unlock_delay_s, **(controller_kwargs or {}),
                 )
             )  # fmt: skip
-            camera = EmulatorCamera(process)
+            camera = EmulatorCamera(
+                process, sensor=sensor_preset(d.camera.sensor), rng=sensor_rng(kwargs["parts_seed"])
+            )
             cell = CellConfig()
             T_base_camera = np.linalg.inv(cell.T_world_base) @ cell.T_world_camera
         else:
             from perception.oak import OakCamera, OakConfig
 
-            oak = {k: v for k, v in d.camera.model_dump().items() if k != "kind" and v is not None}
+            oak = {k: v for k, v in d.camera.model_dump().items() if k not in ("kind", "sensor") and v is not None}
             camera = stack.enter_context(OakCamera(OakConfig(**oak)))
         if d.calibration.source == "file":
             from robot.calibration import load_calibration

@@ -4,13 +4,19 @@ Every ground-truth instance seen at least ``min_visib_fract`` is matched to the 
 whose detection mask overlaps its visible mask most (IoU >= ``match_iou``, each estimate used once, best score
 first); unmatched instances count as misses (ADD(-S) failures). Detection mAP goes through pycocotools
 (``sygrid.metrics.detection_metrics``) with less-visible instances ignored rather than required.
+
+Sensing: each image's RGB and exact depth (``depth_true/`` when the dataset was generated through a sensor, else
+``depth/``) go through ``EvalSettings.sensor`` (a ``sygrid.sensor`` preset), seeded from ``sensor_seed`` and the
+image's ids, before the pipeline sees them; "ideal" keeps the stored frame. The sensed depth's AbsRel, delta1 and
+fill rate against the exact depth are reported per image and overall.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,9 +28,18 @@ from perception.pipeline import PerceptionPipeline
 from perception.results import ObjectPose
 from sygrid.annotations import ImageAnnotation
 from sygrid.errors import ConfigError
-from sygrid.metrics import PoseErrors, detection_metrics, pose_errors, pose_metrics_table
+from sygrid.metrics import (
+    PoseErrors,
+    depth_metrics,
+    detection_metrics,
+    mean_depth_metrics,
+    pose_errors,
+    pose_metrics_table,
+)
 from sygrid.objects.model import ObjectModel
-from sygrid.writers import load_bop_item
+from sygrid.scene import METALS
+from sygrid.sensor import metal_mask, sensor_preset, sensor_rng
+from sygrid.writers import load_bop_item, load_bop_true_depth
 
 
 @dataclass(frozen=True)
@@ -33,6 +48,8 @@ class EvalSettings:
     max_images: int | None = None
     min_visib_fract: float = 0.1
     match_iou: float = 0.5
+    sensor: str = "ideal"  # a sygrid.sensor preset the frames go through
+    sensor_seed: int = 0
 
 
 def bop_items(root: Path, split: str) -> list[tuple[int, int]]:
@@ -94,14 +111,24 @@ def evaluate(
 ) -> dict:
     """Runs ``pipeline`` on the split's images; returns detection metrics, the pose table and median timings."""
     s = settings or EvalSettings()
+    sensor = sensor_preset(s.sensor, "EvalSettings.sensor")
     root, split, items = eval_items(data_dir, s)
     if not items:
         raise ConfigError(f"{root / split}: no images")
-    images, detections, records, timings = [], [], [], []
+    images, detections, records, timings, depth_rows, sensor_ms = [], [], [], [], [], []
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
         if depth is None:
             raise ConfigError(f"{root / split / f'{scene_id:06d}'}: image {image_id} has no depth map")
+        depth_true = load_bop_true_depth(root, ann, split)
+        depth_true = depth if depth_true is None else depth_true
+        t0 = time.perf_counter()
+        if not sensor.is_ideal:
+            rng = sensor_rng(s.sensor_seed, scene_id, image_id)
+            metals = _metal_mask(ann, pipeline.models)
+            rgb, depth = sensor.sense(rgb, depth_true, ann.intrinsics, rng, metal_mask=metals)
+        sensor_ms.append(1000.0 * (time.perf_counter() - t0))
+        depth_rows.append((scene_id, image_id, depth_metrics(depth, depth_true)))
         result = pipeline.run(Frame(rgb, depth, ann.intrinsics, timestamp_s=0.0))
         images.append(ann)
         detections.append(result.detections)
@@ -122,6 +149,11 @@ def evaluate(
         "conf_threshold": pipeline.detector.conf_threshold,
         "timings_ms_median": {k: float(np.median([t[k] for t in timings])) for k in timings[0]},
         "detections_per_image_median": float(np.median(n_objects)),
+        "sensor": sensor.name,
+        "sensor_seed": s.sensor_seed,
+        "sensor_ms_median": float(np.median(sensor_ms)),
+        "depth": asdict(mean_depth_metrics(m for *_, m in depth_rows)),
+        "depth_per_image": [{"scene_id": sc, "image_id": im, **asdict(m)} for sc, im, m in depth_rows],
     }
 
 
@@ -139,6 +171,12 @@ def evaluate_detector(
         detections.append(detector.detect(rgb))
     metrics = detection_metrics(images, detections, min_visib_fract=s.min_visib_fract)
     return {"split": split, "n_images": len(items), "conf_threshold": detector.conf_threshold, **metrics.as_dict()}
+
+
+def _metal_mask(ann: ImageAnnotation, models: dict[int, ObjectModel]) -> np.ndarray | None:
+    """The image's pixels of specular metal, from the visible masks and the parts' materials."""
+    materials = [models[i.obj_id].material if i.obj_id in models else "" for i in ann.instances]
+    return metal_mask([i.mask_visib for i in ann.instances], materials, METALS)
 
 
 def _errors(pose: ObjectPose | None, T_gt: np.ndarray, model: ObjectModel) -> PoseErrors:
@@ -168,8 +206,29 @@ def format_table(report: dict) -> str:
             f"{name:<16}{row['metric']:>8}{row['n']:>6}{_pct(row['add_recall']):>14}"
             f"{row['median_re_deg']:>12.2f}{row['median_te_mm']:>11.2f}"
         )
-    t = report["timings_ms_median"]
+    d = report["depth"]
+    lines.append(
+        f"sensor {report['sensor']} (seed {report['sensor_seed']}): depth AbsRel {d['abs_rel']:.4f}  "
+        f"delta1 {_pct(d['delta1'])}  fill {_pct(d['fill_rate'])} against the exact depth"
+    )
+    t = {**report["timings_ms_median"], "sensor": report["sensor_ms_median"]}
     lines.append("median ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()))
+    return "\n".join(lines)
+
+
+def format_comparison(reports: list[dict]) -> str:
+    """One row per report (the same images through different sensors): detection, pose and depth side by side."""
+    lines = [
+        f"{'sensor':<11}{'box mAP50':>11}{'mask mAP50-95':>15}{'ADD(-S)<0.1d':>14}{'re med deg':>12}{'te med mm':>11}"
+        f"{'AbsRel':>9}{'delta1':>8}{'fill':>8}{'sensor ms':>11}"
+    ]
+    for r in reports:
+        det, pose, d = r["detection"], r["pose"]["all"], r["depth"]
+        lines.append(
+            f"{r['sensor']:<11}{det['box_map50']:>11.3f}{det['mask_map50_95']:>15.3f}{_pct(pose['add_recall']):>14}"
+            f"{pose['median_re_deg']:>12.2f}{pose['median_te_mm']:>11.2f}{d['abs_rel']:>9.4f}{_pct(d['delta1']):>8}"
+            f"{_pct(d['fill_rate']):>8}{r['sensor_ms_median']:>11.1f}"
+        )
     return "\n".join(lines)
 
 

@@ -7,7 +7,8 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [sim]         host, scene, seed, unlock_delay_s         (sim cells only: the emulator on a loopback address)
     [robot]       robot.ur_config.URConfig fields (host defaults to [sim] host), workspace = {lo_m, hi_m}
     [gripper]     robot.gripper config: kind = "robotiq_socket" | "digital_output", ... (host defaults to the robot)
-    [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps)
+    [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps); sim only: sensor = a sygrid.sensor
+                  preset the exact frames go through ("ideal", the default: exact; "oak-d", "d435", ...)
     [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
                   conf_threshold, detector_input_size, detect_in_bin, ignore_floor, floor_margin_m,
@@ -33,6 +34,7 @@ from robot.pick_config import PickerConfig
 from robot.ur_config import URConfig
 from sygrid.errors import ConfigError
 from sygrid.scene import validation_message
+from sygrid.sensor import sensor_preset
 
 if TYPE_CHECKING:
     from robot.grasp_config import PlannerConfig
@@ -59,6 +61,7 @@ class CameraSection(_Strict):
     device: str | None = None
     rgb_size: tuple[int, int] | None = None
     fps: float | None = None
+    sensor: str = "ideal"
 
 
 class CalibrationSection(_Strict):
@@ -128,7 +131,10 @@ class CellSetup:
                 raise ConfigError(f"{where}: [cell] kind = 'sim' needs a [sim] section (host, scene, seed)")
             if data.camera.kind != "sim":
                 raise ConfigError(f"{where}: camera.kind must be 'sim' in a simulated cell, got {data.camera.kind!r}")
+            sensor_preset(data.camera.sensor, f"{where}: camera.sensor")
         else:
+            if data.camera.sensor != "ideal":
+                raise ConfigError(f"{where}: camera.sensor is for the simulated camera (a real one is its own sensor)")
             if data.perception.kind == "oracle":
                 raise ConfigError(f"{where}: perception.kind = 'oracle' exists only in the simulated cell")
             if data.calibration.source == "sim":

@@ -15,7 +15,9 @@ belongs to the thread that made it: capture from one thread. The backend is ``gl
 ``MUJOCO_GL`` environment variable read when the camera is made, else EGL (``osmesa`` works where EGL does not).
 
 Frames are stamped with the world's simulated time and carry the true ``T_base_camera`` (a real camera learns
-it from hand-eye calibration; pass ``report_T_base_camera=False`` to withhold it).
+it from hand-eye calibration; pass ``report_T_base_camera=False`` to withhold it). A ``sensor``
+(``sygrid.sensor.SensorModel``, e.g. the "oak-d" preset) turns the rendered RGB and exact depth into what that
+sensor reports, drawing from the camera's ``rng``; without one (or with "ideal") frames are exact.
 """
 
 from __future__ import annotations
@@ -33,12 +35,10 @@ from perception.camera import Camera, Frame
 from sim.cell_model import OVERHEAD_CAMERA, WRIST_CAMERA
 from sim.world import CellWorld
 from sygrid.camera import CameraIntrinsics
+from sygrid.sensor import IDEAL, SensorModel
 from sygrid.transforms import invert, make_T
 
 log = logging.getLogger(__name__)
-
-#: A depth-noise model: (clean depth in metres (H, W) float32, random generator) -> noisy depth, 0 = no data.
-DepthNoise = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 
 _GL_BACKENDS = {"egl": "mujoco.egl", "osmesa": "mujoco.osmesa", "glfw": "mujoco.glfw"}
 _CV_FROM_MUJOCO_CAMERA = np.diag([1.0, -1.0, -1.0])  # MuJoCo camera axes (y up, looking along -z) -> OpenCV
@@ -62,7 +62,7 @@ class SimCamera(Camera):
         camera_name: str = OVERHEAD_CAMERA,
         width: int | None = None,
         height: int | None = None,
-        depth_noise: DepthNoise | None = None,
+        sensor: SensorModel = IDEAL,
         rng: np.random.Generator | None = None,
         gl_backend: str | None = None,
         report_T_base_camera: bool = True,
@@ -70,8 +70,10 @@ class SimCamera(Camera):
         names = [world.model.camera(i).name for i in range(world.model.ncam)]
         if camera_name not in names:
             raise ValueError(f"the cell has no camera {camera_name!r}; available: {names}")
-        if depth_noise is not None and rng is None:
-            raise ValueError("a depth_noise model needs an rng (np.random.Generator) so that frames are reproducible")
+        if not sensor.is_ideal and rng is None:
+            raise ValueError(
+                f"sensor {sensor.name!r} needs an rng (np.random.Generator) so that frames are reproducible"
+            )
         default = {OVERHEAD_CAMERA: world.config.camera_intrinsics, WRIST_CAMERA: world.config.wrist_camera_intrinsics}
         base = default.get(camera_name, CameraIntrinsics.from_fov(640, 480, 45.0))
         width, height = width or base.width, height or base.height
@@ -87,7 +89,7 @@ class SimCamera(Camera):
         self._world = world
         self._camera_name = camera_name
         self._width, self._height = int(width), int(height)
-        self._depth_noise, self._rng = depth_noise, rng
+        self._sensor, self._rng = sensor, rng
         self._backend = backend
         self._report_pose = report_T_base_camera
         self._camera_id = names.index(camera_name)
@@ -146,8 +148,8 @@ class SimCamera(Camera):
         depth = depth_buffer_to_metres(
             np.flipud(self._depth), model.vis.map.znear * extent, model.vis.map.zfar * extent
         )
-        if self._depth_noise is not None:
-            depth = np.asarray(self._depth_noise(depth, self._rng), dtype=np.float32)
+        if not self._sensor.is_ideal:
+            rgb, depth = self._sensor.sense(rgb, depth, self._intrinsics, self._rng)
         T_base_camera = invert(world.config.T_world_base) @ T_world_camera if self._report_pose else None
         return Frame(rgb, depth, self._intrinsics, timestamp_s, T_base_camera)
 

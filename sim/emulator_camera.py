@@ -4,7 +4,9 @@
 ``CellWorld`` with ``SimCamera`` (between physics steps, under the world's lock only while it copies the scene)
 and sends the arrays over the pipe. So the picking runtime sees frames exactly as from an OAK: RGB, metric depth
 registered to it, intrinsics and a timestamp (the world's simulated time). ``T_base_camera`` is withheld unless
-``report_T_base_camera``: the runtime takes the camera pose from its calibration, as on hardware.
+``report_T_base_camera``: the runtime takes the camera pose from its calibration, as on hardware. A ``sensor``
+(``sygrid.sensor.SensorModel``) is applied here to the exact frames the emulator renders, with this camera's
+``rng``.
 """
 
 from __future__ import annotations
@@ -15,12 +17,25 @@ import numpy as np
 
 from perception.camera import Camera, Frame
 from sygrid.camera import CameraIntrinsics
+from sygrid.sensor import IDEAL, SensorModel
 
 
 class EmulatorCamera(Camera):
     """A ``perception.camera.Camera`` over ``process.capture()`` (``sim.controller.ControllerProcess``)."""
 
-    def __init__(self, process: Any, report_T_base_camera: bool = False, timeout_s: float = 10.0) -> None:
+    def __init__(
+        self,
+        process: Any,
+        report_T_base_camera: bool = False,
+        timeout_s: float = 10.0,
+        sensor: SensorModel = IDEAL,
+        rng: np.random.Generator | None = None,
+    ) -> None:
+        if not sensor.is_ideal and rng is None:
+            raise ValueError(
+                f"sensor {sensor.name!r} needs an rng (np.random.Generator) so that frames are reproducible"
+            )
+        self._sensor, self._rng = sensor, rng
         self._process = process
         self._report = report_T_base_camera
         self._timeout_s = timeout_s
@@ -38,9 +53,12 @@ class EmulatorCamera(Camera):
         fields = self._process.capture(timeout_s=self._timeout_s)
         self._intrinsics = fields["intrinsics"]
         self.last_T_base_camera = fields["T_base_camera"]
+        rgb, depth = fields["rgb"], fields["depth_m"]
+        if not self._sensor.is_ideal:
+            rgb, depth = self._sensor.sense(rgb, depth, fields["intrinsics"], self._rng)
         return Frame(
-            rgb=fields["rgb"],
-            depth_m=fields["depth_m"],
+            rgb=rgb,
+            depth_m=depth,
             intrinsics=fields["intrinsics"],
             timestamp_s=float(fields["timestamp_s"]),
             T_base_camera=fields["T_base_camera"] if self._report else None,

@@ -36,8 +36,10 @@ from sygrid.errors import ConfigError, SygridError
 from sygrid.fileio import read_json, remove_stale_temporaries, write_json_atomic
 from sygrid.objects.model import ObjectModel
 from sygrid.recipe import Recipe
-from sygrid.render import apply_stereo_noise, intrinsics_from_spec, render_item
+from sygrid.render import intrinsics_from_spec, render_item
 from sygrid.render.camera_pose import camera_T_world_camera
+from sygrid.scene import METALS
+from sygrid.sensor import metal_mask, sensor_preset
 from sygrid.transforms import invert
 from sygrid.writers import BopWriter, CocoWriter, YoloWriter
 
@@ -59,10 +61,11 @@ class Item:
     index: int
     annotation: ImageAnnotation
     rgb: np.ndarray
-    depth_m: np.ndarray
+    depth_m: np.ndarray  # as the recipe's sensor reports it
     is_val: bool
     mode: str
     timings: dict[str, float] = field(default_factory=dict)
+    depth_true_m: np.ndarray | None = None  # the exact depth, when the sensor is not the ideal one
 
 
 @dataclass
@@ -110,9 +113,15 @@ def make_item(recipe: Recipe, seed: int, index: int) -> Item:
         base_dir=recipe.base_dir,
         full_masks=recipe.spec.full_masks,
     )
-    depth_m = rendered.depth_m
-    if recipe.spec.depth_noise:
-        depth_m = apply_stereo_noise(depth_m, rendered.rgb, intrinsics, rng)
+    sensor = sensor_preset(recipe.spec.sensor, "recipe sensor")
+    rgb, depth_m, depth_true_m = rendered.rgb, rendered.depth_m, None
+    t_sensor = time.perf_counter()
+    if not sensor.is_ideal:
+        materials = [result.models[inst.model_index].material for inst in result.instances]
+        metals = metal_mask([rendered.ids_visib == k + 1 for k in range(len(materials))], materials, METALS)
+        rgb, depth_m = sensor.sense(rendered.rgb, rendered.depth_m, intrinsics, rng, metal_mask=metals)
+        depth_true_m = rendered.depth_m
+    t_sensor = time.perf_counter() - t_sensor
     T_camera_obj = invert(T_world_camera)[None] @ result.T_world_obj
     obj_ids = [result.models[inst.model_index].obj_id for inst in result.instances]
     masks_full = rendered.masks_full if recipe.spec.full_masks else None
@@ -124,9 +133,9 @@ def make_item(recipe: Recipe, seed: int, index: int) -> Item:
         scene_id=index // IMAGES_PER_SCENE,
     )
     is_val = recipe.spec.split == "train" and np.random.default_rng(split_ss).random() < recipe.spec.val_fraction
-    timings = {"drop": t_drop, **{f"render_{k}": v for k, v in rendered.timings.items()}}
+    timings = {"drop": t_drop, **{f"render_{k}": v for k, v in rendered.timings.items()}, "sensor": t_sensor}
     timings["item"] = time.perf_counter() - t0
-    return Item(index, annotation, rendered.rgb, depth_m, bool(is_val), scene.render.mode, timings)
+    return Item(index, annotation, rgb, depth_m, bool(is_val), scene.render.mode, timings, depth_true_m)
 
 
 def _make_item_safely(recipe: Recipe, seed: int, index: int) -> tuple[int, Item | None, str | None]:
@@ -291,7 +300,7 @@ class DatasetOutput:
             split = self.recipe.bop_split(item.is_val)
             if split not in self.bop:
                 self.bop[split] = BopWriter(self.out_dir / "bop", self.models, split=split)
-            self.bop[split].write(ann, rgb, depth)
+            self.bop[split].write(ann, rgb, depth, depth_true_m=item.depth_true_m)
         label_split = self.recipe.label_split(item.is_val)
         if self.yolo is not None:
             self.yolo.write(ann, rgb, depth, split=label_split)

@@ -279,11 +279,13 @@ def detection_metrics(
 @dataclass(frozen=True)
 class DepthMetrics:
     """AbsRel (a fraction, lower is better) and delta1 (a fraction in [0, 1], higher is better) over ``n_valid``
-    pixels; NaN when no pixel is valid."""
+    pixels; NaN when no pixel is valid. ``fill_rate``: the fraction of the reference's pixels with data (inside the
+    mask) where the evaluated depth has data too (a sensor's dropouts); NaN when the reference has none."""
 
     abs_rel: float
     delta1: float
     n_valid: int
+    fill_rate: float = math.nan
 
 
 def depth_metrics(depth_m: np.ndarray, depth_ref_m: np.ndarray, mask: np.ndarray | None = None) -> DepthMetrics:
@@ -296,29 +298,37 @@ def depth_metrics(depth_m: np.ndarray, depth_ref_m: np.ndarray, mask: np.ndarray
     if depth.ndim != 2 or depth.shape != ref.shape:
         raise ValueError(f"depth_m and depth_ref_m: expected two (h, w) arrays, got {depth.shape} and {ref.shape}")
     with np.errstate(invalid="ignore"):
-        valid = np.isfinite(depth) & np.isfinite(ref) & (depth > 0) & (ref > 0)
+        ref_valid = np.isfinite(ref) & (ref > 0)
+        valid = np.isfinite(depth) & (depth > 0) & ref_valid
     if mask is not None:
         if np.shape(mask) != ref.shape:
             raise ValueError(f"mask: expected shape {ref.shape}, got {np.shape(mask)}")
-        valid &= np.asarray(mask, dtype=bool)
-    n = int(np.count_nonzero(valid))
+        ref_valid &= np.asarray(mask, dtype=bool)
+        valid &= ref_valid
+    n, n_ref = int(np.count_nonzero(valid)), int(np.count_nonzero(ref_valid))
+    fill_rate = n / n_ref if n_ref else math.nan
     if n == 0:
-        return DepthMetrics(math.nan, math.nan, 0)
+        return DepthMetrics(math.nan, math.nan, 0, fill_rate)
     d, d_ref = depth[valid], ref[valid]
     abs_rel = float(np.mean(np.abs(d - d_ref) / d_ref))
     delta1 = float(np.mean(np.maximum(d / d_ref, d_ref / d) < DELTA1_RATIO))
-    return DepthMetrics(abs_rel, delta1, n)
+    return DepthMetrics(abs_rel, delta1, n, fill_rate)
 
 
 def mean_depth_metrics(per_image: Iterable[DepthMetrics]) -> DepthMetrics:
-    """Dataset-level AbsRel and delta1: the mean of the per-image values (images with no valid pixel skipped)."""
+    """Dataset-level AbsRel and delta1: the mean of the per-image values (images with no valid pixel skipped);
+    ``fill_rate``: the mean over the images whose reference has data."""
+    per_image = list(per_image)
+    fills = [m.fill_rate for m in per_image if not math.isnan(m.fill_rate)]
+    fill_rate = float(np.mean(fills)) if fills else math.nan
     items = [m for m in per_image if m.n_valid > 0]
     if not items:
-        return DepthMetrics(math.nan, math.nan, 0)
+        return DepthMetrics(math.nan, math.nan, 0, fill_rate)
     return DepthMetrics(
         float(np.mean([m.abs_rel for m in items])),
         float(np.mean([m.delta1 for m in items])),
         int(sum(m.n_valid for m in items)),
+        fill_rate,
     )
 
 

@@ -7,8 +7,10 @@ A recipe is a JSON file (the ones the project trains on live in ``launch/recipes
 
 ``scene`` is a scene file path (relative to the recipe) or an inline scene object. ``raster_fraction`` of the items
 are rendered with the rasterised mode instead of the scene's path-traced one: cheap items that also cover the look
-of the simulated cell's camera. ``depth_noise`` writes depth through the stereo noise model instead of exact depth.
-Errors name the file and the field, as the scene's do.
+of the simulated cell's camera. ``sensor`` names the RGB-D sensor model the items are seen through
+(``sygrid.sensor.SENSOR_PRESETS``: "ideal", the default, keeps the rendered RGB and exact depth; any other writes
+the sensed RGB and depth, and the exact depth beside it, ``depth_true/`` in BOP). Errors name the file and the
+field, as the scene's do.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 from sygrid.scene import SceneSpec, load_scene, parse_scene, scene_to_json, validation_message
+from sygrid.sensor import SENSOR_PRESETS
 
 Format = Literal["bop", "yolo", "coco"]
 Fraction = Annotated[float, Field(ge=0, le=1)]
@@ -37,7 +40,7 @@ class RecipeSpec(BaseModel):
     val_fraction: Annotated[float, Field(ge=0, le=0.5)] = 0.1
     formats: tuple[Format, ...] = ("bop", "yolo", "coco")
     raster_fraction: Fraction = 0.0
-    depth_noise: bool = False
+    sensor: str = "ideal"
     full_masks: bool = True
     max_drop_attempts: int = Field(default=3, ge=1, le=20)
 
@@ -49,6 +52,13 @@ class RecipeSpec(BaseModel):
         if len(set(formats)) != len(formats):
             raise ValueError(f"must not repeat a format, got {list(formats)}")
         return formats
+
+    @field_validator("sensor")
+    @classmethod
+    def _sensor(cls, sensor: str) -> str:
+        if sensor not in SENSOR_PRESETS:
+            raise ValueError(f"unknown sensor {sensor!r}; valid: {sorted(SENSOR_PRESETS)}")
+        return sensor
 
 
 class Recipe:

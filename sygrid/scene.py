@@ -72,6 +72,8 @@ class ContinuousSymmetrySpec(_Strict):
 
 # The keys of sygrid.objects.cad.MATERIAL_DENSITY_KG_M3 (a test keeps the two in step).
 Material = Literal["steel", "zinc", "brass", "aluminium", "painted", "plastic"]
+#: The materials rendered as conductors (``sygrid.render.materials``): specular metal, where stereo matching fails.
+METALS: frozenset[str] = frozenset({"steel", "zinc", "brass", "aluminium"})
 
 
 class ObjectSpec(_Strict):
@@ -204,7 +206,6 @@ class RenderSpec(_Strict):
     max_depth: int = Field(default=8, ge=1, le=128)
     denoiser: Literal["none", "oidn"] = "oidn"
     reconstruction_filter: Literal["box", "gaussian"] = "box"
-    depth_noise: bool = False
 
     @model_validator(mode="before")
     @classmethod

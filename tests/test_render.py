@@ -1,4 +1,4 @@
-"""Rendering: variant choice, metric depth, instance ids and masks, determinism, stereo depth noise.
+"""Rendering: variant choice, metric depth, instance ids and masks, determinism.
 
 Tiny renders (64x48, 4 spp) of hand-placed boxes, so the expected depths and pixels are known exactly.
 """
@@ -14,7 +14,6 @@ from sygrid.objects.model import ObjectModel
 from sygrid.physics import Instance
 from sygrid.render import (
     VARIANTS,
-    apply_stereo_noise,
     choose_variant,
     look_at_T_world_camera,
     material_bsdf,
@@ -177,28 +176,6 @@ def test_camera_pose_sampling_looks_at_bin():
 def _ray_floor_hit(T: np.ndarray) -> np.ndarray:
     o, d = T[:3, 3], T[:3, 2]
     return o + d * (-o[2] / d[2])
-
-
-def test_stereo_noise_grows_with_depth_and_drops_edges():
-    K = CameraIntrinsics.from_fov(200, 100, 60.0)
-    depth = np.full((100, 200), 0.5, dtype=np.float32)
-    depth[:, 100:] = 1.5
-    noisy_a = apply_stereo_noise(depth, None, K, np.random.default_rng(0), hole_fraction=0.0)
-    noisy_b = apply_stereo_noise(depth, None, K, np.random.default_rng(0), hole_fraction=0.0)
-    assert noisy_a.tobytes() == noisy_b.tobytes()
-    near, far = noisy_a[:, 10:90], noisy_a[:, 110:190]
-    err_near = near[near > 0] - 0.5
-    err_far = far[far > 0] - 1.5
-    assert err_far.std() > 5 * err_near.std()  # sigma_z ~ z^2: ratio 9
-    expected_far = 1.5**2 * 0.1 / (K.fx * 0.075)
-    assert err_far.std() == pytest.approx(expected_far, rel=0.3)
-    edge = noisy_a[:, 98:102]
-    assert (edge == 0).mean() > 0.4  # edge dropouts
-    assert (noisy_a[:, 10:90] == 0).mean() < 0.01  # flat areas keep their data without holes
-    holes = apply_stereo_noise(depth, None, K, np.random.default_rng(1), hole_fraction=0.01)
-    assert 0.05 < (holes[:, 10:90] == 0).mean() < 0.6
-    dark = np.zeros((100, 200, 3), np.uint8)
-    assert (apply_stereo_noise(depth, dark, K, np.random.default_rng(0)) == 0).all()
 
 
 def test_environment_map_from_file_lights_the_scene(tmp_path):

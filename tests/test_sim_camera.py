@@ -1,5 +1,5 @@
 """The MuJoCo-rendered camera: frame format, metric depth against ray-plane geometry, re-binding after parts are
-added, the depth-noise hook, rendering beside a stepping thread, and the frame time."""
+added, the sensor model, rendering beside a stepping thread, and the frame time."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from sim.world import CellConfig, CellWorld
 from sygrid.camera import CameraIntrinsics
 from sygrid.objects.model import ObjectModel
 from sygrid.robots import ur5e
+from sygrid.sensor import SENSOR_PRESETS
 from sygrid.transforms import invert, make_T, rotation_about
 
 log = logging.getLogger(__name__)
@@ -120,18 +121,21 @@ def test_depth_buffer_conversion_round_trip() -> None:
     assert depth_buffer_to_metres(np.zeros((2, 2)), near, far).max() == 0.0  # nothing hit: no data
 
 
-def test_depth_noise_hook_gets_the_seeded_generator(world: CellWorld) -> None:
-    def noise(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        return depth + rng.normal(0.0, 0.002, depth.shape).astype(np.float32) * (depth > 0)
-
+def test_a_sensor_model_gets_the_seeded_generator(world: CellWorld) -> None:
+    oak = SENSOR_PRESETS["oak-d"]
     with pytest.raises(ValueError, match="needs an rng"):
-        SimCamera(world, depth_noise=noise)
+        SimCamera(world, sensor=oak)
     frames = []
     for _ in range(2):
-        with SimCamera(world, width=160, height=120, depth_noise=noise, rng=np.random.default_rng(5)) as camera:
+        with SimCamera(world, width=160, height=120, sensor=oak, rng=np.random.default_rng(5)) as camera:
             frames.append(_capture_or_skip(camera))
     assert np.array_equal(frames[0].depth_m, frames[1].depth_m)  # same seed, same bytes
-    assert 0.001 < float(np.std(frames[0].depth_m[50:70, 70:90] - 0.9)) < 0.004  # the bin floor
+    assert np.array_equal(frames[0].rgb, frames[1].rgb)
+    floor = frames[0].depth_m[50:70, 70:90]  # the bin floor, 0.9 m away
+    floor = floor[floor > 0]
+    assert floor.size > 0.8 * 400
+    assert float(np.std(floor)) == pytest.approx(oak.depth_noise_sigma_m(0.9), rel=0.5)
+    assert abs(float(np.mean(floor)) - 0.9) < 4 * oak.depth_bias_sigma_m(0.9)
 
 
 def test_unknown_camera_and_oversized_image_are_refused(world: CellWorld) -> None:

@@ -1,10 +1,8 @@
-"""Rendering of SyGRID data items with Mitsuba: variant choice, camera poses, materials, the scene, the renderer,
-and a stereo depth-noise model."""
+"""Rendering of SyGRID data items with Mitsuba: variant choice, camera poses, materials, the scene, the renderer."""
 
 from sygrid.render.camera_pose import intrinsics_from_spec as intrinsics_from_spec
 from sygrid.render.camera_pose import look_at_T_world_camera as look_at_T_world_camera
 from sygrid.render.camera_pose import sample_T_world_camera as sample_T_world_camera
-from sygrid.render.depth_noise import apply_stereo_noise as apply_stereo_noise
 from sygrid.render.materials import MATERIALS as MATERIALS
 from sygrid.render.materials import material_bsdf as material_bsdf
 from sygrid.render.renderer import RenderResult as RenderResult

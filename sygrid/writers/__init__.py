@@ -17,6 +17,7 @@ from sygrid.annotations import ImageAnnotation
 from sygrid.objects.model import ObjectModel
 from sygrid.writers.bop import BopWriter as BopWriter
 from sygrid.writers.bop import load_bop_item as load_bop_item
+from sygrid.writers.bop import load_bop_true_depth as load_bop_true_depth
 from sygrid.writers.coco import CocoWriter as CocoWriter
 from sygrid.writers.yolo import YoloWriter as YoloWriter
 

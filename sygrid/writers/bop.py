@@ -4,6 +4,7 @@ Layout under ``root``::
 
     models/models_info.json, models/obj_OOOOOO.ply            (mm)
     <split>/SSSSSS/rgb/IIIIII.png, depth/IIIIII.png            (uint16, depth_mm = value * depth_scale)
+    <split>/SSSSSS/depth_true/IIIIII.png                       (the exact depth, when depth/ is a sensor's; not BOP)
     <split>/SSSSSS/mask/IIIIII_GGGGGG.png, mask_visib/...      (GGGGGG = index in the scene_gt list;
                                                                 an instance without a full mask gets its visible one)
     <split>/SSSSSS/scene_gt.json, scene_camera.json, scene_gt_info.json
@@ -134,9 +135,17 @@ class BopWriter:
     def scene_dir(self, scene_id: int) -> Path:
         return self.root / self.split / f"{scene_id:06d}"
 
-    def write(self, ann: ImageAnnotation, rgb: np.ndarray, depth_m: np.ndarray | None = None) -> list[Path]:
-        """Writes one image and its ground truth; returns the paths written."""
+    def write(
+        self,
+        ann: ImageAnnotation,
+        rgb: np.ndarray,
+        depth_m: np.ndarray | None = None,
+        depth_true_m: np.ndarray | None = None,
+    ) -> list[Path]:
+        """Writes one image and its ground truth; returns the paths written. ``depth_true_m``: the exact depth
+        beside a sensor's ``depth_m`` (``depth_true/``), same units and scale."""
         check_item(ann, rgb, depth_m)
+        check_item(ann, rgb, depth_true_m)
         unknown = sorted({i.obj_id for i in ann.instances} - set(self.models))
         if unknown:
             raise ValueError(f"obj_id {unknown} not among the writer's models {sorted(self.models)}")
@@ -144,10 +153,14 @@ class BopWriter:
             raise ValueError(f"depth_scale_mm: expected > 0, got {ann.depth_scale_mm}")
         sdir, im = self.scene_dir(ann.scene_id), f"{ann.image_id:06d}"
         # Convert and check everything before the first write, so a bad item leaves the dataset untouched.
-        depth_png = None if depth_m is None else encode_png(depth_to_png_units(depth_m, ann.depth_scale_mm), "depth")
+        depth_pngs = {
+            folder: encode_png(depth_to_png_units(d, ann.depth_scale_mm), "depth")
+            for folder, d in (("depth", depth_m), ("depth_true", depth_true_m))
+            if d is not None
+        }
         paths = [write_bytes_atomic(sdir / "rgb" / f"{im}.png", encode_png(np.asarray(rgb)[..., ::-1], "rgb"))]
-        if depth_png is not None:
-            paths.append(write_bytes_atomic(sdir / "depth" / f"{im}.png", depth_png))
+        for folder, png in depth_pngs.items():
+            paths.append(write_bytes_atomic(sdir / folder / f"{im}.png", png))
         for g, inst in enumerate(ann.instances):
             name = f"{im}_{g:06d}.png"
             visib = np.asarray(inst.mask_visib, dtype=bool)
@@ -196,10 +209,7 @@ def load_bop_item(
         depth_scale_mm = float(cam.get("depth_scale", 1.0))
     except (KeyError, ValueError, TypeError) as err:
         raise ConfigError(f"{sdir / 'scene_camera.json'}[{key}]: expected cam_K (9 numbers): {err}") from err
-    depth_m = None
-    depth_path = sdir / "depth" / f"{im}.png"
-    if depth_path.exists():
-        depth_m = (_read_png(depth_path).astype(np.float64) * depth_scale_mm / MM_PER_M).astype(np.float32)
+    depth_m = _read_depth(sdir / "depth" / f"{im}.png", depth_scale_mm)
     info_list = infos.get(key, [])
     instances = []
     for g, entry in enumerate(gts[key]):
@@ -228,3 +238,16 @@ def load_bop_item(
         )
     ann = ImageAnnotation(image_id, intrinsics, tuple(instances), scene_id=scene_id, depth_scale_mm=depth_scale_mm)
     return ann, rgb, depth_m
+
+
+def load_bop_true_depth(root: str | Path, ann: ImageAnnotation, split: str = "train_pbr") -> np.ndarray | None:
+    """The exact depth (h, w) float32 metres of an image whose ``depth/`` is a sensor's (``depth_true/``), None
+    when the dataset has none (its ``depth/`` is then exact)."""
+    sdir = Path(root) / split / f"{ann.scene_id:06d}"
+    return _read_depth(sdir / "depth_true" / f"{ann.image_id:06d}.png", ann.depth_scale_mm)
+
+
+def _read_depth(path: Path, depth_scale_mm: float) -> np.ndarray | None:
+    if not path.exists():
+        return None
+    return (_read_png(path).astype(np.float64) * depth_scale_mm / MM_PER_M).astype(np.float32)
