@@ -1,6 +1,7 @@
 """The runtime camera interface: a ``Frame`` of RGB + metric depth, and the ``Camera`` every backend implements.
 
-Backends: the rendered camera of the simulated cell (``sim.camera.SimCamera``) and, for hardware, the OAK camera.
+Backends: the rendered camera of the simulated cell (``sim.camera.SimCamera``) and, for hardware, the OAK camera
+(``perception.oak``) and the RealSense D435 (``perception.realsense``).
 Images follow the project conventions: RGB uint8 (H, W, 3); depth float32 metres along the camera z axis
 (0 = no data), registered to the RGB image, so that ``intrinsics`` describes both.
 """
