@@ -17,6 +17,8 @@ steady clock: ``time.monotonic()`` on Linux), or the raw device clock with ``tim
 shows it stopped.
 
 Without a device: ``OakCamera`` raises ``OakNotFoundError`` naming what it looked for and what depthai sees.
+``OakFrameSource`` (the host side of ``capture``) reads any queue of synced groups, so with ``sync_queue`` it runs in
+a host-only pipeline fed by host nodes (the tests do); the device nodes (``_device_streams``) need a device.
 depthai is imported on first use (importing it searches for USB support and logs about it).
 """
 
@@ -153,7 +155,7 @@ class OakCamera(Camera):
 
     def __init__(self, config: OakConfig | None = None) -> None:
         self.config = config if config is not None else OakConfig()
-        dai = self._dai = _dai()
+        dai = _dai()
         self._closed = False
         self._device = _open_device(dai, self.config)
         try:
@@ -162,12 +164,12 @@ class OakCamera(Camera):
             calibration = self._device.readCalibration()
             self._intrinsics = oak_intrinsics(calibration, RGB_SOCKET, *self.config.rgb_size)
             self._pipeline = dai.Pipeline(self._device)
-            self._queue = _build_pipeline(dai, self._pipeline, self.plan)
+            queue = _build_pipeline(dai, self._pipeline, self.plan)
             self._pipeline.start()
         except Exception:
             self._device.close()
             raise
-        self._checked_transformation = False
+        self._source = OakFrameSource(queue, self._intrinsics, self.config, dai.Clock, f"OAK {self.device_id}")
         log.info(
             "OAK %s (%s) started: %dx%d RGB-D at %.0f fps, depth aligned by %s",
             self.device_id,
@@ -188,23 +190,7 @@ class OakCamera(Camera):
     def capture(self) -> Frame:
         if self._closed:
             raise OakError("the OAK camera is closed")
-        t_call_s = self._dai.Clock.now().total_seconds()  # the clock of the frames' host timestamps
-        deadline = time.monotonic() + self.config.frame_timeout_s
-        self._queue.tryGetAll()  # frames queued before the call are stale
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise OakError(
-                    f"no RGB-D frame from OAK {self.device_id} within {self.config.frame_timeout_s} s "
-                    "(device disconnected, or the pipeline stalled)"
-                )
-            group = self._queue.get(timedelta(seconds=remaining))
-            if group is None:
-                continue
-            rgb_msg, depth_msg = group["rgb"], group["depth"]
-            if rgb_msg.getTimestamp().total_seconds() >= t_call_s:
-                break
-        return self._to_frame(rgb_msg, depth_msg)
+        return self._source.next_frame()
 
     def close(self) -> None:
         if self._closed:
@@ -215,13 +201,44 @@ class OakCamera(Camera):
         finally:
             self._device.close()
 
+
+class OakFrameSource:
+    """The host end of the pipeline: synced colour + depth ``dai.MessageGroup``s (members "rgb": BGR888i of the
+    intrinsics' size, "depth": uint16 millimetres of the same size) from a depthai output ``queue`` as ``Frame``s.
+    ``clock``: depthai's host clock (``dai.Clock``), the clock of the messages' host timestamps; ``name`` names the
+    camera in errors. ``next_frame`` drops the groups queued before the call and returns the first whose colour frame
+    was taken at or after the call, within ``config.frame_timeout_s``."""
+
+    def __init__(self, queue: Any, intrinsics: CameraIntrinsics, config: OakConfig, clock: Any, name: str) -> None:
+        self._queue, self._intrinsics, self.config, self._clock, self.name = queue, intrinsics, config, clock, name
+        self._checked_transformation = False
+
+    def next_frame(self) -> Frame:
+        t_call_s = self._clock.now().total_seconds()
+        deadline = time.monotonic() + self.config.frame_timeout_s
+        self._queue.tryGetAll()  # frames queued before the call are stale
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise OakError(
+                    f"no RGB-D frame from {self.name} within {self.config.frame_timeout_s} s "
+                    "(device disconnected, or the pipeline stalled)"
+                )
+            group = self._queue.get(timedelta(seconds=remaining))
+            if group is None:
+                continue
+            rgb_msg, depth_msg = group["rgb"], group["depth"]
+            if rgb_msg.getTimestamp().total_seconds() >= t_call_s:
+                break
+        return self._to_frame(rgb_msg, depth_msg)
+
     def _to_frame(self, rgb_msg: Any, depth_msg: Any) -> Frame:
-        w, h = self.config.rgb_size
+        w, h = self._intrinsics.width, self._intrinsics.height
         bgr = rgb_msg.getCvFrame()
         depth_mm = depth_msg.getFrame()
         if bgr.shape != (h, w, 3) or depth_mm.shape != (h, w):
             raise OakError(
-                f"OAK frames do not match the requested {w}x{h}: RGB {bgr.shape}, depth {depth_mm.shape} "
+                f"{self.name} frames do not match the requested {w}x{h}: RGB {bgr.shape}, depth {depth_mm.shape} "
                 "(depth alignment to the colour camera failed?)"
             )
         if not self._checked_transformation:
@@ -244,7 +261,8 @@ class OakCamera(Camera):
             return
         if K_frame.shape == (3, 3) and np.abs(K_frame - self._intrinsics.K).max() > 1.0:
             log.warning(
-                "OAK colour intrinsics from the calibration %s differ by more than 1 px from the frame's own %s",
+                "%s colour intrinsics from the calibration %s differ by more than 1 px from the frame's own %s",
+                self.name,
                 np.round(self._intrinsics.K, 2).tolist(),
                 np.round(K_frame, 2).tolist(),
             )
@@ -295,6 +313,13 @@ def _is_ipv4(name: str) -> bool:
 
 def _build_pipeline(dai: ModuleType, pipeline: Any, plan: OakPipelinePlan) -> Any:
     """Creates the nodes of ``plan`` in ``pipeline`` (which needs its device) and returns the synced output queue."""
+    rgb_out, depth_out = _device_streams(dai, pipeline, plan)
+    return sync_queue(dai, pipeline, rgb_out, depth_out, plan)
+
+
+def _device_streams(dai: ModuleType, pipeline: Any, plan: OakPipelinePlan) -> tuple[Any, Any]:
+    """The device nodes: the colour output and the depth aligned to it (``Node.Output``s). depthai creates these
+    nodes only in a pipeline that has a device."""
     rgb_socket = getattr(dai.CameraBoardSocket, RGB_SOCKET)
     camera = pipeline.create(dai.node.Camera).build(rgb_socket)
     rgb_out = camera.requestOutput(plan.rgb_size, type=dai.ImgFrame.Type.BGR888i, fps=plan.fps, enableUndistortion=True)
@@ -306,19 +331,26 @@ def _build_pipeline(dai: ModuleType, pipeline: Any, plan: OakPipelinePlan) -> An
         presetMode=getattr(dai.node.StereoDepth.PresetMode, plan.stereo_preset),
     )
     stereo.setLeftRightCheck(True)  # depth alignment needs it, and it removes occlusion artefacts
-    sync = pipeline.create(dai.node.Sync)
-    sync.setSyncThreshold(timedelta(seconds=plan.sync_threshold_s))
     # Depth is aligned to the colour camera on the device in both branches (StereoDepth re-projects into CAM_A at
     # rgb_size; ImageAlign warps depth onto rgb_out's frames), so the host gets depth pixel-for-pixel with RGB and
-    # does no registration of its own (``_to_frame`` checks the sizes match).
+    # does no registration of its own (``OakFrameSource`` checks the sizes match).
     if plan.depth_alignment == "stereo_depth":
         stereo.setDepthAlign(rgb_socket)
         stereo.setOutputSize(*plan.rgb_size)
-        stereo.depth.link(sync.inputs["depth"])
-    else:
-        align = pipeline.create(dai.node.ImageAlign)
-        stereo.depth.link(align.input)
-        rgb_out.link(align.inputAlignTo)
-        align.outputAligned.link(sync.inputs["depth"])
+        return rgb_out, stereo.depth
+    align = pipeline.create(dai.node.ImageAlign)
+    stereo.depth.link(align.input)
+    rgb_out.link(align.inputAlignTo)
+    return rgb_out, align.outputAligned
+
+
+def sync_queue(dai: ModuleType, pipeline: Any, rgb_out: Any, depth_out: Any, plan: OakPipelinePlan) -> Any:
+    """A ``Sync`` node pairing ``rgb_out`` and ``depth_out`` messages taken within ``plan.sync_threshold_s`` (group
+    members "rgb" and "depth"; on the pipeline's device, or on the host in a pipeline without one), and its
+    non-blocking host queue of the 4 newest groups (``OakFrameSource`` reads it)."""
+    sync = pipeline.create(dai.node.Sync)
+    sync.setRunOnHost(pipeline.getDefaultDevice() is None)  # on the device when there is one
+    sync.setSyncThreshold(timedelta(seconds=plan.sync_threshold_s))
     rgb_out.link(sync.inputs["rgb"])
+    depth_out.link(sync.inputs["depth"])
     return sync.out.createOutputQueue(maxSize=4, blocking=False)
