@@ -22,6 +22,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "models": ("launch.models", "pack trained runs into a model folder with model cards and test-set metrics"),
     "eval": ("launch.eval", "evaluate the perception models on a generated dataset (mAP, ADD(-S), errors)"),
     "pick": ("launch.pick", "run the pick cycle on a cell file (simulated or hardware) and write its report"),
+    "calibrate": ("launch.calibrate", "calibrate a cell's gripper (empty open/close) and write its calibration file"),
     "show": ("launch.show", "draw the labels of a few dataset items over their images (PNG)"),
 }
 

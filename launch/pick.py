@@ -4,7 +4,7 @@ On a simulated cell it starts the UR controller emulator (MuJoCo backend) on the
 scene's parts dropped with the seed, then runs ``robot.picker.Picker`` until the bin is empty or nothing is safe,
 prints the success rate and cycle times and writes ``pick_report.json`` and ``pick_report.png`` (per-cycle
 timeline of the stage timings, and the first frame with the estimated poses drawn) to ``--out``.
-On a hardware cell the same code connects to the robot, gripper and OAK camera named in the file.
+On a hardware cell the same code connects to the robot, gripper and camera named in the file.
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ def open_cell(
 
     d = setup.data
     kind = perception_kind or d.perception.kind
+    setup.require_gripper_calibration()  # a hardware cell does not start uncalibrated
     with contextlib.ExitStack() as stack:
         process = None
         if setup.is_sim:
@@ -82,10 +83,7 @@ def open_cell(
             cell = CellConfig()
             T_base_camera = np.linalg.inv(cell.T_world_base) @ cell.T_world_camera
         else:
-            from perception.oak import OakCamera, OakConfig
-
-            oak = {k: v for k, v in d.camera.model_dump().items() if k not in ("kind", "sensor") and v is not None}
-            camera = stack.enter_context(OakCamera(OakConfig(**oak)))
+            camera = stack.enter_context(setup.open_camera())
         if d.calibration.source == "file":
             from robot.calibration import load_calibration
 

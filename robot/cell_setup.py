@@ -1,14 +1,17 @@
 """A picking cell's configuration file (TOML): which robot, gripper, camera, calibration, perception, planner and
-cycle settings, so the same runtime drives the simulated cell and a real UR5e with an OAK camera.
+cycle settings, so the same runtime drives the simulated cell and a real UR5e with an OAK or RealSense camera.
 
 Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
 
     [cell]        kind = "sim" | "hardware"
     [sim]         host, scene, seed, unlock_delay_s         (sim cells only: the emulator on a loopback address)
     [robot]       robot.ur_config.URConfig fields (host defaults to [sim] host), workspace = {lo_m, hi_m}
-    [gripper]     robot.gripper config: kind = "robotiq_socket" | "digital_output", ... (host defaults to the robot)
-    [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps); sim only: sensor = a sygrid.sensor
-                  preset the exact frames go through ("ideal", the default: exact; "oak-d", "d435", ...)
+    [gripper]     robot.gripper config: kind = "robotiq_socket" | "digital_output", ... (host defaults to the robot);
+                  calibration = "gripper.json": robot.gripper_calibration's file (``sygrid calibrate gripper``)
+    [camera]      kind = "sim" | "oak" | "realsense"; oak: device, rgb_size, fps (perception.oak.OakConfig);
+                  realsense: serial, rgb_size, depth_size, fps, visual_preset, emitter_enabled, laser_power_mw
+                  (perception.realsense.RealSenseConfig); sim only: sensor = a sygrid.sensor preset the exact
+                  frames go through ("ideal", the default: exact; "oak-d", "d435", ...)
     [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
                   conf_threshold, detector_input_size, detect_in_bin, ignore_floor, floor_margin_m,
@@ -19,10 +22,17 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [picker]      robot.pick_config.PickerConfig fields
 
 Relative paths are taken from the configuration file's folder. Errors name the file and the field.
+
+Gripper calibration: a socket gripper's calibration file, when it exists, sets the gripper's width mapping and
+raises ``[picker] min_held_width_m`` to its hold threshold. A hardware cell with a socket gripper needs it before
+it starts (``require_gripper_calibration``, which ``launch.pick.open_cell`` calls); loading the file does not, so
+``sygrid calibrate gripper`` can read the cell to make it.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -37,7 +47,20 @@ from sygrid.scene import validation_message
 from sygrid.sensor import sensor_preset
 
 if TYPE_CHECKING:
+    from perception.camera import Camera
+    from perception.oak import OakConfig
+    from perception.realsense import RealSenseConfig
     from robot.grasp_config import PlannerConfig
+    from robot.gripper_calibration import GripperCalibration
+
+log = logging.getLogger(__name__)
+
+# [camera] fields per kind (besides kind); the rest must stay unset.
+_CAMERA_FIELDS = {
+    "sim": ("sensor",),
+    "oak": ("device", "rgb_size", "fps"),
+    "realsense": ("serial", "rgb_size", "depth_size", "fps", "visual_preset", "emitter_enabled", "laser_power_mw"),
+}
 
 
 class _Strict(BaseModel):
@@ -57,10 +80,15 @@ class SimSection(_Strict):
 
 
 class CameraSection(_Strict):
-    kind: Literal["sim", "oak"]
+    kind: Literal["sim", "oak", "realsense"]
     device: str | None = None
+    serial: str | None = None
     rgb_size: tuple[int, int] | None = None
+    depth_size: tuple[int, int] | None = None
     fps: float | None = None
+    visual_preset: str | None = None
+    emitter_enabled: StrictBool | None = None
+    laser_power_mw: float | None = None
     sensor: str = "ideal"
 
 
@@ -123,7 +151,7 @@ class CellFile(_Strict):
 class CellSetup:
     """A validated cell file: the sections as objects, paths resolved against the file's folder."""
 
-    def __init__(self, data: CellFile, path: Path) -> None:
+    def __init__(self, data: CellFile, path: Path, load_gripper_calibration: bool = True) -> None:
         self.data, self.path = data, path
         where = str(path)
         if data.cell.kind == "sim":
@@ -145,13 +173,22 @@ class CellSetup:
         if data.sim is not None:
             robot.setdefault("host", data.sim.host)
         self.robot = URConfig.from_dict(robot, f"{where}: [robot]")
+        self.camera = self._camera_config()
         from robot.gripper import gripper_config_from_dict
 
-        self.gripper = gripper_config_from_dict(data.gripper, f"{where}: [gripper]", default_host=self.robot.host)
+        gripper = dict(data.gripper)
+        calibration = gripper.pop("calibration", None)
+        if calibration is not None and not (isinstance(calibration, str) and calibration):
+            raise ConfigError(f"{where}: gripper.calibration must be a file path, got {calibration!r}")
+        self.gripper = gripper_config_from_dict(gripper, f"{where}: [gripper]", default_host=self.robot.host)
         try:
             self.picker = PickerConfig(**data.picker)
         except (TypeError, ConfigError) as exc:
             raise ConfigError(f"{where}: [picker]: {exc}") from None
+        self.gripper_calibration_path = self.resolve(calibration)
+        self.gripper_calibration: GripperCalibration | None = None
+        if load_gripper_calibration and self.gripper_calibration_path is not None:
+            self._apply_gripper_calibration(self.gripper_calibration_path)
         self.planner_overrides = dict(data.planner)
         self.planner_config()  # bad [bin], [place] or [planner] fields fail here, before anything starts
 
@@ -178,6 +215,88 @@ class CellSetup:
     def is_sim(self) -> bool:
         return self.data.cell.kind == "sim"
 
+    def _camera_config(self) -> OakConfig | RealSenseConfig | None:
+        """The hardware camera's config from [camera] (None for the simulated camera); ConfigError for a field of
+        another kind or a bad value."""
+        cam, where = self.data.camera, f"{self.path}: [camera]"
+        given = {k: v for k, v in cam.model_dump(exclude={"kind"}).items() if v is not None and k != "sensor"}
+        if cam.sensor != "ideal":
+            given["sensor"] = cam.sensor
+        stray = sorted(set(given) - set(_CAMERA_FIELDS[cam.kind]))
+        if stray:
+            raise ConfigError(
+                f"{where}: {stray} are not settings of a {cam.kind!r} camera {list(_CAMERA_FIELDS[cam.kind])}"
+            )
+        if cam.kind == "sim":
+            return None
+        try:
+            if cam.kind == "oak":
+                from perception.oak import OakConfig
+
+                return OakConfig(**given)
+            from perception.realsense import RealSenseConfig
+
+            if "fps" in given:
+                if not float(given["fps"]).is_integer():
+                    raise ConfigError(f"RealSenseConfig.fps must be a whole number, got {given['fps']}")
+                given["fps"] = int(given["fps"])
+            return RealSenseConfig(**given)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+
+    def open_camera(self) -> Camera:
+        """Starts the hardware camera of [camera]; ConfigError for the simulated camera (``launch.pick`` builds that
+        one from the emulator)."""
+        kind = self.data.camera.kind
+        if kind == "realsense":
+            from perception.realsense import RealSenseCamera
+
+            return RealSenseCamera(self.camera)
+        if kind == "oak":
+            from perception.oak import OakCamera
+
+            return OakCamera(self.camera)
+        raise ConfigError(f"{self.path}: the simulated camera comes from the emulator, not from open_camera")
+
+    def _apply_gripper_calibration(self, path: Path) -> None:
+        from robot.gripper import RobotiqGripperConfig
+        from robot.gripper_calibration import load_gripper_calibration
+
+        where = f"{self.path}: gripper.calibration"
+        if not isinstance(self.gripper, RobotiqGripperConfig):
+            raise ConfigError(f"{where}: only a socket gripper (kind 'robotiq_socket') has a calibration")
+        if not path.is_file():
+            log.log(
+                logging.INFO if self.is_sim else logging.WARNING,
+                "%s: no gripper calibration at %s (make it with: sygrid calibrate gripper --config %s)",
+                self.path, path, self.path,
+            )  # fmt: skip
+            return
+        calibration = load_gripper_calibration(path)
+        self.gripper = calibration.apply(self.gripper, f"{where} {path}")
+        threshold = calibration.hold_threshold_m
+        if threshold > self.picker.min_held_width_m:
+            self.picker = dataclasses.replace(self.picker, min_held_width_m=threshold)
+        self.gripper_calibration = calibration
+
+    def require_gripper_calibration(self) -> None:
+        """ConfigError, naming the command that makes it, unless this cell may start: a hardware cell with a socket
+        gripper needs its gripper calibration (``[gripper] calibration``, the file present and loaded)."""
+        from robot.gripper import RobotiqGripperConfig
+
+        if self.is_sim or not isinstance(self.gripper, RobotiqGripperConfig) or self.gripper_calibration is not None:
+            return
+        command = f"sygrid calibrate gripper --config {self.path}"
+        if self.gripper_calibration_path is None:
+            raise ConfigError(
+                f'{self.path}: a hardware cell needs a gripper calibration: set [gripper] calibration = "..." (a '
+                f"JSON path) and run `{command}` with nothing between the fingers"
+            )
+        raise ConfigError(
+            f"{self.path}: no gripper calibration at {self.gripper_calibration_path}: run `{command}` with nothing "
+            "between the fingers before a hardware run"
+        )
+
     def resolve(self, value: str | None) -> Path | None:
         """A path from the file, relative to the file's folder."""
         if value is None:
@@ -186,8 +305,9 @@ class CellSetup:
         return p if p.is_absolute() else (self.path.parent / p)
 
 
-def load_cell_setup(path: str | Path) -> CellSetup:
-    """Reads and validates a cell file; ``ConfigError`` naming the file and the field on bad input."""
+def load_cell_setup(path: str | Path, load_gripper_calibration: bool = True) -> CellSetup:
+    """Reads and validates a cell file; ``ConfigError`` naming the file and the field on bad input.
+    ``load_gripper_calibration=False`` leaves the gripper uncalibrated (for the calibration itself)."""
     path = Path(path)
     try:
         raw = tomllib.loads(path.read_text())
@@ -199,4 +319,4 @@ def load_cell_setup(path: str | Path) -> CellSetup:
         data = CellFile.model_validate(raw)
     except ValidationError as exc:
         raise ConfigError(validation_message(exc, str(path))) from None
-    return CellSetup(data, path)
+    return CellSetup(data, path, load_gripper_calibration)

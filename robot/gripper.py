@@ -19,9 +19,10 @@ the robot): ``SET VAR n [VAR n ...]`` answers ``ack``, ``GET VAR`` answers ``VAR
 (activate), ``GTO`` (go to the requested position), ``POS`` (requested on SET, measured on GET; 0 = open, 255 =
 closed), ``SPE``/``FOR`` (speed and force, 0-255), ``STA`` (3 = activated), ``PRE`` (the position request echo),
 ``OBJ`` (0 moving, 1 stopped on an object while opening, 2 while closing, 3 at the requested position) and ``FLT``
-(fault code). A move sends ``SET SPE s FOR f POS p``, waits until ``PRE`` echoes ``p`` (the request has reached the
-gripper), then until ``OBJ`` is non-zero. Every read has a timeout; a timeout or a fault raises ``GripperError``
-naming the host, the port and the command.
+(fault code). ``open()``/``close()`` request 0/255; widths map onto positions through the calibrated readings
+``pos_open``/``pos_closed`` (``RobotiqGripperConfig``). A move sends ``SET SPE s FOR f POS p``, waits until ``PRE``
+echoes ``p`` (the request has reached the gripper), then until ``OBJ`` is non-zero. Every read has a timeout; a
+timeout or a fault raises ``GripperError`` naming the host, the port and the command.
 
 **Digital output** (``DigitalOutputGripper``): one output (standard, configurable or tool, through rtde_io) closes
 the gripper at ``close_level`` and opens it at the other level; it waits ``actuation_time_s`` after switching.
@@ -61,6 +62,8 @@ __all__ = [
 ROBOTIQ_PORT = 63352
 # OBJ values of the Robotiq register map.
 OBJ_MOVING, OBJ_STOPPED_OPENING, OBJ_STOPPED_CLOSING, OBJ_AT_POSITION = 0, 1, 2, 3
+#: Position requests for full opening and full closing: the register's ends.
+POS_FULLY_OPEN, POS_FULLY_CLOSED = 0, 255
 _STA_ACTIVE = 3
 _POLL_S = 0.01
 _DIGITAL_KINDS = ("standard", "configurable", "tool")
@@ -85,9 +88,11 @@ class DigitalIO(Protocol):
 class RobotiqGripperConfig:
     """A Robotiq 2F-85 (or 2F-140 with ``stroke_m=0.14``) on the URCap socket of ``host``.
 
-    ``pos_open``/``pos_closed``: the register positions at full opening and full closing (0 and 255 unless the
-    fingers were calibrated); the width is linear between them. Speed and force map linearly onto 0-255 over the
-    gripper's ranges; requests outside them raise ``GripperError``."""
+    ``pos_open``/``pos_closed``: the position register's readings with the fingers fully open (``stroke_m``) and
+    closed on nothing (0 m); the width is linear between them. 0 and 255 uncalibrated; a real 2F-85's fingers meet
+    short of 255, so ``sygrid calibrate gripper`` measures both (``robot.gripper_calibration``). Full opening and
+    closing request the register's ends (0, 255) whatever the calibration. Speed and force map linearly onto 0-255
+    over the gripper's ranges; requests outside them raise ``GripperError``."""
 
     host: str
     port: int = ROBOTIQ_PORT
@@ -307,13 +312,13 @@ class RobotiqSocketGripper(Gripper):
         self._raise_on_fault("activation")
 
     def open(self, width_m: float | None = None, speed_m_s: float | None = None) -> None:
-        pos = self.config.pos_open if width_m is None else self._width_to_pos(width_m)
+        pos = POS_FULLY_OPEN if width_m is None else self._width_to_pos(width_m)
         obj = self.move_to_position(pos, speed_m_s, None)
         if obj == OBJ_STOPPED_OPENING:
             log.warning("%s: the fingers stopped on something while opening", self._where)
 
     def close(self, force_n: float | None = None, speed_m_s: float | None = None) -> bool:
-        return self.move_to_position(self.config.pos_closed, speed_m_s, force_n) == OBJ_STOPPED_CLOSING
+        return self.move_to_position(POS_FULLY_CLOSED, speed_m_s, force_n) == OBJ_STOPPED_CLOSING
 
     def width_m(self) -> float:
         cfg = self.config

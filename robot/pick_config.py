@@ -35,8 +35,8 @@ class PickerConfig:
     min_held_width_m: fingers that stopped at least this far apart hold something, even when the gripper reports no
     object, and fingers closer than this after lifting hold nothing. A gripper detects an object when its fingers
     stop short of the commanded position by more than a tolerance, so a thin sheet squeezed between the pads can
-    read "no object" while fingers closed on air read 0. On hardware, calibrate ``pos_closed`` so that closed on
-    air reads 0.
+    read "no object" while fingers closed on air read 0. On hardware, ``sygrid calibrate gripper`` makes closed on
+    air read 0, and the cell raises this to the calibration's hold threshold (``robot.cell_setup``).
     """
 
     max_cycles: int = 50
