@@ -31,6 +31,7 @@ devices the SDK sees. pyrealsense2 is imported on first use.
 
 from __future__ import annotations
 
+import datetime
 import functools
 import importlib
 import logging
@@ -266,7 +267,11 @@ class RealSenseCamera(Camera):
             depth_sensor = device.first_depth_sensor()
             self.options: dict[str, float] = {}
             if self.playing_back:
-                device.as_playback().set_real_time(False)  # every recorded frame, in order, at the reader's pace
+                # Every recorded frame, in order, at the reader's pace; playback starts with the pipeline, in real
+                # time, so frames played before this line may be gone: rewind to the start.
+                playback = device.as_playback()
+                playback.set_real_time(False)
+                playback.seek(datetime.timedelta(0))
             else:
                 self.options = apply_depth_options(depth_sensor, cfg)
             self.depth_scale_m = float(depth_sensor.get_depth_scale())
