@@ -145,6 +145,11 @@ def open_cell(
 
 
 def run(args: argparse.Namespace) -> int:
+    return run_with_report(args)[0]
+
+
+def run_with_report(args: argparse.Namespace) -> tuple[int, RunReport]:
+    """``sygrid pick``: the exit code (``launch.pick_stops.EXIT_CODES``) and the report written."""
     setup = load_cell_setup(args.config)
     kind = args.perception or setup.data.perception.kind
     if kind == "models" and not (setup.resolve(setup.data.perception.models_dir) / "manifest.json").is_file():
@@ -156,8 +161,9 @@ def run(args: argparse.Namespace) -> int:
         return _pick(args, setup, kind, signals)
 
 
-def _pick(args: argparse.Namespace, setup: CellSetup, kind: str, signals: StopSignals) -> int:
-    """Sets the cell up, runs the picker, and writes the report whatever ends the run; returns the exit code."""
+def _pick(args: argparse.Namespace, setup: CellSetup, kind: str, signals: StopSignals) -> tuple[int, RunReport]:
+    """Sets the cell up, runs the picker, and writes the report whatever ends the run; returns the exit code and
+    the report."""
     shot = SceneShot()
     t0 = time.perf_counter()
     picker: Picker | None = None
@@ -207,7 +213,7 @@ def _pick(args: argparse.Namespace, setup: CellSetup, kind: str, signals: StopSi
     code = exit_code(report, signals.signum)
     if signals.signum is not None:
         print(f"sygrid pick: interrupted by {signals.name} (exit code {code})", file=sys.stderr)
-    return code
+    return code, report
 
 
 def _save_emulator_log(process: Any, out: Path) -> None:

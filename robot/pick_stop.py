@@ -68,7 +68,8 @@ class StopSwitch:
 
 class Guarded:
     """``target`` with its ``commands`` checked against ``switch`` before they run and after they return; every
-    other attribute is ``target``'s, read and written through (a test may replace a method of the target)."""
+    other attribute is ``target``'s, read, written and deleted through (a test may replace a method of the
+    target)."""
 
     def __init__(self, target: Any, switch: StopSwitch, commands: Iterable[str]) -> None:
         object.__setattr__(self, "_target", target)
@@ -96,6 +97,9 @@ class Guarded:
 
     def __setattr__(self, name: str, value: Any) -> None:
         setattr(self._target, name, value)
+
+    def __delattr__(self, name: str) -> None:
+        delattr(self._target, name)
 
     def __repr__(self) -> str:
         return f"Guarded({self._target!r})"

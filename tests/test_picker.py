@@ -829,6 +829,23 @@ def test_a_stop_requested_between_steps_or_before_the_run_sends_nothing():
     assert report.attempts == [] and bin_.parts == [0.0] and robot.stops >= 1
 
 
+def test_the_guarded_robot_refuses_commands_after_a_stop_and_passes_the_rest_through():
+    from robot.pick_stop import StopRequestedError
+
+    picker, robot = make_picker(FakeBin([0.0]))
+    picker.robot.refuse_x = 0.5  # written through to the fake
+    assert robot.refuse_x == 0.5 and picker.robot.target is robot
+    picker.gripper.close = lambda force_n=None, speed_m_s=None: "replaced"
+    assert picker.gripper.close() == "replaced"
+    del picker.gripper.close  # the fake's own method again
+    picker.request_stop("test")
+    with pytest.raises(StopRequestedError, match="test"):
+        picker.robot.move_j(np.zeros(6))
+    with pytest.raises(StopRequestedError):
+        picker.gripper.open()
+    assert picker.robot.q() is robot.q_now and picker.gripper.width_m() == 0.085  # reads are never guarded
+
+
 def test_a_cell_lost_during_an_attempt_keeps_that_attempt_in_the_report():
     """The emulator's process died: the link is lost during an approach and the recovery fails. The report has the
     attempt (connection_lost) in the interrupted cycle, not one attempt fewer than the log."""
