@@ -18,7 +18,7 @@ import pytest
 from sim.controller import EmulatedController, KinematicBackend
 from sim.controller import rtde_wire as wire
 from sim.controller.rtde_probe import RtdeProbe
-from sim.controller.tcp_service import MAX_LINE_BYTES
+from sim.controller.tcp_service import MAX_LINE_BYTES, MAX_PENDING_BYTES, MAX_QUEUED_BYTES, Connection
 
 HOST = "127.0.0.83"
 LONG_LINE = b"x" * (64 * 1024 * 1024) + b"\n"
@@ -100,35 +100,65 @@ def test_bad_gripper_values_are_answered_and_the_connection_goes_on(controller, 
     assert not [r for r in caplog.records if r.exc_info], "a handler raised"
 
 
-def test_a_client_that_never_reads_its_rtde_replies_is_dropped_and_its_buffer_released(controller, caplog):
-    sock = socket.create_connection((HOST, 30004), timeout=5.0)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+def test_a_connection_whose_replies_pile_up_is_closed_and_its_buffer_released(caplog):
+    """``Connection.send`` on a socket whose peer never reads: stream packages are dropped whole above their limit
+    (the connection stays), a reply that would pass ``MAX_QUEUED_BYTES`` closes it and frees the buffer."""
+    with socket.create_server((HOST, 0)) as listener:
+        peer = socket.create_connection(listener.getsockname())
+        ours, address = listener.accept()
+    conn = Connection(ours, address, "test")
     try:
-        sock.sendall(wire.frame(wire.GET_URCONTROL_VERSION))
-        deadline = time.monotonic() + 5.0
-        while not controller.rtde.service.connections and time.monotonic() < deadline:
-            time.sleep(0.01)
-        (conn,) = controller.rtde.service.connections
-        request = wire.frame(wire.GET_URCONTROL_VERSION) * 1000  # 19-byte replies to 3-byte requests
-        sent = 0
+        while conn.send(b"p" * 1000, droppable=True):
+            pass
+        assert not conn.closed and conn.dropped_messages == 1 and len(conn._pending) <= MAX_PENDING_BYTES + 1000
         with caplog.at_level(logging.WARNING):
-            deadline = time.monotonic() + 20.0
-            try:  # past the kernel's buffers (several MB on loopback), then past the emulator's limit
-                while not conn.closed and time.monotonic() < deadline:
-                    sock.sendall(request)
-                    sent += 19 * 1000
-            except OSError:
-                pass  # the server closed the connection while requests were still coming
-            while not conn.closed and time.monotonic() < deadline:
-                time.sleep(0.01)
-        assert conn.closed and len(conn._pending) == 0, f"{sent} bytes of replies asked for"
+            replies = 0
+            while conn.send(b"r" * 19):
+                replies += 1
+        assert conn.closed and len(conn._pending) == 0 and replies > 0
         assert any("does not read its replies" in r.getMessage() for r in caplog.records)
-        deadline = time.monotonic() + 5.0
-        while controller.rtde.session_count and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert controller.rtde.session_count == 0
     finally:
-        sock.close()
+        conn.close()
+        peer.close()
+
+
+def test_an_rtde_client_that_never_reads_its_replies_is_dropped_and_its_buffer_released(controller, caplog):
+    """The same through the RTDE port. On loopback both directions can stall when neither side reads (the kernel's
+    queues full both ways, retransmissions backing off), before the emulator's queue reaches its limit: its
+    memory stays bounded then too, and a stalled attempt is tried again with a new connection."""
+    dropped = False
+    for _ in range(3):
+        sock = socket.create_connection((HOST, 30004), timeout=5.0)
+        try:
+            sock.sendall(wire.frame(wire.GET_URCONTROL_VERSION))
+            deadline = time.monotonic() + 5.0
+            while not controller.rtde.service.connections and time.monotonic() < deadline:
+                time.sleep(0.01)
+            (conn,) = controller.rtde.service.connections
+            request = wire.frame(wire.GET_URCONTROL_VERSION) * 1000  # 19-byte replies to 3-byte requests
+            sock.settimeout(0.2)
+            deadline, most = time.monotonic() + 10.0, 0
+            with caplog.at_level(logging.WARNING):
+                while not conn.closed and time.monotonic() < deadline:
+                    with contextlib.suppress(TimeoutError, OSError):
+                        sock.sendall(request)
+                    most = max(most, len(conn._pending))
+            assert most <= MAX_QUEUED_BYTES  # bounded, dropped or not
+            if conn.closed:
+                assert len(conn._pending) == 0
+                assert any("does not read its replies" in r.getMessage() for r in caplog.records)
+                deadline = time.monotonic() + 5.0
+                while controller.rtde.session_count and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                assert controller.rtde.session_count == 0
+                dropped = True
+                break
+        finally:
+            sock.close()
+        deadline = time.monotonic() + 5.0
+        while controller.rtde.service.connections and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert dropped
 
 
 def test_malformed_rtde_messages_are_answered(controller, caplog):

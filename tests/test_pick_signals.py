@@ -1,11 +1,13 @@
 """``sygrid pick`` stopped by SIGINT and SIGTERM on the simulated cell (oracle perception, a subprocess): it exits
 130 / 143, writes the report with the finished cycles and the interrupted one, says where it stopped, and the
-emulator saw the arm's stop. Hosts 127.0.0.81 and 127.0.0.82 (no other test module uses them). Also the exit codes
-and their ``--help`` text, without a cell."""
+emulator saw the arm's stop. Hosts 127.0.0.81 and 127.0.0.82 (no other test module uses them). Also, without a
+cell: the exit codes and their ``--help`` text; the emulator's child process on 127.0.0.84, which outlives SIGINT
+and SIGTERM (its parent stops it) and whose death is named by ``EmulatorWatch``."""
 
 from __future__ import annotations
 
 import json
+import os
 import queue
 import re
 import signal
@@ -17,8 +19,9 @@ from pathlib import Path
 
 import pytest
 
-from launch.pick_stops import EXIT_CODES, exit_code
+from launch.pick_stops import EXIT_CODES, EmulatorWatch, exit_code
 from robot.pick_report import RunReport
+from sim.controller import ControllerProcess
 
 REPO = Path(__file__).resolve().parents[1]
 SEED = 6  # the drop leaves the parts pickable (tests/test_pick_sim.py's cell)
@@ -43,6 +46,21 @@ def test_exit_codes_and_their_help():
         [sys.executable, "-m", "launch.cli", "pick", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60
     ).stdout
     assert " ".join(text.split()).endswith(" ".join(EXIT_CODES.split()))
+
+
+def test_the_emulator_process_outlives_stop_signals_and_its_death_is_named():
+    deaths: list[str] = []
+    with ControllerProcess("127.0.0.84", backend="kinematic") as process, EmulatorWatch(process, deaths.append, 0.05):
+        for signum in (signal.SIGINT, signal.SIGTERM):  # a Ctrl-C or a service stop reaching the process group
+            os.kill(process.pid, signum)
+        time.sleep(0.5)
+        assert process.exitcode is None and process.state().runtime_state is not None and deaths == []
+        os.kill(process.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 10.0
+        while not deaths and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pid = process.pid
+    assert deaths == [f"the emulator process (pid {pid}, host 127.0.0.84) was killed by SIGKILL"]
 
 
 def _cell_file(folder: Path, host: str) -> Path:

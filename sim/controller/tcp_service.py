@@ -140,7 +140,7 @@ class Connection:
         self.send_blocking(data, timeout_s=drain_s)
         with contextlib.suppress(OSError):
             self.sock.shutdown(socket.SHUT_WR)
-        scratch = bytearray(_RECV_BYTES)
+        scratch = bytearray(4 * _RECV_BYTES)
         end_s = time.monotonic() + drain_s
         while not self.closed and (left := end_s - time.monotonic()) > 0:
             try:
