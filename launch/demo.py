@@ -11,12 +11,14 @@ from __future__ import annotations
 import argparse
 
 from launch import pick
+from robot.pick_report import StopReason
 
 add_arguments = pick.add_arguments
 
 
 def run(args: argparse.Namespace) -> int:
     """As ``sygrid pick``, except that a run that stopped cleanly with parts left (exit code 1 there, so scripts
-    can tell a cleared bin) is a completed demo: its report says what was left and why."""
-    code = pick.run(args)
-    return 0 if code == 1 else code
+    can tell a cleared bin) is a completed demo: its report says what was left and why. A run ended by an error or
+    a stop request (the emulator died) keeps its 1."""
+    code, report = pick.run_with_report(args)
+    return 0 if code == 1 and report.stop_reason not in (StopReason.ERROR, StopReason.INTERRUPTED) else code

@@ -3,8 +3,14 @@
 On a simulated cell it starts the UR controller emulator (MuJoCo backend) on the file's loopback address with the
 scene's parts dropped with the seed, then runs ``robot.picker.Picker`` until the bin is empty or nothing is safe,
 prints the success rate and cycle times and writes ``pick_report.json`` and ``pick_report.png`` (per-cycle
-timeline of the stage timings, and the first frame with the estimated poses drawn) to ``--out``.
-On a hardware cell the same code connects to the robot, gripper and camera named in the file.
+timeline of the stage timings, and the first frame with the estimated poses drawn) to ``--out``, and on a simulated
+cell the emulator's log (``emulator.log``).
+On a hardware cell the same code connects to the robot, gripper and camera named in the file (OAK or RealSense).
+
+SIGINT and SIGTERM stop the run cleanly (``launch.pick_stops``): the arm's motion is stopped, the gripper keeps its
+state, the report is written with every finished cycle and the interrupted one, and the command says where it
+stopped. The report is written whatever ends the run (an error included); a simulated cell's emulator process that
+dies is named. Exit codes: ``launch.pick_stops.EXIT_CODES``.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import argparse
 import contextlib
 import json
 import logging
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -21,10 +28,11 @@ from typing import Any
 
 import numpy as np
 
+from launch.pick_stops import EXIT_CODES, EmulatorWatch, Interrupted, StopSignals, exit_code
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.pick_report import RunReport, Stage, StopReason
 from robot.picker import Picker
-from sygrid.errors import ConfigError
+from sygrid.errors import ConfigError, SygridError
 from sygrid.sensor import sensor_preset, sensor_rng
 
 log = logging.getLogger(__name__)
@@ -33,6 +41,7 @@ DEFAULT_CONFIG = Path(__file__).parent / "cells" / "sim.toml"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EXIT_CODES
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="cell file (TOML)")
     parser.add_argument("--max-cycles", type=int, default=None, help="stop after this many cycles")
     parser.add_argument("--out", type=Path, default=Path("out/pick"), help="report folder")
@@ -134,6 +143,11 @@ def open_cell(
 
 
 def run(args: argparse.Namespace) -> int:
+    return run_with_report(args)[0]
+
+
+def run_with_report(args: argparse.Namespace) -> tuple[int, RunReport]:
+    """``sygrid pick``: the exit code (``launch.pick_stops.EXIT_CODES``) and the report written."""
     setup = load_cell_setup(args.config)
     kind = args.perception or setup.data.perception.kind
     if kind == "models" and not (setup.resolve(setup.data.perception.models_dir) / "manifest.json").is_file():
@@ -141,23 +155,77 @@ def run(args: argparse.Namespace) -> int:
             f"{args.config}: perception.models_dir {setup.resolve(setup.data.perception.models_dir)} has no "
             "manifest.json (train the built-in models first, or run with --perception oracle in the simulated cell)"
         )
+    with StopSignals() as signals:
+        return _pick(args, setup, kind, signals)
+
+
+def _pick(args: argparse.Namespace, setup: CellSetup, kind: str, signals: StopSignals) -> tuple[int, RunReport]:
+    """Sets the cell up, runs the picker, and writes the report whatever ends the run; returns the exit code and
+    the report."""
     shot = SceneShot()
     t0 = time.perf_counter()
-    with open_cell(setup, args.seed, args.perception) as (picker, _process):
+    picker: Picker | None = None
+    models: Any = {}
+    failure = death = None
+    try:
+        with open_cell(setup, args.seed, args.perception) as (picker, process):
 
-        def keep_first(record: Any, frame: Any, result: Any, poses: list[Any]) -> None:
-            if shot.frame is None:
-                shot.frame, shot.poses = frame, poses
+            def keep_first(record: Any, frame: Any, result: Any, poses: list[Any]) -> None:
+                if shot.frame is None:
+                    shot.frame, shot.poses = frame, poses
 
-        picker.on_cycle = keep_first
-        print(f"picking on {setup.data.cell.name or args.config} (perception: {kind}) ...")
-        report = picker.run(args.max_cycles)
-        models = {k: getattr(v, "model", v) for k, v in picker.planner._models.items()}
-    wall = time.perf_counter() - t0
-    print_summary(report, wall)
-    out_json, out_png = write_report(report, args.out, shot, picker.T_base_camera, setup, kind, models)
+            picker.on_cycle = keep_first
+            models = {k: getattr(v, "model", v) for k, v in picker.planner._models.items()}
+            signals.target = picker.request_stop
+            watch = EmulatorWatch(process, picker.request_stop)
+            print(f"picking on {setup.data.cell.name or args.config} (perception: {kind}) ...", flush=True)
+            try:
+                with watch:
+                    picker.run(args.max_cycles)
+            except SygridError as exc:  # a device failed mid-run: the report keeps the cycles so far
+                failure = exc
+            finally:
+                death = watch.death or (process.describe_exit() if process is not None else None)
+                if process is not None:
+                    _save_emulator_log(process, args.out)
+    except Interrupted:
+        pass  # the report says how far the run got
+    except BaseException:  # an unexpected error: keep the run's report, then let it through
+        if picker is not None and picker.last_report is not None:
+            write_report(picker.last_report, args.out, shot, picker.T_base_camera, setup, kind, models)
+        raise
+    report = picker.last_report if picker is not None else None
+    if report is None:
+        detail = f"{signals.name} while setting up the cell" if signals.signum else "the run did not start"
+        report = RunReport([], StopReason.INTERRUPTED, detail)
+    if death is not None and death not in report.stop_detail:
+        report.stop_detail = f"{death}; {report.stop_detail}"  # the cause of whatever error the run ended with
+    print_summary(report, time.perf_counter() - t0)
+    T_base_camera = picker.T_base_camera if picker is not None else np.eye(4)
+    out_json, out_png = write_report(report, args.out, shot, T_base_camera, setup, kind, models)
     print(f"wrote {out_json}\nwrote {out_png}")
-    return 0 if report.stop_reason == StopReason.BIN_EMPTY else 1
+    if death is not None:
+        print(f"sygrid pick: {death}", file=sys.stderr)
+    if failure is not None:
+        print(f"sygrid pick: error: {failure}", file=sys.stderr)
+    code = exit_code(report, signals.signum)
+    if signals.signum is not None:
+        print(f"sygrid pick: interrupted by {signals.name} (exit code {code})", file=sys.stderr)
+    return code, report
+
+
+def _save_emulator_log(process: Any, out: Path) -> None:
+    """The emulator's recent log lines to ``out/emulator.log`` (nothing when its process is gone)."""
+    from sygrid.fileio import write_bytes_atomic
+
+    if process.exitcode is not None:
+        return
+    try:
+        lines = process.log_messages()
+    except SygridError as exc:
+        log.warning("could not read the emulator's log: %s", exc)
+        return
+    write_bytes_atomic(out / "emulator.log", ("\n".join(lines) + "\n").encode())
 
 
 def print_summary(report: RunReport, wall_s: float) -> None:

@@ -54,6 +54,7 @@ class Outcome(_StrEnum):
     PART_STILL_IN_BIN = "part_still_in_bin"  # placed "something", but the next look shows the part where it was
     GRIPPER_BLOCKED = "gripper_blocked"  # the fingers did not open to the grasp's opening: nothing sent down
     NOT_RELEASED = "not_released"  # the fingers did not open at the place pose: something is stuck in them
+    INTERRUPTED = "interrupted"  # the run was stopped during the attempt (the gripper kept its state)
 
 
 class NudgeOutcome(_StrEnum):
@@ -77,15 +78,20 @@ class StopReason(_StrEnum):
     MAX_CYCLES = "max_cycles"
     TOO_MANY_FAILURES = "too_many_failures"  # too many cycles in a row without a pick
     NEEDS_OPERATOR = "needs_operator"  # a stop the cell cannot release itself (emergency stop, arm pinned)
+    INTERRUPTED = "interrupted"  # a stop was requested (a signal, the cell's process died): the detail says where
+    ERROR = "error"  # an unexpected error ended the run (raised on to the caller; its type and message in the detail)
 
 
 class CycleEnd(_StrEnum):
-    """How one cycle ended (``CycleRecord.end``): a pick, a failed or a nudge cycle (the run goes on), or one that
-    ends the run (the same string as its ``StopReason``, see ``STOP_OF_END``)."""
+    """How one cycle ended (``CycleRecord.end``): a pick, a failed or a nudge cycle (the run goes on), one that
+    ends the run (the same string as its ``StopReason``, see ``STOP_OF_END``), or one the run's end cut short
+    (``INTERRUPTED``: a stop request, an error, or a stop the cell cannot release; ``CycleRecord.interrupted_in``
+    names its step)."""
 
     PICKED = "picked"
     FAILED = "failed"
     NUDGED = "nudged"
+    INTERRUPTED = "interrupted"
     BIN_EMPTY = "bin_empty"
     PARTS_UNSEEN = "parts_unseen"
     NOTHING_SAFE = "nothing_safe"
@@ -135,6 +141,7 @@ class CycleRecord:
     nudge: dict | None = None  # the nudge of a "nudged" cycle: part, cause, tilt, distance, outcome, detail
     end: CycleEnd | None = None
     sim_cycle_s: float | None = None  # filled when the next capture's time is known
+    interrupted_in: str = ""  # an interrupted cycle's step, running or just finished (a ``CycleState`` value)
 
     def __post_init__(self) -> None:
         if self.end is not None:
@@ -163,8 +170,9 @@ class RunReport:
 
     @property
     def success_rate(self) -> float:
-        """Picks over attempts that sent motion (refused candidates moved nothing and do not count)."""
-        tried = [a for a in self.attempts if a.outcome != Outcome.MOTION_REFUSED]
+        """Picks over attempts that sent motion and ended (refused candidates moved nothing, an interrupted attempt
+        did not end: neither counts)."""
+        tried = [a for a in self.attempts if a.outcome not in (Outcome.MOTION_REFUSED, Outcome.INTERRUPTED)]
         return self.n_picked / len(tried) if tried else float("nan")
 
     @property
@@ -172,10 +180,10 @@ class RunReport:
         return sum(c.nudge is not None for c in self.cycles)
 
     def failures_by_cause(self) -> dict[str, int]:
-        """Failed attempts per ``Outcome`` value."""
+        """Failed attempts per ``Outcome`` value (an interrupted attempt is not a failure)."""
         counts: dict[str, int] = {}
         for a in self.attempts:
-            if a.outcome != Outcome.PICKED:
+            if a.outcome not in (Outcome.PICKED, Outcome.INTERRUPTED):
                 counts[a.outcome.value] = counts.get(a.outcome.value, 0) + 1
         return counts
 

@@ -21,6 +21,12 @@ attempt, a protective stop or a dropped connection (recovered) ends the cycle, a
 pile has changed). The run (``Picker.run``) stops on a cycle that ends it (``STOP_OF_END``), after ``max_cycles``,
 after ``max_failed_cycles`` cycles in a row without a pick, or when a stop cannot be released by the cell itself
 ("needs_operator": nothing more is sent, the cycles so far are kept in the report).
+
+Stopping from outside (``Picker.request_stop``, e.g. from a signal handler; ``robot.pick_stop``): the motion in
+flight is decelerated to rest (``robot.stop()``), nothing more is sent to the arm or the gripper (which keeps its
+state: a part held stays held), and the run returns "interrupted", its detail saying where it stopped. Whatever ends
+a run, every cycle begun is in its report (``Picker.last_report``, also kept when the run raises): one cut short
+ends "interrupted", with the step it was in and its attempt in progress.
 """
 
 from __future__ import annotations
@@ -61,6 +67,7 @@ from robot.pick_report import (
     StageTimer,
     StopReason,
 )
+from robot.pick_stop import GRIPPER_COMMANDS, ROBOT_COMMANDS, ArmStopper, Guarded, StopRequestedError, StopSwitch
 from robot.ur_errors import MotionFailedError, MotionRefusedError, RecoveryError
 from sygrid.errors import ConfigError
 
@@ -143,6 +150,9 @@ class Picker:
         on_cycle: called with each finished ``CycleRecord``, its frame, the perception result and the poses the
             plan was made from (the result's, or after ``refine_more`` the further refined ones), for pictures.
         nudger: plans nudges when nothing is safe to pick (None: the run stops there).
+
+    ``robot`` and ``gripper`` are the given ones behind ``robot.pick_stop.Guarded`` views (``.target`` is the object
+    given): their commands refuse to run once a stop was requested.
     """
 
     def __init__(
@@ -158,7 +168,10 @@ class Picker:
         on_cycle: Callable[[CycleRecord, Frame, Any, list[Any]], None] | None = None,
         nudger: NudgerLike | None = None,
     ) -> None:
-        self.robot, self.gripper, self.camera = robot, gripper, camera
+        self.stop_switch = StopSwitch()
+        self.robot = Guarded(robot, self.stop_switch, ROBOT_COMMANDS)
+        self.gripper = Guarded(gripper, self.stop_switch, GRIPPER_COMMANDS)
+        self.camera = camera
         self.perception, self.planner = perception, planner
         self.T_base_camera = np.asarray(T_base_camera, dtype=float)
         if self.T_base_camera.shape != (4, 4):
@@ -167,9 +180,10 @@ class Picker:
         self.config = config or PickerConfig()
         self.on_cycle = on_cycle
         self.nudger = nudger
-        self.fingers = Fingers(gripper, self.config)
-        self.arm = Arm(robot, self.fingers, self.config, self.q_observe)
+        self.fingers = Fingers(self.gripper, self.config)
+        self.arm = Arm(self.robot, self.fingers, self.config, self.q_observe)
         self.memory = PartMemory(self.config, self.T_base_camera)
+        self.last_report: RunReport | None = None  # the last run's, also when it raised
         self._steps: dict[CycleState, Callable[[_Cycle], CycleState]] = {
             _S.CAPTURE: self._capture, _S.PERCEIVE: self._perceive, _S.PLAN: self._plan, _S.REFINE: self._refine,
             _S.DECIDE: self._decide, _S.CHECK_EMPTY: self._check_empty, _S.GIVE_UP: self._give_up,
@@ -180,23 +194,50 @@ class Picker:
 
     # --- the run ---------------------------------------------------------------------------------------------
     def run(self, max_cycles: int | None = None) -> RunReport:
-        """Picks until a cycle ends the run, ``max_cycles`` (default ``config.max_cycles``) or too many failed
-        cycles in a row."""
+        """Picks until a cycle ends the run, ``max_cycles`` (default ``config.max_cycles``), too many failed cycles
+        in a row, a stop the cell cannot release, or a stop request (``request_stop``). An unexpected error is
+        raised on, after ``last_report`` got the cycles so far (``StopReason.ERROR``)."""
         limit = max_cycles or self.config.max_cycles
         cycles: list[CycleRecord] = []
+        self.last_report = None
+        with ArmStopper(self.stop_switch, lambda: self.robot.target.stop()) as stopper:
+            try:
+                return self._run_cycles(cycles, limit)
+            except StopRequestedError as exc:
+                stopper.acknowledge()
+                return self._finish(cycles, StopReason.INTERRUPTED, self._where_stopped(cycles, str(exc)))
+            except (RecoveryError, MotionFailedError) as exc:  # a recoverable MotionFailedError never gets here
+                log.error("the cell needs an operator: %s", exc)
+                return self._finish(cycles, StopReason.NEEDS_OPERATOR, f"{type(exc).__name__}: {exc}")
+            except BaseException as exc:  # a forced interrupt (KeyboardInterrupt) or an unexpected error
+                reason = StopReason.INTERRUPTED if isinstance(exc, KeyboardInterrupt) else StopReason.ERROR
+                self._finish(cycles, reason, f"{type(exc).__name__}: {exc}")
+                raise
+
+    def request_stop(self, reason: str) -> None:
+        """Asks the run to stop (``reason``: who asked, e.g. "SIGTERM"); safe from any thread and from a signal
+        handler. The run's stopper thread decelerates the motion in flight (``robot.stop()``); the cycle raises at
+        its next command or step, nothing more is sent, and ``run`` returns "interrupted". A request made before
+        ``run`` ends that run before it moves; ``clear_stop`` forgets it."""
+        self.stop_switch.request(reason)
+
+    def clear_stop(self) -> None:
+        self.stop_switch.clear()
+
+    def _run_cycles(self, cycles: list[CycleRecord], limit: int) -> RunReport:
+        """The run's loop; every cycle's record is in ``cycles`` from its start, so one cut short is kept."""
         failed_in_row = 0
+        self.stop_switch.check()
         self.arm.to_observe()
         while True:
             if len(cycles) >= limit:
                 return self._finish(cycles, StopReason.MAX_CYCLES, f"stopped after {limit} cycle(s)")
-            try:
-                record = self.cycle(len(cycles))
-            except (RecoveryError, MotionFailedError) as exc:  # a recoverable MotionFailedError never gets here
-                log.error("the cell needs an operator: %s", exc)
-                return self._finish(cycles, StopReason.NEEDS_OPERATOR, f"{type(exc).__name__}: {exc}")
-            if cycles and cycles[-1].sim_cycle_s is None:
-                cycles[-1].sim_cycle_s = record.sim_time_s - cycles[-1].sim_time_s
+            self.stop_switch.check()
+            record = CycleRecord(index=len(cycles), sim_time_s=float("nan"))
             cycles.append(record)
+            self._run_cycle(record)
+            if len(cycles) > 1 and cycles[-2].sim_cycle_s is None:
+                cycles[-2].sim_cycle_s = record.sim_time_s - cycles[-2].sim_time_s
             if record.end in STOP_OF_END:
                 return self._finish(cycles, STOP_OF_END[record.end], record.plan_summary)
             if record.end != CycleEnd.NUDGED:  # a nudge is neither a pick nor a failure
@@ -206,16 +247,45 @@ class Picker:
                 return self._finish(cycles, StopReason.TOO_MANY_FAILURES, why)
 
     def _finish(self, cycles: list[CycleRecord], reason: StopReason, detail: str) -> RunReport:
-        report = RunReport(cycles, reason, detail)
-        log.info(
-            "pick run stopped (%s): %d picked in %d attempts; %s", reason, report.n_picked, len(report.attempts), detail
-        )
+        report = self.last_report = RunReport(cycles, reason, detail)
+        log.log(
+            logging.WARNING if reason in (StopReason.INTERRUPTED, StopReason.ERROR) else logging.INFO,
+            "pick run stopped (%s): %d picked in %d attempts; %s", reason, report.n_picked, len(report.attempts),
+            detail,
+        )  # fmt: skip
         return report
+
+    def _where_stopped(self, cycles: list[CycleRecord], reason: str) -> str:
+        """Where a stopped run stopped: the cycle and its step (or between cycles), the TCP position, the fingers."""
+        last = cycles[-1] if cycles else None
+        if last is not None and last.end == CycleEnd.INTERRUPTED:
+            where = f"in cycle {last.index} during {last.interrupted_in}"
+            attempt = last.attempts[-1] if last.attempts else None
+            if attempt is not None and attempt.outcome == Outcome.INTERRUPTED:
+                where += f" (attempt on part {attempt.part_index}, obj {attempt.obj_id})"
+        else:
+            where = f"after cycle {last.index}" if last is not None else "before the first cycle"
+        try:
+            p = np.asarray(self.robot.T_base_tcp())[:3, 3]
+            where += f"; the arm at rest at TCP ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m (base frame)"
+        except Exception as exc:  # the link may be gone: say so, the report is written all the same
+            where += f"; the arm's position is unknown ({type(exc).__name__}: {exc})"
+        try:
+            where += f"; the gripper left as it was, at {self.fingers.width_text()}"
+        except Exception as exc:
+            where += f"; the gripper's state is unknown ({type(exc).__name__})"
+        return f"stop requested ({reason}): stopped {where}"
 
     # --- one cycle: the state machine -------------------------------------------------------------------------
     def cycle(self, index: int = 0) -> CycleRecord:
-        """Runs the steps from ``CAPTURE`` to ``DONE``; returns the record (``end``: see ``CycleEnd``)."""
+        """Runs the steps from ``CAPTURE`` to ``DONE``; returns the record (``end``: see ``CycleEnd``). Raises
+        ``StopRequestedError`` after a stop request, and what the cell cannot recover from."""
         record = CycleRecord(index=index, sim_time_s=float("nan"))
+        self._run_cycle(record)
+        return record
+
+    def _run_cycle(self, record: CycleRecord) -> None:
+        """Fills ``record``; on any exception it is marked interrupted (``_mark_interrupted``) first."""
         c = _Cycle(record, StageTimer(record.stage_wall_s))
         state = _S.CAPTURE
         try:
@@ -223,12 +293,16 @@ class Picker:
                 after = self._step(state, c)
                 if after not in TRANSITIONS[state]:
                     raise RuntimeError(f"Picker: no transition from {state.name} to {after.name}")
+                if after is not _S.DONE:
+                    self.stop_switch.check()  # a request during a step without commands (perception, planning)
                 state = after
-            return record
+        except BaseException as exc:
+            _mark_interrupted(c, state, exc)
+            raise
         finally:
             if c.result is not None:
                 log.info(
-                    "cycle %d: %s (%s) in %.2f s wall", index, record.end, _attempts_text(record.attempts),
+                    "cycle %d: %s (%s) in %.2f s wall", record.index, record.end, _attempts_text(record.attempts),
                     sum(record.stage_wall_s.values()),
                 )  # fmt: skip
                 if self.on_cycle is not None:
@@ -251,8 +325,9 @@ class Picker:
             log.warning(
                 "attempt on part %d: %s during %s (%s); recovering", c.grasp.part_index, cause, state.value, exc
             )
+            after = _fail(c.attempt, cause, str(exc))  # recorded first: the recovery may end the run
             self.arm.recover_and_back_out(float(c.grasp.T_base_lift[2, 3]))
-            return _fail(c.attempt, cause, str(exc))
+            return after
 
     def _capture(self, c: _Cycle) -> CycleState:
         with c.timer(Stage.CAPTURE):
@@ -465,6 +540,21 @@ def _fail(attempt: Attempt, cause: Outcome, detail: str) -> CycleState:
     """Records a failed attempt (its stage is the step's); the attempt ends."""
     attempt.outcome, attempt.detail = cause, detail
     return _S.ATTEMPT_END
+
+
+def _mark_interrupted(c: _Cycle, state: CycleState, exc: BaseException) -> None:
+    """A cycle cut short in ``state`` by ``exc``: ``end`` "interrupted" and its step; the attempt in progress joins
+    its record, as "interrupted" unless a failure was recorded for it already (e.g. the connection lost before a
+    recovery that failed)."""
+    record, attempt = c.record, c.attempt
+    record.end, record.interrupted_in = CycleEnd.INTERRUPTED, state.value
+    if attempt is not None and not any(a is attempt for a in record.attempts):
+        why = f"stop requested ({exc})" if isinstance(exc, StopRequestedError) else f"{type(exc).__name__}: {exc}"
+        if attempt.outcome == Outcome.PICKED:  # the placeholder: nothing recorded yet
+            attempt.outcome, attempt.detail = Outcome.INTERRUPTED, f"{why} during {state.value}"
+        else:
+            attempt.detail = f"{attempt.detail}; then {why}"
+        record.attempts.append(attempt)
 
 
 def _attempts_text(attempts: list[Attempt]) -> str:

@@ -26,13 +26,31 @@ def cache_dir_for(kind: str, cache_dir: str | Path | None = None) -> Path:
     return Path.home() / ".cache" / "sygrid" / kind
 
 
+def current_umask() -> int:
+    """The process's file mode creation mask, read without changing it (``/proc/self/status`` on Linux; elsewhere
+    set and restored at once, which is not atomic against other threads creating files)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_bytes_atomic(path: str | Path, payload: bytes) -> Path:
-    """Bytes to ``path`` through a temporary file in the same folder, fsync, and an atomic rename."""
+    """Bytes to ``path`` through a temporary file in the same folder, fsync, and an atomic rename. The file gets
+    the mode an ordinary ``open(path, "w")`` would give it (``0o666`` less the process's umask), not the
+    temporary file's ``0o600``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), 0o666 & ~current_umask())
             f.write(payload)
             f.flush()
             os.fsync(f.fileno())

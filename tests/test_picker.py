@@ -15,7 +15,7 @@ from robot.cell_setup import load_cell_setup
 from robot.pick_config import PickerConfig
 from robot.pick_report import CycleEnd, Outcome, StopReason
 from robot.picker import TRANSITIONS, CycleState, Picker
-from robot.ur_errors import MotionRefusedError, ProtectiveStopError, RecoveryError
+from robot.ur_errors import ConnectionLostError, MotionRefusedError, ProtectiveStopError, RecoveryError
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
 from sygrid.transforms import make_T
@@ -101,6 +101,7 @@ class FakeRobot:
         self.bin, self.refuse_x, self.stop_once_x = bin_, refuse_x, stop_once_x
         self.q_now = np.zeros(6)
         self.recovered = 0
+        self.stops = 0
         self.holding: float | None = None
 
     def q(self):
@@ -121,6 +122,9 @@ class FakeRobot:
 
     def recover(self, timeout_s=None):
         self.recovered += 1
+
+    def stop(self, decel=None):
+        self.stops += 1
 
 
 class FakeGripper:
@@ -749,6 +753,138 @@ def test_the_report_picture_keeps_the_cycle_labels_inside_the_axes(tmp_path):
     timeline = report_figure(report, SceneShot(), {}).axes[0]
     assert timeline.get_ylim()[1] >= 1.2 * 8.0  # the tallest bar (8 s) with room for its label
     assert save_report_picture(report, SceneShot(), {}, tmp_path / "report.png").stat().st_size > 0
+
+
+# ------------------------------------------------------------------------ stopping from outside (signals, a dead cell)
+
+
+def _commands_after_a_stop(picker: Picker, robot: FakeRobot, gripper) -> list[str]:
+    """Wraps the fakes' commands: the list gets every one sent after a stop was requested."""
+    sent: list[str] = []
+    for target, names in ((robot, ("move_l", "move_j", "recover")), (gripper, ("open", "close"))):
+        for name in names:
+            original = getattr(target, name)
+
+            def command(*args, _original=original, _name=name, **kwargs):
+                if picker.stop_switch.requested:
+                    sent.append(_name)
+                return _original(*args, **kwargs)
+
+            setattr(target, name, command)
+    return sent
+
+
+def test_a_stop_requested_during_a_motion_ends_the_run_there_and_keeps_every_cycle():
+    """As a SIGTERM arriving while the arm moves in: the arm is stopped, nothing more is sent (the fingers stay open
+    where they were), and the report holds the finished cycle and the interrupted one with its attempt."""
+    bin_ = FakeBin([0.0, 0.1])
+    picker, robot = make_picker(bin_)
+    move_l = robot.move_l
+
+    signals = ["SIGTERM"]
+
+    def move_l_then_signal(T, speed_m_s=None, accel_m_s2=None):
+        move_l(T, speed_m_s, accel_m_s2)
+        if abs(T[0, 3] - 0.1) < 1e-9 and signals:
+            picker.request_stop(signals.pop())  # arrives while this motion runs
+
+    robot.move_l = move_l_then_signal
+    sent_after = _commands_after_a_stop(picker, robot, picker.gripper.target)
+    report = picker.run()
+    assert report.stop_reason == "interrupted" and sent_after == [] and robot.stops >= 1
+    assert [c.end for c in report.cycles] == ["picked", "interrupted"] and report.cycles[1].interrupted_in == "approach"
+    assert [a.outcome for a in report.attempts] == ["picked", "interrupted"] and bin_.parts == [0.1]
+    assert report.attempts[1].detail == "stop requested (SIGTERM) during approach"
+    assert report.success_rate == 1.0 and report.failures_by_cause() == {}  # an interrupted attempt did not fail
+    assert report.stop_detail.startswith(
+        "stop requested (SIGTERM): stopped in cycle 1 during approach (attempt on part 0, obj 1); the arm at rest at "
+        "TCP (0.000, 0.000, 0.050) m"
+    )
+    assert "the gripper left as it was, at 30.0 mm" in report.stop_detail  # opened to the grasp's opening, kept
+    data = json.loads(json.dumps(report.to_json()))
+    assert data["stop_reason"] == "interrupted" and data["n_attempts"] == 2
+    assert data["cycles"][1]["end"] == "interrupted" and data["cycles"][1]["interrupted_in"] == "approach"
+    # the stop stays requested until cleared: a new run sends nothing
+    assert picker.run().cycles == [] and sent_after == []
+    picker.clear_stop()
+    assert picker.run().stop_reason == "bin_empty" and bin_.parts == []
+
+
+def test_a_stop_requested_between_steps_or_before_the_run_sends_nothing():
+    picker, robot = make_picker(FakeBin([0.0]))
+    picker.request_stop("SIGINT")
+    report = picker.run()
+    assert report.stop_reason == "interrupted" and report.cycles == [] and robot.q_now[0] == 0.0
+    assert report.stop_detail.startswith("stop requested (SIGINT): stopped before the first cycle")
+
+    class SlowBin(FakeBin):
+        def run(self, frame):  # the perception is running when the request comes
+            picker.request_stop("SIGINT")
+            return super().run(frame)
+
+    bin_ = SlowBin([0.0])
+    picker, robot = make_picker(bin_)
+    report = picker.run()
+    assert report.cycles[0].end == "interrupted" and report.cycles[0].interrupted_in == "perceive"
+    assert report.attempts == [] and bin_.parts == [0.0] and robot.stops >= 1
+
+
+def test_the_guarded_robot_refuses_commands_after_a_stop_and_passes_the_rest_through():
+    from robot.pick_stop import StopRequestedError
+
+    picker, robot = make_picker(FakeBin([0.0]))
+    picker.robot.refuse_x = 0.5  # written through to the fake
+    assert robot.refuse_x == 0.5 and picker.robot.target is robot
+    picker.gripper.close = lambda force_n=None, speed_m_s=None: "replaced"
+    assert picker.gripper.close() == "replaced"
+    del picker.gripper.close  # the fake's own method again
+    picker.request_stop("test")
+    with pytest.raises(StopRequestedError, match="test"):
+        picker.robot.move_j(np.zeros(6))
+    with pytest.raises(StopRequestedError):
+        picker.gripper.open()
+    assert picker.robot.q() is robot.q_now and picker.gripper.width_m() == 0.085  # reads are never guarded
+
+
+def test_a_cell_lost_during_an_attempt_keeps_that_attempt_in_the_report():
+    """The emulator's process died: the link is lost during an approach and the recovery fails. The report has the
+    attempt (connection_lost) in the interrupted cycle, not one attempt fewer than the log."""
+    bin_ = FakeBin([0.0, 0.1])
+    picker, robot = make_picker(bin_)
+    move_l = robot.move_l
+
+    def link_lost_at_the_second_part(T, speed_m_s=None, accel_m_s2=None):
+        if abs(T[0, 3] - 0.1) < 1e-9:
+            raise ConnectionLostError("lost the link to UR controller 127.0.0.81 during move_l")
+        move_l(T, speed_m_s, accel_m_s2)
+
+    def gone(timeout_s=None):
+        raise RecoveryError("UR controller 127.0.0.81 does not answer")
+
+    robot.move_l, robot.recover = link_lost_at_the_second_part, gone
+    report = picker.run()
+    assert report.stop_reason == "needs_operator" and "does not answer" in report.stop_detail
+    assert [c.end for c in report.cycles] == ["picked", "interrupted"]
+    assert [a.outcome for a in report.attempts] == ["picked", "connection_lost"]
+    assert report.attempts[1].detail.endswith("then RecoveryError: UR controller 127.0.0.81 does not answer")
+
+
+def test_an_unexpected_error_is_raised_after_the_report_kept_the_cycles():
+    bin_ = FakeBin([0.0, 0.1])
+    picker, robot = make_picker(bin_)
+    move_j = robot.move_j
+
+    def broken(q, speed_rad_s=None, accel_rad_s2=None):
+        if np.allclose(q, 0.1):
+            raise KeyError("a bug")
+        move_j(q, speed_rad_s, accel_rad_s2)
+
+    robot.move_j = broken
+    with pytest.raises(KeyError):
+        picker.run()
+    report = picker.last_report
+    assert report.stop_reason == "error" and report.stop_detail == "KeyError: 'a bug'"
+    assert [c.end for c in report.cycles] == ["picked", "interrupted"] and report.attempts[1].outcome == "interrupted"
 
 
 # ---------------------------------------------------------------------------------------------- the machine itself

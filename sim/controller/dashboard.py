@@ -3,7 +3,9 @@
 ur_rtde compares some replies exactly (``stop`` -> ``Stopped``, ``unlock protective stop`` -> ``Protective stop
 releasing``, ``play`` -> ``Starting program``, ``pause`` -> ``Pausing program``), parses ``PolyscopeVersion`` with
 a ``\\d+.\\d+.\\d+.\\d+`` regex and wants digits only from ``get serial number``. ``stop`` always answers
-``Stopped`` (the client's reuploadScript sends it after the program has already ended).
+``Stopped`` (the client's reuploadScript sends it after the program has already ended). A line longer than
+``tcp_service.MAX_LINE_BYTES`` is answered ``could not understand: line longer than N bytes; closing`` and the
+connection is closed.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from sim.controller.state import (
     RUNTIME_PLAYING,
 )
 from sim.controller.status import ControllerStatus
-from sim.controller.tcp_service import Connection, TcpService
+from sim.controller.tcp_service import MAX_LINE_BYTES, Connection, LineTooLongError, TcpService
 
 log = logging.getLogger(__name__)
 
@@ -58,14 +60,18 @@ class DashboardServer:
     def _serve(self, conn: Connection) -> None:
         if not conn.send_blocking((WELCOME + "\n").encode()):
             return
-        for batch in self.service.lines(conn):
-            for line in batch:
-                reply = self.reply(line)
-                log.debug("dashboard %r -> %r", line, reply)
-                if not conn.send_blocking((reply + "\n").encode()):
-                    return
-                if line == "quit":
-                    return
+        try:
+            for batch in self.service.lines(conn):
+                for line in batch:
+                    reply = self.reply(line)
+                    log.debug("dashboard %r -> %r", line, reply)
+                    if not conn.send_blocking((reply + "\n").encode()):
+                        return
+                    if line == "quit":
+                        return
+        except LineTooLongError:
+            log.warning("%r sent a line longer than %d bytes; answered and closed", conn, MAX_LINE_BYTES)
+            conn.close_after_reply(f"could not understand: line longer than {MAX_LINE_BYTES} bytes; closing\n".encode())
 
     def reply(self, line: str) -> str:
         """The reply to one command line (public for tests)."""

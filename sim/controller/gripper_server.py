@@ -5,17 +5,23 @@ compares it exactly), ``GET VAR`` answers ``VAR n`` and a newline. Several ``GET
 answers in one packet. Values are 0-255: ``POS`` 0 = open (85 mm) .. 255 = closed (0 mm), ``SPE`` 20-150 mm/s,
 ``FOR`` 20-235 N. ``STA``: 0 reset, 1 activating, 3 active. ``OBJ``: 0 moving, 1 stopped on an object while
 opening, 2 while closing, 3 at the requested position. ``FLT`` is always 0.
+
+Every line gets an answer: a ``SET`` value must be a decimal integer (an optional sign, then digits) and is clamped to
+0-255; an unknown variable, a value that is not an integer or a line that is neither form answers ``?`` (a ``SET``
+with any bad pair changes nothing). A line longer than ``tcp_service.MAX_LINE_BYTES`` answers ``? line longer than N
+bytes; closing`` and the connection is closed.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 
 from sim.controller.backend import GRIPPER_STROKE_M
 from sim.controller.stepper import BackendRunner
-from sim.controller.tcp_service import Connection, TcpService
+from sim.controller.tcp_service import MAX_LINE_BYTES, Connection, LineTooLongError, TcpService
 from sygrid.robots import gripper_2f85
 
 log = logging.getLogger(__name__)
@@ -24,6 +30,7 @@ ACTIVATION_S = 0.1  # time from SET ACT 1 until STA reads 3
 _SPEED_M_S = gripper_2f85.SPEED_RANGE_M_S
 _FORCE_N = gripper_2f85.FORCE_RANGE_N
 _VARIABLES = ("ACT", "GTO", "ATR", "ARD", "MOD", "POS", "SPE", "FOR", "STA", "PRE", "OBJ", "FLT")
+_INTEGER = re.compile(r"[+-]?[0-9]{1,12}")  # a SET value; longer numbers are refused, not clamped
 
 
 def position_to_width(pos: int) -> float:
@@ -51,9 +58,13 @@ class GripperServer:
         self.service.stop()
 
     def _serve(self, conn: Connection) -> None:
-        for batch in self.service.lines(conn, encoding="ascii"):
-            if not conn.send_blocking("".join(self.handle(line) for line in batch).encode()):
-                return
+        try:
+            for batch in self.service.lines(conn, encoding="ascii"):
+                if not conn.send_blocking("".join(self.handle(line) for line in batch).encode()):
+                    return
+        except LineTooLongError:
+            log.warning("%r sent a line longer than %d bytes; answered and closed", conn, MAX_LINE_BYTES)
+            conn.close_after_reply(f"? line longer than {MAX_LINE_BYTES} bytes; closing\n".encode())
 
     def handle(self, line: str) -> str:
         """The reply to one command line (public for tests)."""
@@ -69,7 +80,7 @@ class GripperServer:
             if verb == "SET" and len(words) >= 3 and len(words) % 2 == 1:
                 pairs = list(zip(words[1::2], words[2::2], strict=True))
                 for name, value in pairs:
-                    if name.upper() not in self.registers or not value.lstrip("-").isdigit():
+                    if name.upper() not in self.registers or not _INTEGER.fullmatch(value):
                         log.warning("gripper: bad SET %r (variables: %s, values 0-255)", line, ", ".join(_VARIABLES))
                         return "?"
                 for name, value in pairs:

@@ -3,6 +3,9 @@
 Needed whenever the ur_rtde client lives in the same Python program: the client's constructors hold the GIL while
 they wait for the controller's first state package (with no timeout), which would freeze an in-process emulator.
 The child's log records are kept in a ring buffer (``log_messages``) and WARNING and above also go to stderr.
+The child ignores SIGINT and SIGTERM (a Ctrl-C, or a service manager's stop, reaches the whole process group, and the
+parent must stop the arm before the emulator goes): it exits when the parent tells it to or is gone, and ``stop``
+kills it when it does not; ``exitcode`` says whether it is still running.
 The child is started with the ``spawn`` method, so a script that uses this class needs the usual
 ``if __name__ == "__main__":`` guard. The child also shortens the interpreter's GIL switch interval (its process is
 the emulator's alone), which keeps the tick within a fraction of a millisecond of its deadline.
@@ -15,6 +18,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import signal
 import sys
 import threading
 import time
@@ -65,6 +69,8 @@ def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict,
     from sim.controller.backend_by_name import make_backend
     from sim.controller.controller import EmulatedController
 
+    for sig in (signal.SIGINT, signal.SIGTERM):  # the parent stops the arm first, then this process
+        signal.signal(sig, signal.SIG_IGN)
     ring = _RingHandler()
     stderr = logging.StreamHandler(sys.stderr)
     stderr.setLevel(logging.WARNING)
@@ -264,9 +270,34 @@ class ControllerProcess:
         self._conn = parent_conn
         try:
             self._receive(self._start_timeout_s, "start")
-        except EmulatorError:
+        except BaseException:  # a failed start, or an interrupt while waiting: leave no child behind
             self.stop()
             raise
+
+    @property
+    def pid(self) -> int | None:
+        """The child's process id (None before ``start``)."""
+        return None if self._proc is None else self._proc.pid
+
+    @property
+    def exitcode(self) -> int | None:
+        """None while the child runs (or before ``start``); its exit code once it has ended (``-N``: killed by
+        signal N)."""
+        return None if self._proc is None else self._proc.exitcode
+
+    def describe_exit(self) -> str | None:
+        """A sentence naming the child and how it ended once it has ended, else None."""
+        code = self.exitcode
+        if code is None:
+            return None
+        if code >= 0:
+            how = f"exited with code {code}"
+        else:
+            try:
+                how = f"was killed by {signal.Signals(-code).name}"
+            except ValueError:
+                how = f"was killed by signal {-code}"
+        return f"the emulator process (pid {self.pid}, host {self.host}) {how}"
 
     def _receive(self, timeout_s: float, what: str) -> Any:
         assert self._conn is not None and self._proc is not None
@@ -355,7 +386,7 @@ class ControllerProcess:
         if self._proc is not None:
             self._proc.join(timeout_s)
             if self._proc.is_alive():
-                log.warning("emulator process on %s did not exit; terminating it", self.host)
-                self._proc.terminate()
+                log.warning("emulator process on %s did not exit; killing it", self.host)
+                self._proc.kill()  # it ignores SIGTERM
                 self._proc.join(timeout_s)
             self._proc = None

@@ -250,6 +250,10 @@ class ControlProgram:
     def _stop(self) -> None:
         """stopL (33) / stopJ (34), as exec_stopl_stopj: async stops run in a 'stop thread' and always use stopl."""
         decel, asynchronous = self.in_double(0), self.in_int(1) == 1
+        log.info(
+            "rtde_control: %s (decel %g) received %s", command_name(self.in_int(0)), decel,
+            "during a motion" if self.arm.motion is not None else "at rest",
+        )  # fmt: skip
         if self._stop_thread_motion is not None:
             self._stop_thread_motion = None
             self._write_async_progress(_PROGRESS_FINISHED)

@@ -8,6 +8,11 @@ What the stock ur_rtde 1.6.5 client needs (see the protocol note, sections 1.2-1
   started are applied too;
 - input packages longer than their recipe are parsed by their prefix (``getForwardKinematics(q, tcp)`` sends 12
   doubles under a 6-double recipe), shorter ones are dropped; both are logged once per connection and recipe.
+
+Malformed messages are answered, never raised: a setup that cannot be parsed, or an output recipe whose package
+would not fit in one message, gets a failed setup reply (recipe id 0); a header that announces less than itself loses
+the framing, so it is answered with an error text message (``M``) and the connection is closed. A client that
+never reads its replies is dropped by ``tcp_service.Connection.send`` once they pass its queue limit.
 """
 
 from __future__ import annotations
@@ -127,9 +132,14 @@ class RtdeServer:
                 if not data:
                     return
                 for msg_type, payload in reader.feed(data):
-                    self._handle(session, msg_type, payload)
-        except ValueError as exc:
+                    try:
+                        self._handle(session, msg_type, payload)
+                    except (ValueError, struct.error, KeyError, IndexError) as exc:
+                        log.warning("%r: RTDE message %r could not be handled: %s", conn, chr(msg_type), exc)
+                        conn.send(wire.text_message(f"RTDE message {chr(msg_type)!r} could not be handled: {exc}"))
+        except ValueError as exc:  # the framing is lost: nothing after this can be read
             log.warning("%r: closing after a malformed message: %s", conn, exc)
+            conn.close_after_reply(wire.text_message(f"malformed RTDE message: {exc}; closing"))
         finally:
             with self._lock:
                 self._sessions.remove(session)
@@ -162,21 +172,38 @@ class RtdeServer:
             session.warn_once("type", msg_type, "%r: ignoring RTDE message type %d (%r)", conn, msg_type, chr(msg_type))
 
     def _setup_outputs(self, session: RtdeSession, payload: bytes) -> None:
-        frequency_hz, names = wire.parse_output_setup(payload)
+        try:
+            frequency_hz, names = wire.parse_output_setup(payload)
+        except ValueError as exc:
+            log.warning("%r: malformed output setup (%s); answered with recipe id 0", session.conn, exc)
+            _send_setup_reply(session.conn, wire.SETUP_OUTPUTS, 0, [])
+            return
         types = output_types(names)
         recipe_id = session.next_output_id
         session.next_output_id += 1
         if NOT_FOUND in types or not names:
             missing = [n for n, t in zip(names, types, strict=True) if t == NOT_FOUND]
             log.warning("%r asked for unknown RTDE outputs %s; answered NOT_FOUND", session.conn, missing)
-            session.conn.send(wire.setup_reply(wire.SETUP_OUTPUTS, 0, types))
+            _send_setup_reply(session.conn, wire.SETUP_OUTPUTS, 0, types)
+            return
+        package_bytes = wire.HEADER.size + 1 + recipe_struct(types).size
+        if package_bytes > wire.MAX_MESSAGE_BYTES:
+            log.warning(
+                "%r asked for %d RTDE outputs, a %d-byte package (at most %d fit in one message); answered with "
+                "recipe id 0",
+                session.conn,
+                len(names),
+                package_bytes,
+                wire.MAX_MESSAGE_BYTES,
+            )
+            _send_setup_reply(session.conn, wire.SETUP_OUTPUTS, 0, types)
             return
         if not 0.0 < frequency_hz <= CONTROLLER_TICK_HZ:
             log.warning("%r asked for %.1f Hz; streaming at 500 Hz instead", session.conn, frequency_hz)
             frequency_hz = CONTROLLER_TICK_HZ
         session.output = OutputRecipe(recipe_id, names, frequency_hz)
         session.decimation = max(1, round(CONTROLLER_TICK_HZ / frequency_hz))
-        session.conn.send(wire.setup_reply(wire.SETUP_OUTPUTS, recipe_id, types))
+        _send_setup_reply(session.conn, wire.SETUP_OUTPUTS, recipe_id, types)
 
     def _setup_inputs(self, session: RtdeSession, payload: bytes) -> None:
         names = wire.parse_names(payload)
@@ -184,12 +211,12 @@ class RtdeServer:
         if NOT_FOUND in types or not names:
             missing = [n for n, t in zip(names, types, strict=True) if t == NOT_FOUND]
             log.warning("%r asked for unknown RTDE inputs %s; answered NOT_FOUND", session.conn, missing)
-            session.conn.send(wire.setup_reply(wire.SETUP_INPUTS, 0, types))
+            _send_setup_reply(session.conn, wire.SETUP_INPUTS, 0, types)
             return
         recipe_id = session.next_input_id
         session.next_input_id += 1
         session.inputs[recipe_id] = InputRecipe(recipe_id, names)
-        session.conn.send(wire.setup_reply(wire.SETUP_INPUTS, recipe_id, types))
+        _send_setup_reply(session.conn, wire.SETUP_INPUTS, recipe_id, types)
 
     def _handle_input(self, session: RtdeSession, payload: bytes) -> None:
         if not payload:
@@ -230,3 +257,10 @@ class RtdeServer:
                 recipe.size,
             )
         self._apply_inputs(recipe.decode(body))
+
+
+def _send_setup_reply(conn: Connection, msg_type: int, recipe_id: int, types: list[str]) -> None:
+    """A setup reply; one whose type list would not fit in one message goes out as a failure without the list."""
+    if wire.HEADER.size + 1 + len(",".join(types)) > wire.MAX_MESSAGE_BYTES:
+        recipe_id, types = 0, []
+    conn.send(wire.setup_reply(msg_type, recipe_id, types))

@@ -72,6 +72,13 @@ def version_reply(major: int, minor: int, bugfix: int, build: int) -> bytes:
     return frame(GET_URCONTROL_VERSION, struct.pack(">IIII", major, minor, bugfix, build))
 
 
+def text_message(message: str, source: str = "emulator", level: int = 1) -> bytes:
+    """``M`` from the controller (protocol 2): ``uint8`` length and the message, ``uint8`` length and the source,
+    ``uint8`` warning level (0 exception, 1 error, 2 warning, 3 info). Texts are cut to 255 bytes."""
+    text, src = message.encode("ascii", errors="replace")[:255], source.encode("ascii", errors="replace")[:255]
+    return frame(TEXT_MESSAGE, bytes([len(text)]) + text + bytes([len(src)]) + src + bytes([level]))
+
+
 def success_reply(msg_type: int, ok: bool = True) -> bytes:
     """``V``, ``S`` and ``P`` replies: one ``uint8`` accepted flag."""
     return frame(msg_type, bytes([1 if ok else 0]))

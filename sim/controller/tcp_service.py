@@ -2,8 +2,15 @@
 
 ``Connection.send`` is safe to call from any thread (the 500 Hz tick included): it writes what the kernel
 accepts at once and keeps the rest in a per-connection pending buffer, which the reader thread and later sends
-flush. Messages marked ``droppable`` (state packages) are dropped whole, never cut, while that buffer is over its
-limit, so a client that stops reading costs memory up to the limit and never time on the tick.
+flush. Messages marked ``droppable`` (state packages) are dropped whole, never cut, while that buffer is over
+``MAX_PENDING_BYTES``, so a client that stops reading costs memory up to that limit and never time on the tick. A
+message that may not be dropped (a reply) that would take the buffer over ``MAX_QUEUED_BYTES`` closes the
+connection instead (a client that sends requests and never reads the replies), and a closed connection's buffer is
+released.
+
+Line-based services (dashboard, gripper) read through ``TcpService.lines``: a line longer than ``MAX_LINE_BYTES``
+raises ``LineTooLongError`` after reading at most that much more than one ``recv``, so a client sending an endless
+line costs neither memory nor copying; ``Connection.close_after_reply`` then answers it and closes.
 """
 
 from __future__ import annotations
@@ -19,7 +26,15 @@ from collections.abc import Callable, Iterator
 log = logging.getLogger(__name__)
 
 _ACCEPT_POLL_S = 0.2  # how often blocked accept/recv calls look at the stop flag
-_MAX_PENDING_BYTES = 256 * 1024  # above this, droppable messages are discarded
+MAX_PENDING_BYTES = 256 * 1024  # above this, droppable messages are discarded
+MAX_QUEUED_BYTES = 1024 * 1024  # a reply that would take the pending buffer above this closes the connection
+MAX_LINE_BYTES = 4096  # the longest line a line-based client (dashboard, gripper) may send
+_RECV_BYTES = 65536
+_DRAIN_S = 0.5  # how long ``close_after_reply`` reads and discards what the client still sends
+
+
+class LineTooLongError(ValueError):
+    """A line-based client sent more than ``MAX_LINE_BYTES`` without a newline."""
 
 
 class Connection:
@@ -45,8 +60,16 @@ class Connection:
         with self._lock:
             if self.closed:
                 return False
-            if droppable and len(self._pending) > _MAX_PENDING_BYTES:
+            if droppable and len(self._pending) > MAX_PENDING_BYTES:
                 self.dropped_messages += 1
+                return False
+            if not droppable and len(self._pending) + len(data) > MAX_QUEUED_BYTES:
+                log.warning(
+                    "%r: the client does not read its replies (%d bytes waiting); closing the connection",
+                    self,
+                    len(self._pending),
+                )
+                self._close_locked()
                 return False
             self._pending += data
             self.sent_messages += 1
@@ -87,7 +110,7 @@ class Connection:
         if not readable:
             return None
         try:
-            return self.sock.recv(65536)
+            return self.sock.recv(_RECV_BYTES)
         except (BlockingIOError, InterruptedError):
             return None
         except OSError:
@@ -110,10 +133,31 @@ class Connection:
         with self._lock:
             self._close_locked()
 
+    def close_after_reply(self, data: bytes, drain_s: float = _DRAIN_S) -> None:
+        """Sends ``data`` (up to ``drain_s`` waiting for it to go out), ends the sending side, reads and discards what
+        the client still sends for up to ``drain_s`` (closing with unread input would reset the connection, and the
+        client could lose the reply), then closes."""
+        self.send_blocking(data, timeout_s=drain_s)
+        with contextlib.suppress(OSError):
+            self.sock.shutdown(socket.SHUT_WR)
+        scratch = bytearray(4 * _RECV_BYTES)
+        end_s = time.monotonic() + drain_s
+        while not self.closed and (left := end_s - time.monotonic()) > 0:
+            try:
+                readable, _, _ = select.select([self.sock], [], [], left)
+                if readable and not self.sock.recv_into(scratch):
+                    break  # the client closed
+            except (BlockingIOError, InterruptedError):
+                continue
+            except (OSError, ValueError):
+                break
+        self.close()
+
     def _close_locked(self) -> None:
         if self.closed:
             return
         self.closed = True
+        self._pending = bytearray()  # a client that stopped reading may have left a large buffer: release it
         with contextlib.suppress(OSError):
             self.sock.shutdown(socket.SHUT_RDWR)
         self.sock.close()
@@ -201,17 +245,30 @@ class TcpService:
         for thread in threads:
             thread.join(timeout_s)
 
-    def lines(self, conn: Connection, encoding: str = "utf-8") -> Iterator[list[str]]:
+    def lines(
+        self, conn: Connection, encoding: str = "utf-8", max_line_bytes: int = MAX_LINE_BYTES
+    ) -> Iterator[list[str]]:
         """The non-empty, stripped text lines a line-based client (dashboard, gripper) sends, one list per read,
-        until the client closes or the service stops."""
-        buffer = b""
+        until the client closes or the service stops. ``LineTooLongError`` when a line (or the unfinished rest)
+        grows past ``max_line_bytes``: the caller answers and closes. Only the unfinished line is kept between
+        reads, so each read costs its own length."""
+        partial = bytearray()
         while not self.stopping:
             data = conn.recv()
             if data is None:
                 continue
             if not data:
                 return
-            *complete, buffer = (buffer + data).split(b"\n")
+            if b"\n" not in data:
+                partial += data
+                if len(partial) > max_line_bytes:
+                    raise LineTooLongError(f"a line longer than {max_line_bytes} bytes")
+                continue
+            *complete, rest = data.split(b"\n")
+            complete[0] = bytes(partial) + complete[0]
+            partial = bytearray(rest)
+            if len(partial) > max_line_bytes or any(len(raw) > max_line_bytes for raw in complete):
+                raise LineTooLongError(f"a line longer than {max_line_bytes} bytes")
             batch = [raw.decode(encoding, errors="replace").strip() for raw in complete]
             if any(batch):
                 yield [line for line in batch if line]
