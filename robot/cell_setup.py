@@ -16,7 +16,8 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
     [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
     [planner]     robot.grasp_config.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
-    [picker]      robot.pick_config.PickerConfig fields
+    [picker]      robot.pick_config.PickerConfig fields; a hardware cell nudges only with nudge_contact =
+                  "force_limited" (or max_nudges = 0)
 
 Relative paths are taken from the configuration file's folder. Errors name the file and the field.
 """
@@ -28,7 +29,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import tomllib
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, ValidationError
 
 from robot.pick_config import PickerConfig
 from robot.ur_config import URConfig
@@ -117,7 +118,7 @@ class CellFile(_Strict):
     bin: BinSection | None = None  # None: the simulated cell's bin
     place: PlaceSection | None = None  # None: above the simulated cell's tray
     planner: dict[str, float | int | bool] = Field(default_factory=dict)
-    picker: dict[str, StrictBool | StrictInt | StrictFloat | None] = Field(default_factory=dict)  # TOML is typed
+    picker: dict[str, StrictBool | StrictInt | StrictFloat | StrictStr | None] = Field(default_factory=dict)
 
 
 class CellSetup:
@@ -152,6 +153,12 @@ class CellSetup:
             self.picker = PickerConfig(**data.picker)
         except (TypeError, ConfigError) as exc:
             raise ConfigError(f"{where}: [picker]: {exc}") from None
+        if not self.is_sim and self.picker.max_nudges and self.picker.nudge_contact != "force_limited":
+            raise ConfigError(
+                f"{where}: [picker] nudge_contact = {self.picker.nudge_contact!r} presses parts under position control "
+                "only, which a hardware cell refuses: set nudge_contact = 'force_limited' (the controller's "
+                "moveUntilContact and force mode) or max_nudges = 0"
+            )
         self.planner_overrides = dict(data.planner)
         self.planner_config()  # bad [bin], [place] or [planner] fields fail here, before anything starts
 

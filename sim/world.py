@@ -209,6 +209,32 @@ class CellWorld:
                     pair = f"{_geom_name(m, int(g1[i]))} / {_geom_name(m, int(g2[i]))}"
             return largest, pair
 
+    def tool_wrench(self) -> np.ndarray:
+        """(6,) the contact wrench that everything else (parts, bin, table, other links) exerts on the gripper in
+        the last step, in the robot base frame: force [N], then torque [N m] about the flange origin. What a
+        force/torque sensor between the flange and the gripper reads with its payload compensated (zero in free
+        space); contacts between the gripper's own bodies are internal and left out."""
+        with self.lock:
+            m, d = self.model, self.data
+            wrench = np.zeros(6)
+            n = d.ncon
+            if n == 0:
+                return wrench
+            tool = self._geom_is_tool
+            g1, g2 = d.contact.geom1[:n], d.contact.geom2[:n]
+            p_flange = d.site_xpos[self._flange_site]
+            f = np.zeros(6)
+            for i in np.flatnonzero(tool[g1] != tool[g2]):
+                mujoco.mj_contactForce(m, d, int(i), f)
+                # contact frame rows: normal (from geom1 to geom2), tangents; the force acts on geom2, -f on geom1
+                force = d.contact.frame[i].reshape(3, 3).T @ f[:3]
+                if tool[g1[i]]:
+                    force = -force
+                wrench[:3] += force
+                wrench[3:] += np.cross(d.contact.pos[i] - p_flange, force)
+            R_base_world = self.config.T_world_base[:3, :3].T
+            return np.concatenate([R_base_world @ wrench[:3], R_base_world @ wrench[3:]])
+
     # ------------------------------------------------------------------------------------------ gripper
 
     def set_gripper(self, width_m: float, speed_m_s: float, force_n: float) -> None:
@@ -382,6 +408,8 @@ class CellWorld:
         arm_bodies = {m.body(n).id for n in ARM_BODY_NAMES} | {m.body(self._gripper_names.body).id}
         arm_bodies |= {m.body(n).id for n in self._gripper_names.finger_bodies}
         env_bodies = {m.body(n).id for n in ("table", "bin", "tray", "robot_base")}
+        tool_bodies = {m.body(n).id for n in (self._gripper_names.body, *self._gripper_names.finger_bodies)}
+        self._geom_is_tool = np.isin(m.geom_bodyid, list(tool_bodies))
         self._geom_is_arm = np.isin(m.geom_bodyid, list(arm_bodies))
         self._geom_is_env = np.isin(m.geom_bodyid, list(env_bodies))
         parts = [m.joint(f"{n}_free") for n in self._part_names]

@@ -65,6 +65,7 @@ class WorldBackend:
             gripper_target_m=self._gripper_target_m,
             gripper_moving=bool(w.gripper_moving()),
             gripper_object_detected=bool(w.gripper_object_detected()),
+            tool_wrench=np.array(w.tool_wrench(), dtype=float),
         )
 
 
