@@ -50,10 +50,15 @@ class SceneShot:
 
 @contextlib.contextmanager
 def open_cell(
-    setup: CellSetup, seed: int | None = None, perception_kind: str | None = None, controller_kwargs: dict | None = None
+    setup: CellSetup,
+    seed: int | None = None,
+    perception_kind: str | None = None,
+    controller_kwargs: dict | None = None,
+    calibration_info: dict | None = None,
 ) -> Iterator[tuple[Picker, Any]]:
     """Starts (sim) or connects to (hardware) everything the cell file names; yields ``(picker, process)``
-    (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit."""
+    (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit.
+    ``calibration_info`` (a dict) receives where the camera pose came from (``camera_pose_info``)."""
     from robot.grasp_planner import GraspPlanner
     from robot.gripper import make_gripper
     from robot.nudge import NudgePlanner
@@ -63,6 +68,9 @@ def open_cell(
     kind = perception_kind or d.perception.kind
     with contextlib.ExitStack() as stack:
         process = None
+        T_base_camera, info = camera_pose(setup, seed)
+        if calibration_info is not None:
+            calibration_info.update(info)
         if setup.is_sim:
             from sim.cell_config import CellConfig
             from sim.controller import ControllerProcess
@@ -80,16 +88,11 @@ def open_cell(
                 process, sensor=sensor_preset(d.camera.sensor), rng=sensor_rng(kwargs["parts_seed"])
             )
             cell = CellConfig()
-            T_base_camera = np.linalg.inv(cell.T_world_base) @ cell.T_world_camera
         else:
             from perception.oak import OakCamera, OakConfig
 
             oak = {k: v for k, v in d.camera.model_dump().items() if k not in ("kind", "sensor") and v is not None}
             camera = stack.enter_context(OakCamera(OakConfig(**oak)))
-        if d.calibration.source == "file":
-            from robot.calibration import load_calibration
-
-            T_base_camera = load_calibration(setup.resolve(d.calibration.file)).T_base_camera
         planner_config = setup.planner_config()
         if kind == "oracle":
             if process is None:
@@ -135,6 +138,27 @@ def open_cell(
         yield picker, process
 
 
+def camera_pose(setup: CellSetup, seed: int | None = None) -> tuple[np.ndarray, dict]:
+    """``T_base_camera`` from the cell file's ``[calibration]`` and a summary for the report: the hand-eye
+    calibration's file ("file"), the ChArUco calibration run in the simulated cell ("sim_handeye", with its error
+    against the true pose; ``launch.sim_calibration``), or the simulated camera's true pose ("sim")."""
+    d = setup.data
+    source = d.calibration.source
+    if source == "file":
+        from robot.calibration import load_calibration
+
+        path = setup.resolve(d.calibration.file)
+        return load_calibration(path).T_base_camera, {"source": source, "file": str(path)}
+    from launch.sim_calibration import calibrate_sim_cell, true_T_base_camera
+    from sim.cell_config import CellConfig
+
+    cell = CellConfig()
+    if source == "sim":
+        return true_T_base_camera(cell), {"source": source, "error_mm": 0.0, "error_deg": 0.0}
+    result = calibrate_sim_cell(cell, sensor_preset(d.camera.sensor), d.sim.seed if seed is None else seed)
+    return result.T_base_camera, result.to_json()
+
+
 def run(args: argparse.Namespace) -> int:
     setup = load_cell_setup(args.config)
     kind = args.perception or setup.data.perception.kind
@@ -144,8 +168,9 @@ def run(args: argparse.Namespace) -> int:
             "manifest.json (train the built-in models first, or run with --perception oracle in the simulated cell)"
         )
     shot = SceneShot()
+    calibration: dict = {}
     t0 = time.perf_counter()
-    with open_cell(setup, args.seed, args.perception) as (picker, _process):
+    with open_cell(setup, args.seed, args.perception, calibration_info=calibration) as (picker, _process):
 
         def keep_first(record: Any, frame: Any, result: Any, poses: list[Any]) -> None:
             if shot.frame is None:
@@ -156,13 +181,18 @@ def run(args: argparse.Namespace) -> int:
         report = picker.run(args.max_cycles)
         models = {k: getattr(v, "model", v) for k, v in picker.planner._models.items()}
     wall = time.perf_counter() - t0
-    print_summary(report, wall)
-    out_json, out_png = write_report(report, args.out, shot, picker.T_base_camera, setup, kind, models)
+    print_summary(report, wall, calibration)
+    out_json, out_png = write_report(report, args.out, shot, picker.T_base_camera, setup, kind, models, calibration)
     print(f"wrote {out_json}\nwrote {out_png}")
     return 0 if report.stop_reason == StopReason.BIN_EMPTY else 1
 
 
-def print_summary(report: RunReport, wall_s: float) -> None:
+def print_summary(report: RunReport, wall_s: float, calibration: dict | None = None) -> None:
+    if calibration and "error_mm" in calibration:
+        print(
+            f"camera pose: {calibration['source']}, {calibration['error_mm']:.2f} mm / {calibration['error_deg']:.3f} "
+            "deg from the true pose"
+        )
     times = report.sim_cycle_times_s()
     rate = report.success_rate
     print(
@@ -183,12 +213,19 @@ def print_summary(report: RunReport, wall_s: float) -> None:
 
 
 def write_report(
-    report: RunReport, out: Path, shot: SceneShot, T_base_camera: np.ndarray, setup: CellSetup, kind: str, models: Any
+    report: RunReport,
+    out: Path,
+    shot: SceneShot,
+    T_base_camera: np.ndarray,
+    setup: CellSetup,
+    kind: str,
+    models: Any,
+    calibration: dict | None = None,
 ) -> tuple[Path, Path]:
     from sygrid.fileio import write_bytes_atomic
 
     out.mkdir(parents=True, exist_ok=True)
-    data = {"config": str(setup.path), "perception": kind, **report.to_json()}
+    data = {"config": str(setup.path), "perception": kind, "calibration": calibration or {}, **report.to_json()}
     json_path = write_bytes_atomic(out / "pick_report.json", json.dumps(data, indent=1, default=float).encode())
     png_path = out / "pick_report.png"
     save_report_picture(report, shot, models, png_path)

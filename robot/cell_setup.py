@@ -9,7 +9,9 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [gripper]     robot.gripper config: kind = "robotiq_socket" | "digital_output", ... (host defaults to the robot)
     [camera]      kind = "sim" | "oak", oak settings (device, rgb_size, fps); sim only: sensor = a sygrid.sensor
                   preset the exact frames go through ("ideal", the default: exact; "oak-d", "d435", ...)
-    [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
+    [calibration] source = "sim_handeye" (sim: the ChArUco hand-eye calibration run in the simulated cell,
+                  launch.sim_calibration) | "sim" (sim: the camera's true pose) | "file", file = "calib.json"
+                  (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
                   conf_threshold, detector_input_size, detect_in_bin, ignore_floor, floor_margin_m,
                   min_fitness, mask_erosion_px (refinement settings)
@@ -66,7 +68,7 @@ class CameraSection(_Strict):
 
 
 class CalibrationSection(_Strict):
-    source: Literal["sim", "file"]
+    source: Literal["sim_handeye", "sim", "file"]
     file: str | None = None
 
 
@@ -138,8 +140,11 @@ class CellSetup:
                 raise ConfigError(f"{where}: camera.sensor is for the simulated camera (a real one is its own sensor)")
             if data.perception.kind == "oracle":
                 raise ConfigError(f"{where}: perception.kind = 'oracle' exists only in the simulated cell")
-            if data.calibration.source == "sim":
-                raise ConfigError(f"{where}: calibration.source = 'sim' exists only in the simulated cell; use 'file'")
+            if data.calibration.source != "file":
+                raise ConfigError(
+                    f"{where}: calibration.source = {data.calibration.source!r} exists only in the simulated cell; "
+                    "use 'file'"
+                )
         if data.calibration.source == "file" and not data.calibration.file:
             raise ConfigError(f"{where}: calibration.file is required when calibration.source = 'file'")
         robot = dict(data.robot)
