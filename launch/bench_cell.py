@@ -369,6 +369,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         T_start = process.part_poses()
         report = picker.run(max_cycles)
         T_end = process.part_poses()
+        thrown = process.thrown_parts()
     cell = CellConfig()
     in_start, in_end = _in_bin(T_start, cell), _in_bin(T_end, cell)
     in_tray = _in_box(T_end, cell.T_world_tray, cell.tray_inner_size_m) & in_start
@@ -418,6 +419,8 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "stop_reason": report.stop_reason.value,
         "stop_detail": report.stop_detail,
         "calibration": {k: calibration[k] for k in ("source", "error_mm", "error_deg") if k in calibration},
+        # parts the physics threw (sim.throw_watch): their end poses are not to be trusted
+        "thrown": thrown,
         "parts_by_kind": dict(total),
         "left_by_kind": dict(left),
         "left_why": dict(left_why),
@@ -470,6 +473,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "n_in_tray": sum(b.get("n_in_tray", 0) for b in bins),
         "n_held_off_plan": sum(len(b.get("held_off_plan", [])) for b in bins),
         "out_of_bin_not_in_tray": [{"seed": b["seed"], **e} for b in bins for e in b.get("elsewhere", [])],
+        "thrown_parts": [{"seed": b["seed"], **t} for b in bins for t in b.get("thrown", [])],
         "n_attempts": n_tried,
         "cycle_median_s": median(cycle),
         "cycle_p90_s": percentile(cycle, 90),
@@ -519,6 +523,11 @@ def format_results(results: dict[str, Any]) -> str:
             f"planned: {r.get('n_held_off_plan', '-')}), in the tray {r.get('n_in_tray', '-')}"
         )
         lines.append(f"{name}: left in the bin {r['left_by_cause'] or 'nothing'}")
+        thrown = r.get("thrown_parts", [])
+        lines.append(
+            f"{name}: parts thrown by the physics: {len(thrown)}"
+            + "".join(f"; seed {t['seed']}: {t['part']} at {t['speed_m_s']:.0f} m/s" for t in thrown)
+        )
         lines.append(
             f"{name}: camera pose {r.get('camera_pose_error_median_mm', float('nan')):.2f} mm / "
             f"{r.get('camera_pose_error_median_deg', float('nan')):.3f} deg from the true pose (median over the bins)"

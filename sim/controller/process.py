@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -47,6 +48,7 @@ def tune_emulator_process() -> None:
 _HOOKS = (
     "state", "trigger_protective_stop", "inject_collision_force", "log_messages", "unlock_protective_stop",
     "part_poses", "part_names", "set_part_poses", "park_parts", "contacts", "place_parts", "drop_connections",
+    "thrown_parts",
 )  # fmt: skip
 
 # Where parked ("removed") parts wait: high above the cell (behind the camera), spread out, held against gravity.
@@ -107,6 +109,7 @@ def _child_main(
         "contacts": (lambda: _contacts(arm.world)) if hasattr(arm, "world") else None,
         "place_parts": (lambda T, held=(): _place_parts(arm.world, T, held)) if hasattr(arm, "world") else None,
         "drop_connections": lambda down_s=2.0: _drop_connections(ctl, down_s),
+        "thrown_parts": (lambda: [dataclasses.asdict(t) for t in arm.world.throws]) if hasattr(arm, "world") else None,
     }
     try:
         while True:
@@ -352,6 +355,11 @@ class ControllerProcess:
         """MuJoCo backend only: the contacts of the last physics step, one dict each: ``geom1``, ``geom2``,
         ``body1``, ``body2`` (names), ``dist_m`` (< 0: penetration) and ``force_n`` (normal force)."""
         return self.call("contacts")
+
+    def thrown_parts(self) -> list[dict]:
+        """MuJoCo backend only: the parts the physics threw so far (``sim.throw_watch.Throw`` as dicts: part, time,
+        speed, and the deepest penetration before the throw with what it penetrated)."""
+        return self.call("thrown_parts")
 
     def log_messages(self) -> list[str]:
         return self.call("log_messages")
