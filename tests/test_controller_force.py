@@ -52,6 +52,10 @@ def test_tool_contact_counts_back_to_just_before_the_contact_began():
     assert tool_contact_steps(history, -DOWN) == 0  # the force pulls along an upward motion: no contact
     assert tool_contact_steps(pushing_up(0.0, 9.0), DOWN) == 0  # below the threshold
     assert tool_contact_steps([], DOWN) == 0
+    # already touching for a long time: a move until contact that begins now counts from its own start
+    pressing = pushing_up(*([20.0] * 50))
+    assert tool_contact_steps(pressing, DOWN) == 49 and tool_contact_steps(pressing, DOWN, max_steps=0) == 1
+    assert tool_contact_steps(pressing, DOWN, max_steps=5) == 5
 
 
 def test_force_mode_presses_with_the_commanded_force_and_ends_where_it_is():

@@ -207,9 +207,10 @@ class EmulatedController:
         """The measured external wrench on the tool (base frame, torque about the active TCP)."""
         return self._wrench_history[-1] if self._wrench_history else np.zeros(6)
 
-    def tool_contact(self, direction: np.ndarray) -> int:
-        """URScript ``tool_contact``: steps back to the start of a contact against ``direction``, 0 without one."""
-        return tool_contact_steps(self._wrench_history, direction)
+    def tool_contact(self, direction: np.ndarray, max_steps: int | None = None) -> int:
+        """URScript ``tool_contact``: steps back (at most ``max_steps``) to the start of a contact against
+        ``direction``, 0 without one."""
+        return tool_contact_steps(self._wrench_history, direction, max_steps)
 
     def set_watchdog(self, min_frequency_hz: float) -> None:
         self._watchdog_hz = min_frequency_hz if min_frequency_hz > 0 else None

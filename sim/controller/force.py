@@ -117,11 +117,14 @@ class ForceMode:
         return track_ik(T, q_prev, T_flange_tcp)
 
 
-def tool_contact_steps(history: Sequence[np.ndarray], direction: np.ndarray) -> int:
+def tool_contact_steps(history: Sequence[np.ndarray], direction: np.ndarray, max_steps: int | None = None) -> int:
     """URScript ``tool_contact``: steps back from the newest wrench in ``history`` (oldest first, one per 2 ms
-    step, base frame) to just before the contact began, or 0 without a contact (see the module docstring)."""
+    step, base frame) to just before the contact began, or 0 without a contact (see the module docstring); at most
+    ``max_steps`` back (a contact that was there before a motion began counts from its start)."""
     if not history:
         return 0
+    if max_steps is not None:
+        history = list(history)[-max(int(max_steps), 1) - 1 :]
     d = np.asarray(direction, dtype=float)[:3]
     norm = float(np.linalg.norm(d))
 

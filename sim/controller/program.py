@@ -41,7 +41,7 @@ class ProgramHost(Protocol):
     def actual_q(self) -> np.ndarray: ...
     def actual_torque(self) -> np.ndarray: ...
     def q_history(self, steps: int) -> np.ndarray: ...
-    def tool_contact(self, direction: np.ndarray) -> int: ...
+    def tool_contact(self, direction: np.ndarray, max_steps: int | None = None) -> int: ...
     def trigger_protective_stop(self, reason: str) -> None: ...
     def set_watchdog(self, min_frequency_hz: float) -> None: ...
     def end_program(self, reason: str, error: bool) -> None: ...
@@ -278,13 +278,15 @@ class ControlProgram:
         until tool_contact sees a contact, then stopl(3) and movel back to where the contact began; blocking."""
         xd, direction, accel = self.in_vector(0), self.in_vector(6), self.in_double(12)
         self._stop_async_move()
-        state: dict[str, object] = {"phase": "moving"}
+        state: dict[str, object] = {"phase": "moving", "ticks": 0}
         self.arm.contact_watch = True
 
         def step() -> bool:
             phase = state["phase"]
             if phase == "moving":
-                steps = self.host.tool_contact(direction)
+                # a contact found at once (the tool already touching) began no earlier than this command
+                steps = self.host.tool_contact(direction, max_steps=state["ticks"])
+                state["ticks"] = int(state["ticks"]) + 1
                 if steps <= 0:
                     self.arm.speedl(xd, accel)
                     return False
