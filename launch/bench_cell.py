@@ -66,6 +66,7 @@ class Variant:
     ignore_floor: bool | None = None
     min_fitness: float | None = None
     mask_erosion_px: int | None = None
+    calibration: str | None = None  # another [calibration] source than the cell file's ("sim": the true pose)
 
 
 _BUILTIN_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "builtin")
@@ -85,11 +86,17 @@ VARIANTS: dict[str, Variant] = {
         "oracle", "ground-truth poses; approach within 30 deg of vertical", {"approach_cone_deg": 30.0}
     ),
     "oracle_no_nudge": Variant("oracle", "ground-truth poses; no nudges", picker={"max_nudges": 0}),
+    "oracle_position_nudge": Variant(
+        "oracle", "ground-truth poses; nudges pressed under position control", picker={"nudge_contact": "position"}
+    ),
     "models": Variant("models", "trained detector + pose net, the cell file's settings"),
     "models_floor2": Variant(
         "models", "the cell file's models; pad tips 2 mm above the bin floor (not 1 mm)", {"floor_clearance_m": 0.002}
     ),
     "models_no_nudge": Variant("models", "the cell file's models; no nudges", picker={"max_nudges": 0}),
+    "models_true_camera": Variant(
+        "models", "the cell file's models; the camera's true pose, not the hand-eye calibration", calibration="sim"
+    ),
     "models_no_sheet": Variant(
         "models",
         "the cell file's models; no grasp narrower than 4 mm (no pinch of a 2 mm sheet: the previous planner default)",
@@ -327,9 +334,13 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
     robot = {**d.robot, "host": HOST}
     gripper = {**d.gripper, "host": HOST}
     picker = {**d.picker, **variant.picker}
+    calibration = d.calibration.model_copy(update={"source": variant.calibration or d.calibration.source})
     data = d.model_copy(
-        update={"sim": sim, "perception": perception, "robot": robot, "gripper": gripper, "picker": picker}
-    )
+        update={
+            "sim": sim, "perception": perception, "robot": robot, "gripper": gripper, "picker": picker,
+            "calibration": calibration,
+        }
+    )  # fmt: skip
     setup = CellSetup(data, base.path)
     setup.planner_overrides = {**setup.planner_overrides, **variant.planner}
     return setup
@@ -343,7 +354,8 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
 
     setup = _setup(base, variant, seed, scene)
     start = time.perf_counter()
-    with open_cell(setup, seed, variant.perception) as (picker, process):
+    calibration: dict[str, Any] = {}
+    with open_cell(setup, seed, variant.perception, calibration_info=calibration) as (picker, process):
         kinds = [name.split("_", 1)[1] for name in process.part_names()]
         obj_kind = {builtin_part(k).obj_id: k for k in set(kinds)}
         plans: list[Any] = []
@@ -357,6 +369,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         T_start = process.part_poses()
         report = picker.run(max_cycles)
         T_end = process.part_poses()
+        thrown = process.thrown_parts()
     cell = CellConfig()
     in_start, in_end = _in_bin(T_start, cell), _in_bin(T_end, cell)
     in_tray = _in_box(T_end, cell.T_world_tray, cell.tray_inner_size_m) & in_start
@@ -405,6 +418,9 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         ],
         "stop_reason": report.stop_reason.value,
         "stop_detail": report.stop_detail,
+        "calibration": {k: calibration[k] for k in ("source", "error_mm", "error_deg") if k in calibration},
+        # parts the physics threw (sim.throw_watch): their end poses are not to be trusted
+        "thrown": thrown,
         "parts_by_kind": dict(total),
         "left_by_kind": dict(left),
         "left_why": dict(left_why),
@@ -457,6 +473,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "n_in_tray": sum(b.get("n_in_tray", 0) for b in bins),
         "n_held_off_plan": sum(len(b.get("held_off_plan", [])) for b in bins),
         "out_of_bin_not_in_tray": [{"seed": b["seed"], **e} for b in bins for e in b.get("elsewhere", [])],
+        "thrown_parts": [{"seed": b["seed"], **t} for b in bins for t in b.get("thrown", [])],
         "n_attempts": n_tried,
         "cycle_median_s": median(cycle),
         "cycle_p90_s": percentile(cycle, 90),
@@ -467,6 +484,8 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "failures_by_cause": dict(failures),
         "nudges_by_outcome": dict(nudges),
         "nudge_cycle_median_s": median([t for b in bins for t in b.get("nudge_cycle_s", [])]),
+        "camera_pose_error_median_mm": median([b["calibration"]["error_mm"] for b in bins if _calibrated(b)]),
+        "camera_pose_error_median_deg": median([b["calibration"]["error_deg"] for b in bins if _calibrated(b)]),
         "stop_reasons": dict(stops),
         "left_by_cause": dict(left_why.most_common()),
         "false_detections_last_plan": sum(b.get("false_detections_last_plan", 0) for b in bins),
@@ -474,6 +493,11 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
             k: f"{by_kind_total[k] - by_kind_left[k]}/{by_kind_total[k]}" for k in sorted(by_kind_total)
         },
     }
+
+
+def _calibrated(bin_: dict[str, Any]) -> bool:
+    """The bin's camera pose came with an error against the true pose (a simulated cell's)."""
+    return "error_mm" in bin_.get("calibration", {})
 
 
 def format_results(results: dict[str, Any]) -> str:
@@ -499,6 +523,15 @@ def format_results(results: dict[str, Any]) -> str:
             f"planned: {r.get('n_held_off_plan', '-')}), in the tray {r.get('n_in_tray', '-')}"
         )
         lines.append(f"{name}: left in the bin {r['left_by_cause'] or 'nothing'}")
+        thrown = r.get("thrown_parts", [])
+        lines.append(
+            f"{name}: parts thrown by the physics: {len(thrown)}"
+            + "".join(f"; seed {t['seed']}: {t['part']} at {t['speed_m_s']:.0f} m/s" for t in thrown)
+        )
+        lines.append(
+            f"{name}: camera pose {r.get('camera_pose_error_median_mm', float('nan')):.2f} mm / "
+            f"{r.get('camera_pose_error_median_deg', float('nan')):.3f} deg from the true pose (median over the bins)"
+        )
     return "\n".join(lines)
 
 

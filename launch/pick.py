@@ -59,10 +59,15 @@ class SceneShot:
 
 @contextlib.contextmanager
 def open_cell(
-    setup: CellSetup, seed: int | None = None, perception_kind: str | None = None, controller_kwargs: dict | None = None
+    setup: CellSetup,
+    seed: int | None = None,
+    perception_kind: str | None = None,
+    controller_kwargs: dict | None = None,
+    calibration_info: dict | None = None,
 ) -> Iterator[tuple[Picker, Any]]:
     """Starts (sim) or connects to (hardware) everything the cell file names; yields ``(picker, process)``
-    (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit."""
+    (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit.
+    ``calibration_info`` (a dict) receives where the camera pose came from (``camera_pose_info``)."""
     from robot.grasp_planner import GraspPlanner
     from robot.gripper import make_gripper
     from robot.nudge import NudgePlanner
@@ -73,6 +78,9 @@ def open_cell(
     setup.require_gripper_calibration()  # a hardware cell does not start uncalibrated
     with contextlib.ExitStack() as stack:
         process = None
+        T_base_camera, info = camera_pose(setup, seed)
+        if calibration_info is not None:
+            calibration_info.update(info)
         if setup.is_sim:
             from sim.cell_config import CellConfig
             from sim.controller import ControllerProcess
@@ -90,13 +98,8 @@ def open_cell(
                 process, sensor=sensor_preset(d.camera.sensor), rng=sensor_rng(kwargs["parts_seed"])
             )
             cell = CellConfig()
-            T_base_camera = np.linalg.inv(cell.T_world_base) @ cell.T_world_camera
         else:
             camera = stack.enter_context(setup.open_camera())
-        if d.calibration.source == "file":
-            from robot.calibration import load_calibration
-
-            T_base_camera = load_calibration(setup.resolve(d.calibration.file)).T_base_camera
         planner_config = setup.planner_config()
         if kind == "oracle":
             if process is None:
@@ -142,6 +145,27 @@ def open_cell(
         yield picker, process
 
 
+def camera_pose(setup: CellSetup, seed: int | None = None) -> tuple[np.ndarray, dict]:
+    """``T_base_camera`` from the cell file's ``[calibration]`` and a summary for the report: the hand-eye
+    calibration's file ("file"), the ChArUco calibration run in the simulated cell ("sim_handeye", with its error
+    against the true pose; ``launch.sim_calibration``), or the simulated camera's true pose ("sim")."""
+    d = setup.data
+    source = d.calibration.source
+    if source == "file":
+        from robot.calibration import load_calibration
+
+        path = setup.resolve(d.calibration.file)
+        return load_calibration(path).T_base_camera, {"source": source, "file": str(path)}
+    from launch.sim_calibration import calibrate_sim_cell, true_T_base_camera
+    from sim.cell_config import CellConfig
+
+    cell = CellConfig()
+    if source == "sim":
+        return true_T_base_camera(cell), {"source": source, "error_mm": 0.0, "error_deg": 0.0}
+    result = calibrate_sim_cell(cell, sensor_preset(d.camera.sensor), d.sim.seed if seed is None else seed)
+    return result.T_base_camera, result.to_json()
+
+
 def run(args: argparse.Namespace) -> int:
     return run_with_report(args)[0]
 
@@ -163,12 +187,13 @@ def _pick(args: argparse.Namespace, setup: CellSetup, kind: str, signals: StopSi
     """Sets the cell up, runs the picker, and writes the report whatever ends the run; returns the exit code and
     the report."""
     shot = SceneShot()
+    calibration: dict = {}
     t0 = time.perf_counter()
     picker: Picker | None = None
     models: Any = {}
     failure = death = None
     try:
-        with open_cell(setup, args.seed, args.perception) as (picker, process):
+        with open_cell(setup, args.seed, args.perception, calibration_info=calibration) as (picker, process):
 
             def keep_first(record: Any, frame: Any, result: Any, poses: list[Any]) -> None:
                 if shot.frame is None:
@@ -192,7 +217,7 @@ def _pick(args: argparse.Namespace, setup: CellSetup, kind: str, signals: StopSi
         pass  # the report says how far the run got
     except BaseException:  # an unexpected error: keep the run's report, then let it through
         if picker is not None and picker.last_report is not None:
-            write_report(picker.last_report, args.out, shot, picker.T_base_camera, setup, kind, models)
+            write_report(picker.last_report, args.out, shot, picker.T_base_camera, setup, kind, models, calibration)
         raise
     report = picker.last_report if picker is not None else None
     if report is None:
@@ -200,9 +225,9 @@ def _pick(args: argparse.Namespace, setup: CellSetup, kind: str, signals: StopSi
         report = RunReport([], StopReason.INTERRUPTED, detail)
     if death is not None and death not in report.stop_detail:
         report.stop_detail = f"{death}; {report.stop_detail}"  # the cause of whatever error the run ended with
-    print_summary(report, time.perf_counter() - t0)
+    print_summary(report, time.perf_counter() - t0, calibration)
     T_base_camera = picker.T_base_camera if picker is not None else np.eye(4)
-    out_json, out_png = write_report(report, args.out, shot, T_base_camera, setup, kind, models)
+    out_json, out_png = write_report(report, args.out, shot, T_base_camera, setup, kind, models, calibration)
     print(f"wrote {out_json}\nwrote {out_png}")
     if death is not None:
         print(f"sygrid pick: {death}", file=sys.stderr)
@@ -228,7 +253,12 @@ def _save_emulator_log(process: Any, out: Path) -> None:
     write_bytes_atomic(out / "emulator.log", ("\n".join(lines) + "\n").encode())
 
 
-def print_summary(report: RunReport, wall_s: float) -> None:
+def print_summary(report: RunReport, wall_s: float, calibration: dict | None = None) -> None:
+    if calibration and "error_mm" in calibration:
+        print(
+            f"camera pose: {calibration['source']}, {calibration['error_mm']:.2f} mm / {calibration['error_deg']:.3f} "
+            "deg from the true pose"
+        )
     times = report.sim_cycle_times_s()
     rate = report.success_rate
     print(
@@ -249,12 +279,19 @@ def print_summary(report: RunReport, wall_s: float) -> None:
 
 
 def write_report(
-    report: RunReport, out: Path, shot: SceneShot, T_base_camera: np.ndarray, setup: CellSetup, kind: str, models: Any
+    report: RunReport,
+    out: Path,
+    shot: SceneShot,
+    T_base_camera: np.ndarray,
+    setup: CellSetup,
+    kind: str,
+    models: Any,
+    calibration: dict | None = None,
 ) -> tuple[Path, Path]:
     from sygrid.fileio import write_bytes_atomic
 
     out.mkdir(parents=True, exist_ok=True)
-    data = {"config": str(setup.path), "perception": kind, **report.to_json()}
+    data = {"config": str(setup.path), "perception": kind, "calibration": calibration or {}, **report.to_json()}
     json_path = write_bytes_atomic(out / "pick_report.json", json.dumps(data, indent=1, default=float).encode())
     png_path = out / "pick_report.png"
     save_report_picture(report, shot, models, png_path)

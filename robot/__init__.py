@@ -4,7 +4,8 @@ Import the modules themselves (nothing is imported here, so ``import robot`` sta
 
 - ``robot.ur``: ``URRobot`` over ur_rtde (connect, recover, checked motion with 4x4 poses); ``robot.ur_config``
   (``URConfig``, ``WorkspaceBox``, the pre-send checks), ``robot.ur_errors``, ``robot.ur_connection`` (the clients,
-  reconnect, recovery), ``robot.ur_motion`` (a motion in flight, watched), ``robot.ur_probe`` (bounded reachability).
+  reconnect, recovery), ``robot.ur_motion`` (a motion in flight, watched), ``robot.ur_force`` (force-limited
+  motion: move until contact, a move in force mode), ``robot.ur_probe`` (bounded reachability).
 - ``robot.gripper``: ``Gripper``, the Robotiq URCap socket and digital-output kinds, ``make_gripper``.
 - ``robot.calibration`` (pose set, capture, file), ``robot.hand_eye`` (the solver), ``robot.charuco``: eye-to-hand
   hand-eye calibration with a ChArUco board.

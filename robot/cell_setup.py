@@ -12,14 +12,17 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
                   realsense: serial, rgb_size, depth_size, fps, visual_preset, emitter_enabled, laser_power_mw
                   (perception.realsense.RealSenseConfig); sim only: sensor = a sygrid.sensor preset the exact
                   frames go through ("ideal", the default: exact; "oak-d", "d435", ...)
-    [calibration] source = "sim" (the sim camera's known pose) | "file", file = "calib.json" (robot.calibration)
+    [calibration] source = "sim_handeye" (sim: the ChArUco hand-eye calibration run in the simulated cell,
+                  launch.sim_calibration) | "sim" (sim: the camera's true pose) | "file", file = "calib.json"
+                  (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
                   conf_threshold, detector_input_size, detect_in_bin, ignore_floor, floor_margin_m,
                   min_fitness, mask_erosion_px (refinement settings)
     [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
     [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
     [planner]     robot.grasp_config.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
-    [picker]      robot.pick_config.PickerConfig fields
+    [picker]      robot.pick_config.PickerConfig fields; a hardware cell nudges only with nudge_contact =
+                  "force_limited" (or max_nudges = 0)
 
 Relative paths are taken from the configuration file's folder. Errors name the file and the field.
 
@@ -38,7 +41,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import tomllib
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, ValidationError
 
 from robot.pick_config import PickerConfig
 from robot.ur_config import URConfig
@@ -93,7 +96,7 @@ class CameraSection(_Strict):
 
 
 class CalibrationSection(_Strict):
-    source: Literal["sim", "file"]
+    source: Literal["sim_handeye", "sim", "file"]
     file: str | None = None
 
 
@@ -145,7 +148,7 @@ class CellFile(_Strict):
     bin: BinSection | None = None  # None: the simulated cell's bin
     place: PlaceSection | None = None  # None: above the simulated cell's tray
     planner: dict[str, float | int | bool] = Field(default_factory=dict)
-    picker: dict[str, StrictBool | StrictInt | StrictFloat | None] = Field(default_factory=dict)  # TOML is typed
+    picker: dict[str, StrictBool | StrictInt | StrictFloat | StrictStr | None] = Field(default_factory=dict)
 
 
 class CellSetup:
@@ -165,8 +168,11 @@ class CellSetup:
                 raise ConfigError(f"{where}: camera.sensor is for the simulated camera (a real one is its own sensor)")
             if data.perception.kind == "oracle":
                 raise ConfigError(f"{where}: perception.kind = 'oracle' exists only in the simulated cell")
-            if data.calibration.source == "sim":
-                raise ConfigError(f"{where}: calibration.source = 'sim' exists only in the simulated cell; use 'file'")
+            if data.calibration.source != "file":
+                raise ConfigError(
+                    f"{where}: calibration.source = {data.calibration.source!r} exists only in the simulated cell; "
+                    "use 'file'"
+                )
         if data.calibration.source == "file" and not data.calibration.file:
             raise ConfigError(f"{where}: calibration.file is required when calibration.source = 'file'")
         robot = dict(data.robot)
@@ -189,6 +195,12 @@ class CellSetup:
         self.gripper_calibration: GripperCalibration | None = None
         if load_gripper_calibration and self.gripper_calibration_path is not None:
             self._apply_gripper_calibration(self.gripper_calibration_path)
+        if not self.is_sim and self.picker.max_nudges and self.picker.nudge_contact != "force_limited":
+            raise ConfigError(
+                f"{where}: [picker] nudge_contact = {self.picker.nudge_contact!r} presses parts under position control "
+                "only, which a hardware cell refuses: set nudge_contact = 'force_limited' (the controller's "
+                "moveUntilContact and force mode) or max_nudges = 0"
+            )
         self.planner_overrides = dict(data.planner)
         self.planner_config()  # bad [bin], [place] or [planner] fields fail here, before anything starts
 

@@ -25,8 +25,10 @@ The walls are vertical, so a gripper clear of them at the press and at the end o
 straight down and back up: those two poses are all the wall check needs.
 
 Friction does the work: the pads (rubber-like, friction 1.0 in the simulated cell) grip the part's top harder
-than the bin floor holds its underside. On hardware the press should be force-limited (``ur_rtde``'s force mode
-or a compliant pad); the simulated cell's stiff position control presses the 2 mm into a soft contact.
+than the bin floor holds its underside. The planner gives poses; how the press touches the part is the pick arm's
+(``robot.pick_arm``, ``PickerConfig.nudge_contact``): force-limited (straight down until the controller detects the
+contact, then the drag in force mode with a bounded pressing force: the only way on hardware), or position control
+to ``T_base_press`` (``press_depth_m`` into the estimated top: simulated cells only).
 
 Candidates (tilt, turn of the paddle about the approach, where on the part's top to press, how far back the
 straight lines start) are tried in ``NudgeConfig``'s order; the first whose gripper boxes keep ``bin_clearance_m``

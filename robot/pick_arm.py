@@ -13,12 +13,13 @@ import numpy as np
 from robot.gripper import GripperError
 from robot.pick_config import PickerConfig
 from robot.pick_fingers import Fingers
-from robot.pick_protocols import NudgeLike, RobotLike
+from robot.pick_protocols import ForceLimitedRobotLike, NudgeLike, RobotLike
 from robot.pick_report import NudgeOutcome, Outcome, Stage, StageTimer
 from robot.ur_errors import (
     ConnectionLostError,
     MotionFailedError,
     MotionRefusedError,
+    NoContactError,
     ProtectiveStopError,
     RecoveryError,
     RobotConnectionError,
@@ -54,27 +55,58 @@ class Arm:
 
     def nudge(self, nudge: NudgeLike, timer: StageTimer) -> tuple[NudgeOutcome, str]:
         """A nudge's strokes (timed as ``Stage.NUDGE``): close the fingers (the pads together are the paddle), joint
-        move above the press, straight lines to the press, the end of the drag and the retreat. Returns how it ended
-        and the error message; a recoverable motion failure is recovered (``recover_and_back_out`` to the retreat's
-        height)."""
+        move above the press, the press and the drag (``PickerConfig.nudge_contact``: force-limited, or straight
+        lines to the planned press and the end of the drag), the straight line up to the retreat. Returns how it
+        ended and the error message; a recoverable motion failure is recovered (``recover_and_back_out`` to the
+        retreat's height). A force-limited nudge on a robot without force-limited motion is refused (nothing moves)."""
         cfg = self.config
+        force_limited = cfg.nudge_contact == "force_limited"
+        if force_limited and not isinstance(self.robot, ForceLimitedRobotLike):
+            detail = (
+                f"nudge_contact = 'force_limited' but {type(self.robot).__name__} has no force-limited motion "
+                "(move_until_contact, move_l_pressing): nudges are refused"
+            )
+            log.error("nudge of part %d refused: %s", nudge.part_index, detail)
+            return NudgeOutcome.MOTION_REFUSED, detail
         try:
             with timer(Stage.NUDGE):
                 self.fingers.gripper.close(force_n=cfg.grip_force_n)
                 self.robot.move_j(nudge.q_above, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
-                self.robot.move_l(nudge.T_base_press, nudge.speed_m_s, cfg.approach_accel_m_s2)
-                self.robot.move_l(nudge.T_base_end, nudge.speed_m_s, cfg.approach_accel_m_s2)
+                if force_limited:
+                    self._press_and_drag(nudge)
+                else:
+                    self.robot.move_l(nudge.T_base_press, nudge.speed_m_s, cfg.approach_accel_m_s2)
+                    self.robot.move_l(nudge.T_base_end, nudge.speed_m_s, cfg.approach_accel_m_s2)
                 self.robot.move_l(nudge.T_base_retreat, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
         except MotionRefusedError as exc:
             return NudgeOutcome.MOTION_REFUSED, str(exc)
         except MotionFailedError as exc:
             if not exc.recoverable:
                 raise
-            outcome = NudgeOutcome(motion_cause(exc).value)
+            cause = NudgeOutcome(motion_cause(exc).value)
+            outcome = NudgeOutcome.NO_CONTACT if isinstance(exc, NoContactError) else cause
             log.warning("nudge of part %d: %s (%s); recovering", nudge.part_index, outcome, exc)
             self.recover_and_back_out(float(nudge.T_base_retreat[2, 3]))
             return outcome, str(exc)
         return NudgeOutcome.DONE, ""
+
+    def _press_and_drag(self, nudge: NudgeLike) -> None:
+        """The force-limited press and drag: down (the way the retreat goes up) from ``nudge_approach_m`` above the
+        planned press until the contact, then the drag at the contact's height in force mode, pressing with
+        ``nudge_press_force_n``."""
+        cfg = self.config
+        robot: ForceLimitedRobotLike = self.robot  # type: ignore[assignment]
+        up = np.asarray(nudge.T_base_retreat, dtype=float)[:3, 3] - np.asarray(nudge.T_base_end, dtype=float)[:3, 3]
+        up /= np.linalg.norm(up)
+        T_start = np.array(nudge.T_base_press, dtype=float)
+        T_start[:3, 3] += cfg.nudge_approach_m * up
+        self.robot.move_l(T_start, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
+        travel = cfg.nudge_approach_m + cfg.nudge_overtravel_m
+        robot.move_until_contact(-up, cfg.nudge_contact_speed_m_s, travel)
+        T_touch = np.asarray(self.robot.T_base_tcp(), dtype=float)
+        T_end = np.array(nudge.T_base_end, dtype=float)
+        T_end[:3, 3] += ((T_touch[:3, 3] - np.asarray(nudge.T_base_press)[:3, 3]) @ up) * up  # at the contact's height
+        robot.move_l_pressing(T_end, -up, cfg.nudge_press_force_n, nudge.speed_m_s, cfg.approach_accel_m_s2)
 
     def recover_and_back_out(self, safe_height_m: float) -> None:
         """After a protective stop or a dropped link the arm is at rest somewhere on the way, perhaps with a finger

@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 from sygrid.errors import ConfigError
 
+#: ``PickerConfig.nudge_contact``: the force-limited press (any cell) or position control only (simulated cells).
+NUDGE_CONTACTS = ("force_limited", "position")
+
 
 @dataclass(frozen=True)
 class PickerConfig:
@@ -32,6 +35,12 @@ class PickerConfig:
     (something above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find or whose
     estimates land outside it: the run stops with "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top
     seen from above.
+    nudge_contact: how a nudge touches its part. "force_limited": straight down from ``nudge_approach_m`` above the
+    planned press until the controller detects the contact (``move_until_contact`` at ``nudge_contact_speed_m_s``,
+    at most ``nudge_overtravel_m`` past the planned press), then the drag in force mode pressing with
+    ``nudge_press_force_n``; a robot without force-limited motion refuses nudges. "position": straight lines to
+    the planned press (``press_depth_m`` into the part's estimated top) and the drag, under position control only
+    (simulated cells; a hardware cell file refuses it).
     min_held_width_m: fingers that stopped at least this far apart hold something, even when the gripper reports no
     object, and fingers closer than this after lifting hold nothing. A gripper detects an object when its fingers
     stop short of the commanded position by more than a tolerance, so a thin sheet squeezed between the pads can
@@ -62,6 +71,11 @@ class PickerConfig:
     max_nudges_per_part: int = 2
     min_unseen_area_m2: float = 1e-4
     min_held_width_m: float = 0.001
+    nudge_contact: str = "force_limited"
+    nudge_press_force_n: float = 25.0
+    nudge_contact_speed_m_s: float = 0.01
+    nudge_approach_m: float = 0.015
+    nudge_overtravel_m: float = 0.01
 
     def __post_init__(self) -> None:
         for name in (
@@ -84,3 +98,8 @@ class PickerConfig:
         ):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"PickerConfig.{name} must be >= 0, got {getattr(self, name)!r}")
+        if self.nudge_contact not in NUDGE_CONTACTS:
+            raise ConfigError(f"PickerConfig.nudge_contact must be one of {NUDGE_CONTACTS}, got {self.nudge_contact!r}")
+        for name in ("nudge_press_force_n", "nudge_contact_speed_m_s", "nudge_approach_m", "nudge_overtravel_m"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"PickerConfig.{name} must be > 0, got {getattr(self, name)!r}")

@@ -7,7 +7,7 @@ Poses are 4x4 homogeneous transforms ``T_a_b`` in metres, joint angles ``q`` (6,
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -26,6 +26,25 @@ class RobotLike(Protocol):
     def move_j(self, q: np.ndarray, speed_rad_s: float | None = None, accel_rad_s2: float | None = None) -> Any: ...
     def recover(self, timeout_s: float | None = None) -> None: ...
     def stop(self, decel: float | None = None) -> None: ...  # from another thread, while a motion runs
+
+
+@runtime_checkable
+class ForceLimitedRobotLike(Protocol):
+    """A ``RobotLike`` with force-limited motion (``robot.ur.URRobot``, ``robot.ur_force``): a straight move that
+    stops on contact, and a linear move that presses with a bounded force along one direction (base frame)."""
+
+    def move_until_contact(
+        self, direction: np.ndarray, speed_m_s: float, max_travel_m: float, accel_m_s2: float | None = None
+    ) -> Any: ...
+    def move_l_pressing(
+        self,
+        T_base_tcp: np.ndarray,
+        direction: np.ndarray,
+        force_n: float,
+        speed_m_s: float | None = None,
+        accel_m_s2: float | None = None,
+        max_press_speed_m_s: float | None = None,
+    ) -> Any: ...
 
 
 class GripperLike(Protocol):

@@ -65,6 +65,7 @@ class NudgeOutcome(_StrEnum):
     PROTECTIVE_STOP = "protective_stop"
     CONNECTION_LOST = "connection_lost"
     MOTION_FAILED = "motion_failed"
+    NO_CONTACT = "no_contact"  # the force-limited press met nothing within its travel: the part is not there
 
 
 class StopReason(_StrEnum):

@@ -7,7 +7,8 @@ from ``sygrid.robots.kinematics``).
 
 Where each part lives: ``robot.ur_config`` (``URConfig``, ``WorkspaceBox`` and the checks before anything is
 sent), ``robot.ur_errors`` (the errors), ``robot.ur_connection`` (the clients, bounded connect, reconnect and
-recovery), ``robot.ur_motion`` (a motion in flight, watched until it ends, and ``MotionResult``).
+recovery), ``robot.ur_motion`` (a motion in flight, watched until it ends, and ``MotionResult``), ``robot.ur_force``
+(force-limited motion: move until contact, a linear move in force mode).
 
 API (all lengths m, angles rad, times s)::
 
@@ -19,6 +20,8 @@ API (all lengths m, angles rad, times s)::
         robot.move_j_to_pose(T_base_tcp, ..., q_near=None) -> MotionResult             # local IK (ik_nearest)
         robot.start_move_l(...) / start_move_j(...) / start_move_j_to_pose(...)        # non-blocking, then
         robot.wait_for_motion(timeout_s=None) -> MotionResult;  robot.stop()           # stop() from any thread
+        robot.move_until_contact(direction, speed_m_s, max_travel_m) -> ContactResult   # force-limited contact
+        robot.move_l_pressing(T_base_tcp, direction, force_n, speed_m_s=None) -> MotionResult  # in force mode
         robot.ik(T_base_tcp, q_near=None) -> q or None;  robot.check_pose(T_base_tcp)
         robot.set_tcp(T_flange_tcp);  robot.set_digital_out(i, value, kind);  robot.digital_in(i, kind)
         robot.recover()     # reconnect / unlock protective stop / re-upload the control script, as needed
@@ -78,6 +81,7 @@ from robot.ur_config import (
 )
 from robot.ur_connection import POLL_S, RobotStatus, URConnection
 from robot.ur_errors import MotionRefusedError, RobotError, UnreachableError
+from robot.ur_force import ContactResult, contact_move, force_mode
 from robot.ur_motion import MotionResult, MotionWatch
 from sygrid.robots.kinematics import T_to_pose, forward_kinematics, ik_nearest
 from sygrid.transforms import invert, is_rigid, rotation_angle_deg
@@ -275,6 +279,36 @@ class URRobot:
                 f"limits less {self.config.joint_limit_margin_rad:g} rad; nothing was sent"
             )
         self.start_move_j(q, speed_rad_s, accel_rad_s2)
+
+    # --- force-limited motion (robot.ur_force) -------------------------------------------------------------
+    def move_until_contact(
+        self, direction: np.ndarray, speed_m_s: float, max_travel_m: float, accel_m_s2: float | None = None
+    ) -> ContactResult:
+        """Straight along ``direction`` (base frame, any length) at ``speed_m_s`` (at most ``max_contact_speed_m_s``)
+        until the controller's TCP force shows a contact, then back to where it began; blocks. ``NoContactError``
+        when nothing is met within ``max_travel_m`` (the program is stopped: ``recover()``); the other errors as
+        ``move_l``. The end of the whole travel must lie in the workspace box."""
+        with self._link.lock:
+            self._ensure_ready()
+            return contact_move(self._link, direction, speed_m_s, max_travel_m, accel_m_s2)
+
+    def move_l_pressing(
+        self,
+        T_base_tcp: np.ndarray,
+        direction: np.ndarray,
+        force_n: float,
+        speed_m_s: float | None = None,
+        accel_m_s2: float | None = None,
+        max_press_speed_m_s: float | None = None,
+    ) -> MotionResult:
+        """A linear move to ``T_base_tcp`` in force mode: compliant along ``direction`` (base frame), pushing with
+        ``force_n`` (at most ``max_press_force_n``) along it, which the target's own motion should not move along.
+        Force mode ends whatever happens. Errors as ``move_l``."""
+        with self._link.lock:
+            self._ensure_ready()
+        with force_mode(self._link, direction, force_n, max_press_speed_m_s):
+            self.start_move_l(T_base_tcp, speed_m_s, accel_m_s2)
+            return self.wait_for_motion()
 
     def wait_for_motion(self, timeout_s: float | None = None) -> MotionResult:
         """Waits for the motion in flight to end (``robot.ur_motion``); see the module docstring for the errors.

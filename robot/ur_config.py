@@ -100,6 +100,9 @@ class URConfig:
     motion_timeout_margin_s: float = 2.0
     #: The link counts as lost when the controller timestamp has not advanced for this long.
     stale_state_timeout_s: float = 0.5
+    #: Force-limited motion (``robot.ur_force``): the fastest move until contact or press, and the largest press.
+    max_contact_speed_m_s: float = 0.05
+    max_press_force_n: float = 40.0
     #: Decelerations of ``stop()``.
     stop_decel_rad_s2: float = 4.0
     stop_decel_m_s2: float = 2.0
@@ -133,6 +136,7 @@ class URConfig:
             "joint_accel_rad_s2", "linear_speed_m_s", "linear_accel_m_s2", "max_joint_speed_rad_s",
             "max_joint_accel_rad_s2", "max_linear_speed_m_s", "max_linear_accel_m_s2", "path_check_step_rad",
             "motion_timeout_factor", "stale_state_timeout_s", "stop_decel_rad_s2", "stop_decel_m_s2",
+            "max_contact_speed_m_s", "max_press_force_n",
         )  # fmt: skip
         for name in positive:
             value = getattr(self, name)

@@ -16,6 +16,7 @@ __all__ = [
     "EmergencyStopError",
     "MotionFailedError",
     "MotionRefusedError",
+    "NoContactError",
     "OutsideWorkspaceError",
     "ProtectiveStopError",
     "RecoveryError",
@@ -69,6 +70,10 @@ class EmergencyStopError(MotionFailedError):
 
 class ConnectionLostError(MotionFailedError):
     """The link to the controller dropped (or went silent) before or during a motion."""
+
+
+class NoContactError(MotionFailedError):
+    """A move until contact went its whole travel without meeting anything; the program was stopped (recover)."""
 
 
 class RecoveryError(RobotError, RuntimeError):

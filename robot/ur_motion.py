@@ -23,7 +23,16 @@ import numpy as np
 from robot.ur_connection import POLL_S, RUNTIME_PLAYING, RUNTIME_STATES, STATE_SETTLE_S, URConnection
 from robot.ur_errors import ConnectionLostError, MotionFailedError, RobotError
 
-__all__ = ["MotionResult", "MotionWatch"]
+__all__ = ["MotionResult", "MotionWatch", "settle_receive"]
+
+
+def settle_receive(link: URConnection) -> None:
+    """Waits until the receive connection has decoded a package newer than the one seen now (2 ticks)."""
+    r = link.rtde_r
+    ts0 = float(r.getTimestamp())
+    end = time.monotonic() + STATE_SETTLE_S
+    while float(r.getTimestamp()) < ts0 + 0.003 and time.monotonic() < end:
+        time.sleep(POLL_S)
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,12 +163,7 @@ class MotionWatch:
             self.link.rtde_c.stopJ(decel or cfg.stop_decel_rad_s2, False)
 
     def _settle_receive(self) -> None:
-        """Waits until the receive connection has decoded a package newer than the one seen now (2 ticks)."""
-        r = self.link.rtde_r
-        ts0 = float(r.getTimestamp())
-        end = time.monotonic() + STATE_SETTLE_S
-        while float(r.getTimestamp()) < ts0 + 0.003 and time.monotonic() < end:
-            time.sleep(POLL_S)
+        settle_receive(self.link)
 
     def _raise_program_stopped(self, when: str) -> None:
         link = self.link

@@ -8,13 +8,10 @@ The scene's container is replaced by the cell's bin, so the pile fits the bin it
 from __future__ import annotations
 
 import logging
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 
-from perception.camera import Camera
 from sim.cell_config import CellConfig
 from sim.world import CellWorld
 from sygrid.drop import drop_scene
@@ -59,32 +56,3 @@ def add_pile(world: CellWorld, result: DropResult) -> list[str]:
     models = [result.models[i.model_index] for i in result.instances]
     collision = [result.collision[i.model_index] for i in result.instances]
     return world.add_parts(models, world.T_world_bin @ result.T_world_obj, collision)
-
-
-class CameraLoad:
-    """Captures frames from a camera at ``rate_hz`` in a daemon thread, as a perception client would, and keeps
-    the capture times (s). For benchmarks: the emulator's 500 Hz stream must hold while a camera renders."""
-
-    def __init__(self, camera: Camera, rate_hz: float) -> None:
-        self.camera, self.period_s = camera, 1.0 / rate_hz
-        self.capture_s: list[float] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="camera-load", daemon=True)
-
-    def start(self) -> CameraLoad:
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5.0)
-
-    def _run(self) -> None:
-        self.camera.capture()  # sets up the renderer, whose GL context belongs to this thread; not timed
-        next_t = time.monotonic()
-        while not self._stop.is_set():
-            start = time.perf_counter()
-            self.camera.capture()
-            self.capture_s.append(time.perf_counter() - start)
-            next_t += self.period_s
-            self._stop.wait(max(0.0, next_t - time.monotonic()))

@@ -1,12 +1,12 @@
 """The overhead camera of an emulated cell, seen from outside the emulator's process.
 
-``EmulatorCamera`` asks a ``ControllerProcess`` (MuJoCo backend) for a frame: the child renders its own
-``CellWorld`` with ``SimCamera`` (between physics steps, under the world's lock only while it copies the scene)
-and sends the arrays over the pipe. So the picking runtime sees frames exactly as from an OAK: RGB, metric depth
-registered to it, intrinsics and a timestamp (the world's simulated time). ``T_base_camera`` is withheld unless
-``report_T_base_camera``: the runtime takes the camera pose from its calibration, as on hardware. A ``sensor``
-(``sygrid.sensor.SensorModel``) is applied here to the exact frames the emulator renders, with this camera's
-``rng``.
+``EmulatorCamera`` asks a ``ControllerProcess`` (MuJoCo backend) for a frame: the emulator's render process
+(``sim.render_process``) renders the world's current state with ``SimCamera`` and sends the arrays over a pipe, so
+rendering never runs in the emulator's process. So the picking runtime sees frames exactly as from an OAK: RGB,
+metric depth registered to it, intrinsics and a timestamp (the world's simulated time). ``T_base_camera`` is
+withheld unless ``report_T_base_camera``: the runtime takes the camera pose from its calibration, as on hardware.
+A ``sensor`` (``sygrid.sensor.SensorModel``) is applied here to the exact frames the emulator renders, with this
+camera's ``rng``.
 """
 
 from __future__ import annotations

@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation
 from sim import gripper_model
 from sim.cell_config import CellConfig
 from sim.cell_model import ARM_BODY_NAMES, FLANGE_SITE, build_cell_spec
+from sim.throw_watch import Throw, ThrowWatch
 from sygrid.mjspec import add_part_body, quat_wxyz
 from sygrid.objects.collision.geometry import CollisionModel
 from sygrid.objects.model import ObjectModel
@@ -45,9 +46,6 @@ _PART_FRICTION = (0.5, 0.005, 0.0001)  # steel on steel / plastic: sliding 0.5
 _PART_RGBA = (0.62, 0.63, 0.66, 1.0)
 # qd targets further apart than this in time are not differentiated into an acceleration feed-forward.
 _MAX_FEEDFORWARD_GAP_S = 0.05
-# A part faster than this has been thrown by the solver, not by the cell: a part dropped from 1 m reaches 4.4 m/s and
-# the arm's TCP moves at most 1 m/s here (seen: a gear ended 470 m away in a pick run).
-MAX_PLAUSIBLE_PART_SPEED_M_S = 10.0
 
 
 class CellWorld:
@@ -59,7 +57,7 @@ class CellWorld:
         self._spec = self._build_spec()
         self._gripper = gripper_model.GripperController(self._gripper_names, self.config.timestep_s)
         self._part_names: list[str] = []
-        self._thrown: dict[str, tuple[float, float]] = {}
+        self._throws = ThrowWatch()
         self.model = self._spec.compile()
         self.data = mujoco.MjData(self.model)
         self._bind()
@@ -102,28 +100,20 @@ class CellWorld:
                 self._arm_control(m, d)
                 self._gripper.apply(d)
                 mujoco.mj_step2(m, d)
-            self._watch_part_speeds()
+                self._throws.record(d)
+            for throw in self._throws.check(m, d):
+                log.warning("%s: the physics threw it; its pose is not to be trusted", throw.describe())
 
     @property
     def thrown_parts(self) -> dict[str, tuple[float, float]]:
-        """Parts the physics threw (faster than ``MAX_PLAUSIBLE_PART_SPEED_M_S``): name -> (time [s], speed [m/s])
-        when first seen; their poses are not to be trusted after that."""
-        return dict(self._thrown)
+        """Parts the physics threw (faster than ``sim.throw_watch.MAX_PLAUSIBLE_PART_SPEED_M_S``): name -> (time
+        [s], speed [m/s]) when first seen; their poses are not to be trusted after that (``throws``: why)."""
+        return {name: (t.time_s, t.speed_m_s) for name, t in self._throws.thrown.items()}
 
-    def _watch_part_speeds(self) -> None:
-        """Notes (once per part, with a warning) a part moving faster than anything in the cell can move it."""
-        if not len(self._part_dofadr):
-            return
-        v = self.data.qvel[self._part_dofadr.reshape(-1, 1) + np.arange(3)]
-        for k in np.flatnonzero(np.linalg.norm(v, axis=1) > MAX_PLAUSIBLE_PART_SPEED_M_S):
-            name = self._part_names[k]
-            if name not in self._thrown:
-                speed = float(np.linalg.norm(v[k]))
-                self._thrown[name] = (self.time_s, speed)
-                log.warning(
-                    "%s moves at %.0f m/s at t = %.3f s: the physics threw it (a deep penetration resolved in one "
-                    "step); its pose is not to be trusted", name, speed, self.time_s,
-                )  # fmt: skip
+    @property
+    def throws(self) -> list[Throw]:
+        """The thrown parts with what the kept history says of the cause (``sim.throw_watch.Throw``)."""
+        return list(self._throws.thrown.values())
 
     # ------------------------------------------------------------------------------------------ arm
 
@@ -208,6 +198,32 @@ class CellWorld:
                     largest = float(force[0])
                     pair = f"{_geom_name(m, int(g1[i]))} / {_geom_name(m, int(g2[i]))}"
             return largest, pair
+
+    def tool_wrench(self) -> np.ndarray:
+        """(6,) the contact wrench that everything else (parts, bin, table, other links) exerts on the gripper in
+        the last step, in the robot base frame: force [N], then torque [N m] about the flange origin. What a
+        force/torque sensor between the flange and the gripper reads with its payload compensated (zero in free
+        space); contacts between the gripper's own bodies are internal and left out."""
+        with self.lock:
+            m, d = self.model, self.data
+            wrench = np.zeros(6)
+            n = d.ncon
+            if n == 0:
+                return wrench
+            tool = self._geom_is_tool
+            g1, g2 = d.contact.geom1[:n], d.contact.geom2[:n]
+            p_flange = d.site_xpos[self._flange_site]
+            f = np.zeros(6)
+            for i in np.flatnonzero(tool[g1] != tool[g2]):
+                mujoco.mj_contactForce(m, d, int(i), f)
+                # contact frame rows: normal (from geom1 to geom2), tangents; the force acts on geom2, -f on geom1
+                force = d.contact.frame[i].reshape(3, 3).T @ f[:3]
+                if tool[g1[i]]:
+                    force = -force
+                wrench[:3] += force
+                wrench[3:] += np.cross(d.contact.pos[i] - p_flange, force)
+            R_base_world = self.config.T_world_base[:3, :3].T
+            return np.concatenate([R_base_world @ wrench[:3], R_base_world @ wrench[3:]])
 
     # ------------------------------------------------------------------------------------------ gripper
 
@@ -382,11 +398,14 @@ class CellWorld:
         arm_bodies = {m.body(n).id for n in ARM_BODY_NAMES} | {m.body(self._gripper_names.body).id}
         arm_bodies |= {m.body(n).id for n in self._gripper_names.finger_bodies}
         env_bodies = {m.body(n).id for n in ("table", "bin", "tray", "robot_base")}
+        tool_bodies = {m.body(n).id for n in (self._gripper_names.body, *self._gripper_names.finger_bodies)}
+        self._geom_is_tool = np.isin(m.geom_bodyid, list(tool_bodies))
         self._geom_is_arm = np.isin(m.geom_bodyid, list(arm_bodies))
         self._geom_is_env = np.isin(m.geom_bodyid, list(env_bodies))
         parts = [m.joint(f"{n}_free") for n in self._part_names]
         self._part_qadr = np.array([int(j.qposadr[0]) for j in parts], dtype=int)
         self._part_dofadr = np.array([int(j.dofadr[0]) for j in parts], dtype=int)
+        self._throws.bind(m, self._part_names, self._part_dofadr)
         self._gripper.bind(m)
 
 

@@ -13,6 +13,15 @@ import mujoco
 import numpy as np
 import pytest
 
+from launch.sim_calibration import (
+    BOARD,
+    WORKSPACE,
+    PlacedArm,
+    board_plate_on_flange,
+    calibrate_sim_cell,
+    pose_error,
+    reachable,
+)
 from robot.calibration import (
     calibrate,
     collect_samples,
@@ -29,52 +38,16 @@ from sim.cell_model import CALIBRATION_BOARD
 from sim.world import CellWorld
 from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.errors import ConfigError
-from sygrid.robots.kinematics import ik_nearest
 from sygrid.transforms import invert, make_T, rotation_about, rotation_angle_deg, transform_points
 
-BOARD = CharucoBoard()  # 7 x 5 squares of 30 mm, 22 mm 4x4 markers
-# Flange pointing up, elbow up: a seed for the IK of the presenting poses (the board faces the overhead camera).
-Q_PRESENT = np.array([0.0, -1.2, 1.6, 0.8, -math.pi / 2, 0.0])
-# The flange stays on the far side of the camera axis from the robot, so that the upper arm hides less of the board.
-WORKSPACE = WorkspaceBox((-0.8, -0.3, 0.1), (-0.42, 0.3, 0.6))
 # Issue 6's requirement for the simulated cell.
 MAX_ERROR_MM, MAX_ERROR_DEG = 2.0, 0.3
-
-
-def _plate_on_flange(board: CharucoBoard = BOARD) -> tuple[BoardPlate, np.ndarray]:
-    """The board on a plate 0.17 m out from the flange, past the gripper's fingers, printed face outwards and
-    centred on the flange axis. Returns the plate and the true ``T_flange_board``."""
-    image, size, T_plate_board = board.plate(px_per_square=100, margin_squares=0.5)
-    T_flange_plate = make_T(np.diag([1.0, -1.0, -1.0]), (-size[0] / 2, size[1] / 2, 0.17))
-    return BoardPlate(image, size, T_flange_plate), T_flange_plate @ T_plate_board
-
-
-class _SimArm:
-    """A ``FlangeRobot`` over the simulated cell: the IK solution nearest ``Q_PRESENT``, set directly."""
-
-    def __init__(self, world: CellWorld) -> None:
-        self.world = world
-        self.moves = 0
-
-    def move_to(self, T_base_flange: np.ndarray) -> None:
-        q = ik_nearest(T_base_flange, Q_PRESENT)
-        if q is None:
-            raise RuntimeError(f"no IK solution for {T_base_flange.tolist()}")
-        self.world.reset_arm(q)
-        self.moves += 1
-
-    def T_base_flange(self) -> np.ndarray:
-        return self.world.T_base_flange()
-
-
-def _reachable(T_base_flange: np.ndarray) -> bool:
-    return ik_nearest(T_base_flange, Q_PRESENT) is not None
 
 
 @pytest.fixture(scope="module")
 def board_cell() -> tuple[CellWorld, SimCamera, np.ndarray]:
     """The cell with the board plate on the flange, its overhead camera (640x480), and the true T_flange_board."""
-    plate, T_flange_board = _plate_on_flange()
+    plate, T_flange_board = board_plate_on_flange()
     world = CellWorld(CellConfig(calibration_board=plate))
     camera = SimCamera(world)
     try:
@@ -190,16 +163,16 @@ def test_board_definition_is_validated() -> None:
 def test_pose_set_shows_the_board_and_respects_workspace_and_reach() -> None:
     K = CameraIntrinsics.from_fov(640, 480, 45.0)
     T_base_camera = make_T(np.diag([1.0, -1.0, -1.0]), (-0.5, 0.0, 0.92))
-    _, T_flange_board = _plate_on_flange()
+    _, T_flange_board = board_plate_on_flange()
     poses = generate_pose_set(
-        BOARD, T_base_camera, K, T_flange_board, 12, np.random.default_rng(5), workspace=WORKSPACE, reachable=_reachable
+        BOARD, T_base_camera, K, T_flange_board, 12, np.random.default_rng(5), workspace=WORKSPACE, reachable=reachable
     )
     assert len(poses) == 12
     w, h = BOARD.size_m
     outline = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]])
     tilts = []
     for T in poses:
-        assert WORKSPACE.contains(T[:3, 3]) and _reachable(T)
+        assert WORKSPACE.contains(T[:3, 3]) and reachable(T)
         T_camera_board = invert(T_base_camera) @ T @ T_flange_board
         px = project_points(K.K, transform_points(T_camera_board, outline))
         assert np.all(px >= 0) and np.all(px[:, 0] < 640) and np.all(px[:, 1] < 480)
@@ -207,7 +180,7 @@ def test_pose_set_shows_the_board_and_respects_workspace_and_reach() -> None:
     assert min(tilts) >= 12.0 - 1e-6 and max(tilts) > 30.0  # varied views, none head-on
     # Same seed, same poses.
     again = generate_pose_set(
-        BOARD, T_base_camera, K, T_flange_board, 12, np.random.default_rng(5), workspace=WORKSPACE, reachable=_reachable
+        BOARD, T_base_camera, K, T_flange_board, 12, np.random.default_rng(5), workspace=WORKSPACE, reachable=reachable
     )
     np.testing.assert_array_equal(np.array(poses), np.array(again))
     with pytest.raises(CalibrationError, match="flange outside the workspace"):
@@ -235,7 +208,7 @@ def test_rendered_board_is_detected_at_its_true_pose(board_cell: tuple[CellWorld
     world, camera, T_flange_board = board_cell
     T_base_camera = camera.capture().T_base_camera
     T_camera_board = make_T(rotation_about([1, 1, 0], math.radians(20)), (-0.08, -0.05, 0.5))
-    _SimArm(world).move_to(T_base_camera @ T_camera_board @ invert(T_flange_board))
+    PlacedArm(world).move_to(T_base_camera @ T_camera_board @ invert(T_flange_board))
     frame = camera.capture()
     obs = detect_board(BOARD, frame.rgb, frame.intrinsics)
     assert obs is not None and len(obs.corner_ids) == 24
@@ -255,15 +228,15 @@ def test_calibration_in_the_simulated_cell_recovers_the_camera_pose(
     T_flange_board_guess = T_flange_board @ make_T(t=(0.01, 0.0, 0.0))
     poses = generate_pose_set(
         BOARD, T_base_camera_guess, camera.intrinsics, T_flange_board_guess, 12, np.random.default_rng(0),
-        workspace=WORKSPACE, reachable=_reachable,
+        workspace=WORKSPACE, reachable=reachable,
     )  # fmt: skip
-    arm = _SimArm(world)
+    arm = PlacedArm(world)
     calls = _count_opencv_calls(monkeypatch)
     cal = calibrate(arm, camera.capture, BOARD, poses)
     assert arm.moves == 12 and cal.n_poses >= 10 and not cal.refined
     assert len(calls) == len(OPENCV_METHODS)  # solved by cv2.calibrateHandEye, every method
     assert cal.method in OPENCV_METHODS and set(cal.method_rms_px) == set(OPENCV_METHODS)
-    err_mm, err_deg = _pose_error(cal.T_base_camera, T_base_camera_true)
+    err_mm, err_deg = pose_error(cal.T_base_camera, T_base_camera_true)
     print(f"hand-eye error against the true camera pose: {err_mm:.3f} mm, {err_deg:.4f} deg ({cal.n_poses} poses)")
     assert err_mm < MAX_ERROR_MM and err_deg < MAX_ERROR_DEG, (err_mm, err_deg)
     assert 1000 * np.linalg.norm(cal.T_flange_board[:3, 3] - T_flange_board[:3, 3]) < MAX_ERROR_MM
@@ -281,29 +254,66 @@ def test_calibration_in_the_simulated_cell_recovers_the_camera_pose(
     assert data["residuals"]["max_flange_board_spread_mm"] == max(cal.flange_board_spread_mm)
 
     # Refined on every corner: the reprojection can only go down, and the pose stays within the requirement.
-    samples, intrinsics, _ = collect_samples(_SimArm(world), camera.capture, BOARD, poses)
+    samples, intrinsics, _ = collect_samples(PlacedArm(world), camera.capture, BOARD, poses)
     refined = solve_hand_eye(samples, BOARD, intrinsics, refine=True)
     assert refined.refined and refined.reprojection_rms_px <= cal.reprojection_rms_px + 1e-9
-    err_mm, err_deg = _pose_error(refined.T_base_camera, T_base_camera_true)
+    err_mm, err_deg = pose_error(refined.T_base_camera, T_base_camera_true)
     assert err_mm < MAX_ERROR_MM and err_deg < MAX_ERROR_DEG, (err_mm, err_deg)
 
 
-def _pose_error(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """(translation error mm, rotation error deg)."""
-    return 1000 * float(np.linalg.norm(T[:3, 3] - T_true[:3, 3])), rotation_angle_deg(T[:3, :3], T_true[:3, :3])
+def test_the_simulated_cell_calibrates_once_per_seed_and_the_cell_file_uses_it(tmp_path: Path) -> None:
+    """``[calibration] source = "sim_handeye"`` (the simulated cell's default): the ChArUco calibration run in the
+    cell through its sensor model, within issue 6's requirement of the true pose, kept per seed and sensor; "sim" is
+    the true pose; a hardware cell refuses both."""
+    from launch.pick import camera_pose
+    from robot.cell_setup import load_cell_setup
+    from sygrid.sensor import sensor_preset
+
+    try:
+        first = calibrate_sim_cell(CellConfig(), sensor_preset("oak-d"), 3, tmp_path)
+    except RuntimeError as err:
+        if "not available" in str(err):
+            pytest.skip(f"no OpenGL backend on this machine: {err}")
+        raise
+    assert not first.cached and first.path.is_file() and first.calibration.n_poses >= 10
+    T_true = invert(CellConfig().T_world_base) @ CellConfig().T_world_camera
+    assert (first.error_mm, first.error_deg) == pytest.approx(pose_error(first.T_base_camera, T_true))
+    assert first.error_mm < MAX_ERROR_MM and first.error_deg < MAX_ERROR_DEG
+    assert first.error_mm > 0.0  # the detected board, not the truth
+    again = calibrate_sim_cell(CellConfig(), sensor_preset("oak-d"), 3, tmp_path)
+    assert again.cached and again.path == first.path and again.duration_s < 1.0
+    np.testing.assert_array_equal(again.T_base_camera, first.T_base_camera)
+    other = calibrate_sim_cell(CellConfig(), sensor_preset("oak-d"), 4, tmp_path)
+    assert other.path != first.path and not np.array_equal(other.T_base_camera, first.T_base_camera)
+    assert other.to_json()["source"] == "sim_handeye" and other.to_json()["error_mm"] == other.error_mm
+
+    cells = Path(__file__).resolve().parents[1] / "launch" / "cells"
+    sim = load_cell_setup(cells / "sim.toml")
+    assert sim.data.calibration.source == "sim_handeye"
+    true_file = tmp_path / "true.toml"
+    text = (cells / "sim.toml").read_text().replace('source = "sim_handeye"', 'source = "sim"')
+    true_file.write_text(text.replace('"../', '"' + str(cells) + "/../"))
+    T, info = camera_pose(load_cell_setup(true_file))
+    np.testing.assert_allclose(T, T_true)
+    assert info == {"source": "sim", "error_mm": 0.0, "error_deg": 0.0}
+    hardware = (cells / "ur5e_oak.toml").read_text().replace('source = "file"', 'source = "sim_handeye"')
+    bad = tmp_path / "bad.toml"
+    bad.write_text(hardware.replace('"../', '"' + str(cells) + "/../"))
+    with pytest.raises(ConfigError, match=r"bad\.toml: calibration\.source = 'sim_handeye' exists only in the sim"):
+        load_cell_setup(bad)
 
 
 def test_calibration_without_a_visible_board_fails_with_the_reasons() -> None:
     world = CellWorld()  # no plate on the flange
     with SimCamera(world, width=320, height=240) as camera:
         T_base_camera = invert(world.T_world_base) @ world.config.T_world_camera
-        _, T_flange_board = _plate_on_flange()
+        _, T_flange_board = board_plate_on_flange()
         poses = generate_pose_set(
-            BOARD, T_base_camera, camera.intrinsics, T_flange_board, 3, np.random.default_rng(1), reachable=_reachable
+            BOARD, T_base_camera, camera.intrinsics, T_flange_board, 3, np.random.default_rng(1), reachable=reachable
         )
         try:
             with pytest.raises(CalibrationError, match=r"only 0 of 3 poses(.|\n)*pose 2: 0 ChArUco corners found"):
-                calibrate(_SimArm(world), camera.capture, BOARD, poses)
+                calibrate(PlacedArm(world), camera.capture, BOARD, poses)
         except RuntimeError as err:
             if "not available" in str(err):
                 pytest.skip(f"no OpenGL backend on this machine: {err}")

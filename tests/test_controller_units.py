@@ -6,6 +6,8 @@ from __future__ import annotations
 import logging
 import math
 import struct
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -267,3 +269,38 @@ def test_bad_configuration_names_the_value_and_the_choices():
         EmulatedController(KinematicBackend(), protective_stop_runtime_state=2)
     with pytest.raises(ValueError, match="initial_q must have 6 joint angles"):
         KinematicBackend(initial_q=np.zeros(5))
+
+
+def test_threaded_backend_runs_commands_between_the_targets_they_came_between():
+    """A gripper command handed over after some arm targets runs after those targets are simulated, even when the
+    stepper trails the tick by many targets (it once ran before them: a gripper closed after the arm arrived by the
+    controller's clock closed while the simulated arm was still on its way down)."""
+    events: list[object] = []
+    gate = threading.Event()
+
+    class Recording(KinematicBackend):
+        step_may_block = True
+
+        def advance(self, targets, steps_per_target):
+            gate.wait(5.0)  # the stepper trails until the gate opens
+            events.extend(round(float(q[0]), 3) for q, _ in targets)
+            return super().advance(targets, steps_per_target)
+
+    runner = BackendRunner(Recording())
+    runner.start()
+    try:
+        runner.push_target(np.full(6, 0.1), np.zeros(6))
+        time.sleep(0.05)  # the stepper took the first target and waits at the gate
+        for q0 in (0.2, 0.3):
+            runner.push_target(np.full(6, q0), np.zeros(6))
+        runner.call(lambda: events.append("gripper"))
+        runner.push_target(np.full(6, 0.4), np.zeros(6))
+        assert runner.lag_targets == 3
+        gate.set()
+        end = time.monotonic() + 5.0
+        while len(events) < 5 and time.monotonic() < end:
+            time.sleep(0.01)
+    finally:
+        gate.set()
+        runner.stop()
+    assert events == [0.1, 0.2, 0.3, "gripper", 0.4]

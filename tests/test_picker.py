@@ -15,7 +15,13 @@ from robot.cell_setup import load_cell_setup
 from robot.pick_config import PickerConfig
 from robot.pick_report import CycleEnd, Outcome, StopReason
 from robot.picker import TRANSITIONS, CycleState, Picker
-from robot.ur_errors import ConnectionLostError, MotionRefusedError, ProtectiveStopError, RecoveryError
+from robot.ur_errors import (
+    ConnectionLostError,
+    MotionRefusedError,
+    NoContactError,
+    ProtectiveStopError,
+    RecoveryError,
+)
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
 from sygrid.transforms import make_T
@@ -568,6 +574,25 @@ def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
         load_cell_setup(bad)
 
 
+def test_a_hardware_cell_nudges_only_force_limited_and_says_so(tmp_path):
+    assert load_cell_setup("launch/cells/ur5e_oak.toml").picker.nudge_contact == "force_limited"
+    assert load_cell_setup("launch/cells/sim.toml").picker.nudge_contact == "force_limited"
+    text = Path("launch/cells/ur5e_oak.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace('nudge_contact = "force_limited"', 'nudge_contact = "position"'))
+    with pytest.raises(ConfigError, match=r"bad\.toml: \[picker\] nudge_contact = 'position'.*refuses"):
+        load_cell_setup(bad)
+    off = tmp_path / "off.toml"
+    off.write_text(bad.read_text().replace("[picker]\n", "[picker]\nmax_nudges = 0\n"))
+    assert load_cell_setup(off).picker.max_nudges == 0  # no nudges: nothing to refuse
+    sim = tmp_path / "sim.toml"
+    sim.write_text(Path("launch/cells/sim.toml").read_text().replace('"force_limited"', '"position"'))
+    sim.write_text(sim.read_text().replace('"../', '"' + str(Path("launch/cells").resolve()) + "/../"))
+    assert load_cell_setup(sim).picker.nudge_contact == "position"  # a variant of the simulated cell
+    with pytest.raises(ConfigError, match=r"nudge_contact must be one of"):
+        PickerConfig(nudge_contact="gently")
+
+
 def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
     from robot.grasp_config import PlannerConfig
 
@@ -635,15 +660,32 @@ class FakeNudger:
 
 
 class DraggingRobot(FakeRobot):
+    """Drags the part at the end of a nudge's drag (position control: the straight line to ``T_base_end``; force-
+    limited: the pressing move); ``stop_at_press`` stops it once where the paddle meets the part."""
+
     def __init__(self, bin_: FakeBin, drags: bool = True, stop_at_press: bool = False) -> None:
         super().__init__(bin_)
         self.drags, self.stop_at_press = drags, stop_at_press
 
     def move_l(self, T, speed_m_s=None, accel_m_s2=None):
-        if T[0, 3] == -1.0 and self.stop_at_press:
+        if T[0, 3] == -1.0:
+            self._press()
+        if T[0, 3] == -2.0:
+            self._drag()
+
+    def move_until_contact(self, direction, speed_m_s, max_travel_m, accel_m_s2=None):
+        self._press()
+
+    def move_l_pressing(self, T, direction, force_n, speed_m_s=None, accel_m_s2=None, max_press_speed_m_s=None):
+        self._drag()
+
+    def _press(self) -> None:
+        if self.stop_at_press:
             self.stop_at_press = False
             raise ProtectiveStopError("contact")
-        if T[0, 3] == -2.0 and self.drags:
+
+    def _drag(self) -> None:
+        if self.drags:
             self.bin.parts = [0.1 if x < 0 else x for x in self.bin.parts]
 
 
@@ -687,6 +729,33 @@ def test_a_protective_stop_during_a_nudge_is_recovered_and_the_run_goes_on():
     assert robot.recovered == 1
     assert report.cycles[0].nudge["outcome"] == "protective_stop"
     assert report.stop_reason == "bin_empty" and report.n_nudges == 2 and report.n_picked == 1
+
+
+def test_a_position_controlled_nudge_drags_with_straight_lines():
+    bin_ = FakeBin([-0.05])
+    report = _nudging_picker(bin_, DraggingRobot(bin_), PickerConfig(nudge_contact="position")).run()
+    assert report.stop_reason == "bin_empty" and report.n_nudges == 1 and report.n_picked == 1
+
+
+def test_a_robot_without_force_limited_motion_refuses_force_limited_nudges_and_says_so():
+    bin_ = FakeBin([-0.05])
+    robot = FakeRobot(bin_)  # move_l and move_j only
+    report = _nudging_picker(bin_, robot, PickerConfig(max_nudges=1, max_failed_cycles=1)).run()
+    first = report.cycles[0]
+    assert first.nudge["outcome"] == "motion_refused" and "no force-limited motion" in first.nudge["detail"]
+    assert robot.q_now.tolist() != [7.0] * 6  # nothing moved toward the part
+    assert report.stop_reason == "nothing_safe"
+
+
+def test_a_press_that_meets_nothing_is_recovered_as_no_contact():
+    class MissesThePart(DraggingRobot):
+        def move_until_contact(self, direction, speed_m_s, max_travel_m, accel_m_s2=None):
+            raise NoContactError("met nothing within 25 mm")
+
+    bin_ = FakeBin([-0.05])
+    robot = MissesThePart(bin_)
+    report = _nudging_picker(bin_, robot, PickerConfig(max_nudges=1, max_failed_cycles=1)).run()
+    assert report.cycles[0].nudge["outcome"] == "no_contact" and robot.recovered == 1
 
 
 def test_a_protective_stop_on_the_way_to_the_observe_pose_is_recovered_once():

@@ -186,6 +186,23 @@ def test_a_part_the_physics_throws_is_reported_once(tmp_path, caplog) -> None:
     assert [r.getMessage().split(" moves at")[0] for r in caplog.records] == ["part1_box"]  # once
 
 
+def test_a_throw_is_explained_by_the_deepest_penetration_before_it(tmp_path, caplog) -> None:
+    world = CellWorld()
+    part = _box_part(0.02)
+    hull = build_collision_model(part, "hull", cache_dir=tmp_path)
+    world.add_parts([part], (world.T_world_bin @ make_T(t=(0.0, 0.0, 0.01 - 0.004)))[None], collision=[hull])
+    world.step(20)  # 4 mm into the bin's floor at first: pushed out over a few steps
+    dof = world.model.joint("part0_box_free").dofadr[0]
+    world.data.qvel[dof : dof + 3] = (0.0, 0.0, 30.0)
+    with caplog.at_level("WARNING", logger="sim.world"):
+        world.step(1)
+    (throw,) = world.throws
+    assert throw.part == "part0_box" and throw.speed_m_s == pytest.approx(30.0, rel=0.01)
+    assert 0.002 < throw.max_penetration_m <= 0.0045 and throw.penetration_time_s < 0.01  # after one step
+    assert "bin" in throw.against and throw.speed_before_m_s < 10.0
+    assert "penetrated" in caplog.records[-1].getMessage() and throw.against in caplog.records[-1].getMessage()
+
+
 def test_bad_arguments_and_configs_are_refused_with_the_reason(tmp_path) -> None:
     world = CellWorld()
     with pytest.raises(ValueError, match="6 finite numbers"):

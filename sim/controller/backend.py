@@ -1,6 +1,7 @@
 """What the controller emulator needs from a simulated arm: the ``ArmBackend`` protocol, and ``KinematicBackend``,
-a perfect-tracking arm (actual = commanded) for fast protocol tests; ``StallingBackend`` is one whose step sometimes
-blocks (load for tests and benchmarks).
+a perfect-tracking arm (actual = commanded) for fast protocol tests, optionally above a stiff horizontal surface
+that the flange can press on (contact and force-mode tests); ``StallingBackend`` is one whose step sometimes blocks
+(load for tests and benchmarks).
 
 The MuJoCo cell implements the same protocol in ``sim.controller.world_backend``; ``sim.controller.backend_by_name``
 chooses one by name.
@@ -17,6 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from sygrid.robots import gripper_2f85, ur5e
+from sygrid.robots.kinematics import forward_kinematics
 
 GRIPPER_STROKE_M = gripper_2f85.STROKE_M  # fully open
 
@@ -35,6 +37,8 @@ class ArmSample:
     gripper_target_m: float = GRIPPER_STROKE_M  # the last width commanded through set_gripper
     gripper_moving: bool = False
     gripper_object_detected: bool = False
+    #: the external contact wrench on the tool, base frame: force [N], torque [N m] about the flange origin
+    tool_wrench: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(6))
 
 
 class ArmBackend(Protocol):
@@ -63,17 +67,25 @@ class ArmBackend(Protocol):
 class KinematicBackend:
     """Perfect tracking: actual q and qd equal the last target; starts at ``ur5e.HOME_Q`` unless told otherwise.
     The gripper moves at the commanded speed and, when ``object_width_m`` is set, stops on an object of that width
-    while closing (``object_detected``)."""
+    while closing (``object_detected``). With ``surface_z_m`` the flange origin meets a horizontal surface at that
+    base height: below it the tool feels ``surface_stiffness_n_m`` times the depth, upwards (the arm still goes
+    where it is told)."""
 
     step_may_block = False
 
     def __init__(
-        self, initial_q: np.ndarray | None = None, dt_s: float = 0.002, object_width_m: float | None = None
+        self,
+        initial_q: np.ndarray | None = None,
+        dt_s: float = 0.002,
+        object_width_m: float | None = None,
+        surface_z_m: float | None = None,
+        surface_stiffness_n_m: float = 2e4,
     ) -> None:
         if dt_s <= 0:
             raise ValueError(f"dt_s must be positive, got {dt_s}")
         self.dt_s = dt_s
         self.object_width_m = object_width_m
+        self.surface_z_m, self.surface_stiffness_n_m = surface_z_m, float(surface_stiffness_n_m)
         self._lock = threading.Lock()
         self._time_s = 0.0
         self._q = np.array(ur5e.HOME_Q if initial_q is None else initial_q, dtype=float)
@@ -138,7 +150,15 @@ class KinematicBackend:
             gripper_target_m=self._width_target_m,
             gripper_moving=moving,
             gripper_object_detected=self._object_detected,
+            tool_wrench=self._surface_wrench(),
         )
+
+    def _surface_wrench(self) -> np.ndarray:
+        wrench = np.zeros(6)
+        if self.surface_z_m is not None:
+            depth = self.surface_z_m - float(forward_kinematics(self._q)[2, 3])
+            wrench[2] = self.surface_stiffness_n_m * max(depth, 0.0)
+        return wrench
 
 
 class StallingBackend(KinematicBackend):

@@ -20,6 +20,7 @@ import numpy as np
 from sim.controller.arm import ArmController
 from sim.controller.backend import ArmBackend, ArmSample
 from sim.controller.dashboard import DashboardServer
+from sim.controller.force import tool_contact_steps, wrench_about
 from sim.controller.gripper_server import GripperServer
 from sim.controller.program import ControlProgram
 from sim.controller.rtde_server import RtdeServer
@@ -39,11 +40,15 @@ from sim.controller.state import (
 from sim.controller.status import ControllerStatus, TickStats
 from sim.controller.stepper import BackendRunner
 from sim.controller.tcp_service import start_all
+from sygrid.robots.kinematics import forward_kinematics
 
 log = logging.getLogger(__name__)
 
 PROTECTIVE_STOP_FORCE_N = 150.0  # UR5e default force limit of the "normal" safety configuration
 PROGRAM_STOP_DECEL_RAD_S2 = 10.0  # how fast a stopped program brings the arm to rest
+#: Force-sensitive motion (force mode, a move until contact) advances only while the backend trails by at most this
+#: many ticks, so a simulation slower than the clock cannot run on past a contact it has not reported yet.
+FORCE_MAX_LAG_TICKS = 3
 _RESYNC_AFTER_S = 0.05  # a tick later than this resets the deadline grid instead of bursting to catch up
 CONTROLLER_VERSION = (5, 15, 0, 106767)
 
@@ -97,6 +102,7 @@ class EmulatedController:
         self.arm = ArmController(sample.q)
         self._actual: ArmSample = sample
         self._history: collections.deque[np.ndarray] = collections.deque(maxlen=1000)
+        self._wrench_history: collections.deque[np.ndarray] = collections.deque(maxlen=1000)  # tcp_wrench per tick
         self.program: ControlProgram | None = None
         self.runtime_state = RUNTIME_STOPPED
         self.robot_mode = ROBOT_MODE_RUNNING
@@ -196,6 +202,15 @@ class EmulatedController:
         if not self._history:
             return self._actual.q
         return self._history[-1 - min(max(steps, 0), len(self._history) - 1)]
+
+    def tcp_wrench(self) -> np.ndarray:
+        """The measured external wrench on the tool (base frame, torque about the active TCP)."""
+        return self._wrench_history[-1] if self._wrench_history else np.zeros(6)
+
+    def tool_contact(self, direction: np.ndarray, max_steps: int | None = None) -> int:
+        """URScript ``tool_contact``: steps back (at most ``max_steps``) to the start of a contact against
+        ``direction``, 0 without one."""
+        return tool_contact_steps(self._wrench_history, direction, max_steps)
 
     def set_watchdog(self, min_frequency_hz: float) -> None:
         self._watchdog_hz = min_frequency_hz if min_frequency_hz > 0 else None
@@ -313,17 +328,21 @@ class EmulatedController:
         k = self._tick_index
         self._tick_index += 1
         with self._lock:
-            speed = self.io.speed_slider
-            failure = self.arm.step(TICK_S, speed)
-            if failure:
-                log.error("motion stopped: %s", failure)
-                self.end_program(failure, error=True)
+            # Force-sensitive motion waits (no new target) while the backend trails: simulated time then runs slower
+            # than the clock instead of running on past a contact that is not measured yet.
+            paced = self.arm.force_sensitive and self._runner.lag_targets > FORCE_MAX_LAG_TICKS
+            if not paced:
+                failure = self.arm.step(TICK_S, self.io.speed_slider, self.tcp_wrench())
+                if failure:
+                    log.error("motion stopped: %s", failure)
+                    self.end_program(failure, error=True)
             q, qd = self.arm.target_q.copy(), self.arm.target_qd.copy()
-        sample = self._runner.push_target(q, qd)
+        sample = self._runner.latest() if paced else self._runner.push_target(q, qd)
         t_step = time.perf_counter()
         with self._lock:
             self._actual = sample
             self._history.append(sample.q)
+            self._wrench_history.append(self._tcp_wrench_of(sample))
             self._check_safety(sample)
             if self.program is not None and self.runtime_state == RUNTIME_PLAYING:
                 self.program.tick()
@@ -338,6 +357,7 @@ class EmulatedController:
                 robot_mode=self.robot_mode,
                 protective_stopped=self.protective_stopped,
                 execution_time_s=self.stats.last_tick_s,
+                tcp_wrench=self.tcp_wrench(),
                 protective_stop_force_n=self.protective_stop_force_n,
             )
         self.rtde.broadcast(snapshot, k)
@@ -362,6 +382,13 @@ class EmulatedController:
             if self.regs.input_int[self._cmd_register] != code or now > deadline:
                 self._fault_hold = None
                 self.runtime_state = RUNTIME_PLAYING
+
+    def _tcp_wrench_of(self, sample: ArmSample) -> np.ndarray:
+        if not np.any(sample.tool_wrench):
+            return np.zeros(6)
+        T_base_flange = forward_kinematics(sample.q)
+        p_tcp = (T_base_flange @ self.arm.T_flange_tcp)[:3, 3]
+        return wrench_about(sample.tool_wrench, T_base_flange[:3, 3], p_tcp)
 
     def _enter_protective_stop(self, reason: str) -> None:
         if self.protective_stopped:

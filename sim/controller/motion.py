@@ -25,7 +25,7 @@ from sygrid.robots import ur5e
 from sygrid.robots.kinematics import forward_kinematics
 
 MAX_JOINT_SPEED_RAD_S = ur5e.MAX_JOINT_SPEED_RAD_S
-_IK_JUMP_LIMIT_RAD = 0.5  # a per-tick joint change above this means the nearest IK branch flipped (singularity)
+IK_JUMP_LIMIT_RAD = 0.5  # a per-tick joint change above this means the nearest IK branch flipped (singularity)
 
 
 class Trapezoid:
@@ -97,7 +97,7 @@ class CartesianPath:
 
     def point(self, u: float, q_prev: np.ndarray) -> np.ndarray | None:
         q = track_ik(self.pose(u), q_prev, self.T_flange_tcp)
-        if q is None or np.max(np.abs(q - q_prev)) > _IK_JUMP_LIMIT_RAD:
+        if q is None or np.max(np.abs(q - q_prev)) > IK_JUMP_LIMIT_RAD:
             return None
         return q
 
@@ -221,7 +221,7 @@ class TcpSpeedMotion:
         T[:3, 3] += lin * dt_s
         T[:3, :3] = Rotation.from_rotvec(rot * dt_s).as_matrix() @ T[:3, :3]
         q = track_ik(T, self.q, self.T_flange_tcp)
-        if q is None or np.max(np.abs(q - self.q)) > _IK_JUMP_LIMIT_RAD:
+        if q is None or np.max(np.abs(q - self.q)) > IK_JUMP_LIMIT_RAD:
             return None
         self.T, self.q = T, q
         return q

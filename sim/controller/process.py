@@ -6,6 +6,10 @@ The child's log records are kept in a ring buffer (``log_messages``) and WARNING
 The child ignores SIGINT and SIGTERM (a Ctrl-C, or a service manager's stop, reaches the whole process group, and the
 parent must stop the arm before the emulator goes): it exits when the parent tells it to or is gone, and ``stop``
 kills it when it does not; ``exitcode`` says whether it is still running.
+
+With the MuJoCo backend the overhead camera is rendered in a third process (``sim.render_process``), from the
+world state the child hands out, so frames never take the emulator's CPU time or GIL (``capture``,
+``start_camera_load``).
 The child is started with the ``spawn`` method, so a script that uses this class needs the usual
 ``if __name__ == "__main__":`` guard. The child also shortens the interpreter's GIL switch interval (its process is
 the emulator's alone), which keeps the tick within a fraction of a millisecond of its deadline.
@@ -15,6 +19,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -47,8 +52,8 @@ def tune_emulator_process() -> None:
 
 _HOOKS = (
     "state", "trigger_protective_stop", "inject_collision_force", "log_messages", "unlock_protective_stop",
-    "part_poses", "capture", "part_names", "set_part_poses", "park_parts", "contacts", "place_parts",
-    "drop_connections",
+    "part_poses", "part_names", "set_part_poses", "park_parts", "contacts", "place_parts", "drop_connections",
+    "thrown_parts",
 )  # fmt: skip
 
 # Where parked ("removed") parts wait: high above the cell (behind the camera), spread out, held against gravity.
@@ -65,7 +70,14 @@ class _RingHandler(logging.Handler):
         self.lines.append(f"{record.levelname} {record.name}: {record.getMessage()}")
 
 
-def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict, controller_kwargs: dict) -> None:
+def _child_main(
+    conn: Connection,
+    state_conn: Connection | None,
+    host: str,
+    backend: str,
+    backend_kwargs: dict,
+    controller_kwargs: dict,
+) -> None:
     from sim.controller.backend_by_name import make_backend
     from sim.controller.controller import EmulatedController
 
@@ -85,6 +97,10 @@ def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict,
     except Exception as exc:
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    if state_conn is not None and hasattr(arm, "world"):
+        from sim.render_process import serve_world_state
+
+        serve_world_state(state_conn, arm.world)
     conn.send(("ok", None))
     hooks = {
         "state": ctl.state,
@@ -100,7 +116,7 @@ def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict,
         "contacts": (lambda: _contacts(arm.world)) if hasattr(arm, "world") else None,
         "place_parts": (lambda T, held=(): _place_parts(arm.world, T, held)) if hasattr(arm, "world") else None,
         "drop_connections": lambda down_s=2.0: _drop_connections(ctl, down_s),
-        "capture": _capture_hook(arm) if hasattr(arm, "world") else None,
+        "thrown_parts": (lambda: [dataclasses.asdict(t) for t in arm.world.throws]) if hasattr(arm, "world") else None,
     }
     try:
         while True:
@@ -125,30 +141,6 @@ def _child_main(conn: Connection, host: str, backend: str, backend_kwargs: dict,
         ctl.stop()
         with contextlib.suppress(OSError):
             conn.send(("ok", "stopped"))
-
-
-def _capture_hook(arm: Any) -> Any:
-    """The overhead camera of the backend's world, rendered in this (the hook) thread: ``SimCamera`` takes
-    ``world.lock`` only while it copies the scene, so the stepper thread keeps stepping while it rasterises.
-    Returns the ``Frame``'s fields as a dict of arrays (picklable)."""
-    camera = None
-
-    def capture(**camera_kwargs: Any) -> dict:
-        nonlocal camera
-        if camera is None:
-            from sim.camera import SimCamera
-
-            camera = SimCamera(arm.world, **camera_kwargs)
-        frame = camera.capture()
-        return {
-            "rgb": frame.rgb,
-            "depth_m": frame.depth_m,
-            "intrinsics": frame.intrinsics,
-            "timestamp_s": frame.timestamp_s,
-            "T_base_camera": frame.T_base_camera,
-        }
-
-    return capture
 
 
 def _park_parts(world: Any, indices: list[int]) -> None:
@@ -252,6 +244,9 @@ class ControllerProcess:
         self._start_timeout_s = start_timeout_s
         self._conn: Connection | None = None
         self._proc: multiprocessing.process.BaseProcess | None = None
+        self._call_lock = threading.Lock()
+        self._state_conn: Connection | None = None  # the render process's end of the world-state pipe
+        self._renderer: Any = None  # a sim.render_process.RenderProcess, started on the first frame
 
     def __enter__(self) -> ControllerProcess:
         self.start()
@@ -263,11 +258,14 @@ class ControllerProcess:
     def start(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         parent_conn, child_conn = ctx.Pipe()
+        renderer_end, state_end = ctx.Pipe() if self._args[1] == "mujoco" else (None, None)
         self._proc = ctx.Process(
-            target=_child_main, args=(child_conn, *self._args), daemon=True, name=f"emulator-{self.host}"
+            target=_child_main, args=(child_conn, state_end, *self._args), daemon=True, name=f"emulator-{self.host}"
         )
         self._proc.start()
-        self._conn = parent_conn
+        if state_end is not None:
+            state_end.close()
+        self._conn, self._state_conn = parent_conn, renderer_end
         try:
             self._receive(self._start_timeout_s, "start")
         except BaseException:  # a failed start, or an interrupt while waiting: leave no child behind
@@ -320,8 +318,9 @@ class ControllerProcess:
         """Calls one of the child's hooks (``state``, ``trigger_protective_stop``, ...) and returns its result."""
         if self._conn is None:
             raise EmulatorError(f"emulator on {self.host} is not running; call start() first")
-        self._conn.send((hook, args, kwargs))
-        return self._receive(timeout_s, hook)
+        with self._call_lock:
+            self._conn.send((hook, args, kwargs))
+            return self._receive(timeout_s, hook)
 
     def state(self) -> ControllerStatus:
         return self.call("state")
@@ -338,9 +337,28 @@ class ControllerProcess:
         return self.call("part_poses")
 
     def capture(self, timeout_s: float = 10.0) -> dict:
-        """MuJoCo backend only: one overhead-camera frame of the child's world (``sim.camera.SimCamera``), as the
-        fields of a ``perception.camera.Frame`` (use ``sim.emulator_camera.EmulatorCamera`` for a ``Camera``)."""
-        return self.call("capture", timeout_s=timeout_s)
+        """MuJoCo backend only: one overhead-camera frame of the child's world (``sim.camera.SimCamera`` in the
+        render process), as the fields of a ``perception.camera.Frame`` (``sim.emulator_camera.EmulatorCamera`` is
+        the ``Camera``)."""
+        return self._render_process().capture(timeout_s)
+
+    def start_camera_load(self, rate_hz: float) -> None:
+        """MuJoCo backend only: the render process renders the overhead camera at ``rate_hz`` by itself (the load
+        of a perception client) until ``stop_camera_load``."""
+        self._render_process().start_load(rate_hz)
+
+    def stop_camera_load(self) -> list[float]:
+        """Ends ``start_camera_load``; returns each load frame's render time [s]."""
+        return self._render_process().stop_load()
+
+    def _render_process(self) -> Any:
+        if self._state_conn is None:
+            raise EmulatorError(f"emulator on {self.host}: frames need the 'mujoco' backend (and a started emulator)")
+        if self._renderer is None:
+            from sim.render_process import RenderProcess
+
+            self._renderer = RenderProcess(self._state_conn, name=f"renderer-{self.host}")
+        return self._renderer
 
     def part_names(self) -> list[str]:
         """MuJoCo backend only: the parts' body names (``part<k>_<model name>``), in ``part_poses`` order."""
@@ -370,11 +388,22 @@ class ControllerProcess:
         ``body1``, ``body2`` (names), ``dist_m`` (< 0: penetration) and ``force_n`` (normal force)."""
         return self.call("contacts")
 
+    def thrown_parts(self) -> list[dict]:
+        """MuJoCo backend only: the parts the physics threw so far (``sim.throw_watch.Throw`` as dicts: part, time,
+        speed, and the deepest penetration before the throw with what it penetrated)."""
+        return self.call("thrown_parts")
+
     def log_messages(self) -> list[str]:
         return self.call("log_messages")
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        """Stops the controller and the child (terminating it if it does not exit in time)."""
+        """Stops the render process, the controller and the child (terminating them if they do not exit in time)."""
+        if self._renderer is not None:
+            self._renderer.close(timeout_s)
+            self._renderer = None
+        if self._state_conn is not None:
+            self._state_conn.close()
+            self._state_conn = None
         if self._conn is not None:
             try:
                 self._conn.send(("stop", (), {}))

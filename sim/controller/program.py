@@ -41,6 +41,7 @@ class ProgramHost(Protocol):
     def actual_q(self) -> np.ndarray: ...
     def actual_torque(self) -> np.ndarray: ...
     def q_history(self, steps: int) -> np.ndarray: ...
+    def tool_contact(self, direction: np.ndarray, max_steps: int | None = None) -> int: ...
     def trigger_protective_stop(self, reason: str) -> None: ...
     def set_watchdog(self, min_frequency_hz: float) -> None: ...
     def end_program(self, reason: str, error: bool) -> None: ...
@@ -70,6 +71,8 @@ class ControlProgram:
             2: self._movej_ik,
             3: self._movel,
             4: self._movel_fk,
+            6: self._force_mode,
+            7: self._force_mode_stop,
             8: lambda: None,  # zeroFtSensor: there is no force sensor to zero
             9: self._speedj,
             10: self._speedl,
@@ -77,7 +80,10 @@ class ControlProgram:
             15: self._speed_stop,
             16: self._servo_stop,
             17: self._set_payload,
+            20: lambda: self.arm.set_force_damping(self.in_double(0)),
+            21: lambda: self.arm.set_force_gain_scaling(self.in_double(0)),
             24: self._servol,
+            25: self._tool_contact,
             26: self._get_step_time,
             27: self._q_history,
             28: self._target_waypoint,
@@ -96,6 +102,7 @@ class ControlProgram:
             44: self._fk_args,
             46: self._ik_default,
             47: self._is_steady,
+            51: self._move_until_contact,
             55: lambda: None,  # setExternalForceTorque: the wrench arrives as an RTDE input and is stored there
             58: self._flange_pose,
             59: lambda: None,  # setGravity: the kinematic and MuJoCo arms keep their own gravity
@@ -154,6 +161,8 @@ class ControlProgram:
         """The program is stopped or paused from outside: drop the synchronous command without signalling done."""
         self.aborted = True
         self._blocking = None
+        self.arm.end_force_mode()
+        self.arm.contact_watch = False
         if self._async_motion is not None or self._stop_thread_motion is not None:
             self._async_motion = self._stop_thread_motion = None
             self._write_async_progress(_PROGRESS_FINISHED)
@@ -247,6 +256,61 @@ class ControlProgram:
         v, a = self.in_double(6), self.in_double(7)
         self._start_move(lambda: self.arm.movel(pose, v, a))
 
+    # --- force-limited motion -------------------------------------------------------------------------------
+    def _force_mode(self) -> None:
+        """forceMode (6, realtime): d0-5 task frame, d6-11 wrench, d12-17 limits, i1 type, i2-7 selection."""
+        selection = [self.in_int(k) for k in range(2, 8)]
+        self.arm.force_mode(self.in_vector(0), selection, self.in_vector(6), self.in_int(1), self.in_vector(12))
+
+    def _force_mode_stop(self) -> None:
+        """forceModeStop (7): end_force_mode(), then stopl(10), waited for."""
+        self.arm.end_force_mode()
+        self.arm.stop(10.0, linear=True)
+        self._blocking = lambda: self.arm.motion is None
+
+    def _tool_contact(self) -> None:
+        """toolContact (25, realtime): i1 the steps back to the contact's start (0: none), d0 the step time."""
+        self.out_int(1, self.host.tool_contact(self.in_vector(0)))
+        self.regs.output_double[self.offset] = 0.002
+
+    def _move_until_contact(self) -> None:
+        """moveUntilContact (51): d0-5 tool speed, d6-11 contact direction, d12 acceleration. As the script: speedl
+        until tool_contact sees a contact, then stopl(3) and movel back to where the contact began; blocking."""
+        xd, direction, accel = self.in_vector(0), self.in_vector(6), self.in_double(12)
+        self._stop_async_move()
+        state: dict[str, object] = {"phase": "moving", "ticks": 0}
+        self.arm.contact_watch = True
+
+        def step() -> bool:
+            phase = state["phase"]
+            if phase == "moving":
+                # a contact found at once (the tool already touching) began no earlier than this command
+                steps = self.host.tool_contact(direction, max_steps=state["ticks"])
+                state["ticks"] = int(state["ticks"]) + 1
+                if steps <= 0:
+                    self.arm.speedl(xd, accel)
+                    return False
+                state["q"] = self.host.q_history(steps)
+                self.arm.stop(3.0, linear=True)
+                self.arm.contact_watch = False
+                state["phase"] = "stopping"
+            if state["phase"] == "stopping":
+                if self.arm.motion is not None:
+                    return False
+                pose = T_to_pose(forward_kinematics(state["q"], self.arm.T_flange_tcp))
+                try:
+                    self.arm.movel(pose, 0.25, 1.2)  # URScript movel(q) defaults
+                except MotionError as exc:
+                    self.host.end_program(f"moveUntilContact failed: {exc}", error=True)
+                    return False
+                state["phase"] = "returning"
+                return False
+            return self.arm.motion is None
+
+        step()
+        self._blocking = step
+
+    # --- stops ---------------------------------------------------------------------------------------------
     def _stop(self) -> None:
         """stopL (33) / stopJ (34), as exec_stopl_stopj: async stops run in a 'stop thread' and always use stopl."""
         decel, asynchronous = self.in_double(0), self.in_int(1) == 1

@@ -1,7 +1,8 @@
 """Turns the controller's state after one tick into the immutable ``StateSnapshot`` every RTDE output reads.
 
 TCP poses come from the shared forward kinematics with the active TCP; TCP speeds are finite differences over one
-tick (zero when the joints are at rest). ``pose_from_T`` is the 500 Hz version of the shared ``T_to_pose``.
+tick (zero when the joints are at rest). ``actual_TCP_force`` is the backend's measured external wrench on the tool
+(base frame, torque about the TCP). ``pose_from_T`` is the 500 Hz version of the shared ``T_to_pose``.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ class SnapshotBuilder:
         protective_stopped: bool,
         execution_time_s: float,
         protective_stop_force_n: float,
+        tcp_wrench: np.ndarray | None = None,
     ) -> StateSnapshot:
         """The snapshot of tick ``k`` (timestamp ``k * 2 ms``) from the backend sample ``a`` and the controller."""
         tcp = arm.T_flange_tcp
@@ -74,6 +76,7 @@ class SnapshotBuilder:
             actual_tcp_speed=actual_speed,
             target_tcp_pose=target_pose,
             target_tcp_speed=target_speed,
+            tcp_force=_ZERO_TWIST if tcp_wrench is None else tuple(tcp_wrench.tolist()),
             robot_mode=robot_mode,
             safety_mode=SAFETY_MODE_PROTECTIVE_STOP if protective_stopped else SAFETY_MODE_NORMAL,
             safety_status_bits=SAFETY_BIT_PROTECTIVE_STOP if protective_stopped else SAFETY_BIT_NORMAL,

@@ -4,7 +4,9 @@ can block (MuJoCo shares its lock with the camera renderer), so a slow step neve
 Threaded mode: the tick queues one ``(q, qd)`` target per 2 ms and reads the latest sample without waiting. The
 stepper thread replays every queued target in order (each for one controller period of physics), so simulated time
 stays tied to the commanded trajectory and catches up after a stall. When it falls more than ``max_lag_s`` behind,
-the oldest targets are dropped (logged) to bound the lag. Gripper commands are queued the same way.
+the oldest targets are dropped (logged) to bound the lag. Gripper commands go into the same queue and run between
+the targets they came between: a gripper closed after the arm arrived (by the controller's clock) closes after the
+simulated arm arrived too, however far the simulation trails.
 """
 
 from __future__ import annotations
@@ -33,8 +35,10 @@ class BackendRunner:
         self.steps_per_target = max(1, round(CONTROLLER_PERIOD_S / backend.dt_s))
         self._max_targets = max(1, int(max_lag_s / CONTROLLER_PERIOD_S))
         self._lock = threading.Lock()  # guards the queues and, inline, the backend itself
-        self._targets: collections.deque[tuple[np.ndarray, np.ndarray]] = collections.deque()
-        self._ops: list[Callable[[], None]] = []
+        # targets (q, qd) and ops (callables), in the order they were handed over
+        self._queue: collections.deque[tuple[np.ndarray, np.ndarray] | Callable[[], None]] = collections.deque()
+        self._n_targets = 0
+        self._ops: list[Callable[[], None]] = []  # inline mode: run before the next step
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -63,7 +67,7 @@ class BackendRunner:
     @property
     def lag_targets(self) -> int:
         """Targets queued but not yet simulated (each one is 2 ms of simulated time)."""
-        return len(self._targets)
+        return self._n_targets
 
     def push_target(self, q: np.ndarray, qd: np.ndarray) -> ArmSample:
         """Hands one tick's target to the backend; returns the newest sample available now."""
@@ -75,9 +79,10 @@ class BackendRunner:
                 self._latest = self._timed_advance([(q, qd)])
             return self._latest
         with self._lock:
-            self._targets.append((q, qd))
-            if len(self._targets) > self._max_targets:
-                self._targets.popleft()
+            self._queue.append((q, qd))
+            self._n_targets += 1
+            if self._n_targets > self._max_targets:
+                self._drop_oldest_target()
                 self.dropped_targets += 1
                 if self.dropped_targets == 1 or self.dropped_targets % 500 == 0:
                     log.warning(
@@ -89,10 +94,20 @@ class BackendRunner:
         return self._latest
 
     def call(self, op: Callable[[], None]) -> None:
-        """Runs ``op`` (e.g. a gripper command) on the backend before its next step."""
+        """Runs ``op`` (e.g. a gripper command) on the backend after the targets handed over before it."""
         with self._lock:
-            self._ops.append(op)
+            if self.threaded:
+                self._queue.append(op)
+            else:
+                self._ops.append(op)
         self._wake.set()
+
+    def _drop_oldest_target(self) -> None:
+        for i, item in enumerate(self._queue):
+            if isinstance(item, tuple):
+                del self._queue[i]
+                self._n_targets -= 1
+                return
 
     def reset_arm(self, q: np.ndarray) -> None:
         def _reset() -> None:
@@ -117,15 +132,22 @@ class BackendRunner:
             self._wake.wait(0.05)
             self._wake.clear()
             with self._lock:
-                targets = list(self._targets)
-                self._targets.clear()
-                ops, self._ops = self._ops, []
+                queue = list(self._queue)
+                self._queue.clear()
+                self._n_targets = 0
             try:
-                for op in ops:
-                    op()
+                targets: list[tuple[np.ndarray, np.ndarray]] = []
+                for item in queue:
+                    if isinstance(item, tuple):
+                        targets.append(item)
+                        continue
+                    if targets:  # the targets before the op are simulated first
+                        self._latest = self._timed_advance(targets)
+                        targets = []
+                    item()
                 if targets:
                     self._latest = self._timed_advance(targets)
-                elif ops:
+                elif queue:
                     self._latest = self.backend.sample()
             except Exception:
                 log.exception("backend step failed; the arm state is frozen at the last good sample")

@@ -1,7 +1,8 @@
 """``ArmBackend`` over the MuJoCo cell (``sim.world.CellWorld``).
 
-Every call into the world holds ``world.lock``, which the camera renderer also takes; that is why this backend
-declares ``step_may_block`` and the controller steps it in its own thread (see ``stepper.py``).
+Every call into the world holds ``world.lock``, which the world-state server of the render process
+(``sim.render_process``) also takes; that is why this backend declares ``step_may_block`` and the controller steps
+it in its own thread (see ``stepper.py``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ class WorldBackend:
 
     def __init__(self, world: Any) -> None:
         self.world = world
-        self.camera_load: Any = None  # a sim.cell.CameraLoad when the backend renders frames as load
         self.dt_s = float(world.dt_s)
         self._gripper_target_m = GRIPPER_STROKE_M
         with world.lock:
@@ -65,18 +65,18 @@ class WorldBackend:
             gripper_target_m=self._gripper_target_m,
             gripper_moving=bool(w.gripper_moving()),
             gripper_object_detected=bool(w.gripper_object_detected()),
+            tool_wrench=np.array(w.tool_wrench(), dtype=float),
         )
 
 
 def make_world_backend(
-    parts_scene: str | None = None, parts_seed: int | None = None, camera_hz: float = 0.0, **world_kwargs: Any
+    parts_scene: str | None = None, parts_seed: int | None = None, **world_kwargs: Any
 ) -> WorldBackend:
     """Builds a fresh ``CellWorld`` and wraps it. With ``parts_seed`` (or ``parts_scene``) the bin holds the parts
-    of that scene (default: 20 built-in parts) dropped by the generator's drop; with ``camera_hz`` > 0 the overhead
-    camera renders at that rate in a background thread (load for benchmarks). Raises ``BackendUnavailableError``
+    of that scene (default: 20 built-in parts) dropped by the generator's drop. Raises ``BackendUnavailableError``
     when ``sim.world`` is missing."""
     try:
-        from sim.cell import CameraLoad, build_cell_world
+        from sim.cell import build_cell_world
         from sim.world import CellWorld
     except ImportError as exc:
         raise BackendUnavailableError(
@@ -87,9 +87,4 @@ def make_world_backend(
         world = build_cell_world(parts_scene, parts_seed or 0, world_kwargs.get("config"))
     else:
         world = CellWorld(**world_kwargs)
-    backend = WorldBackend(world)
-    if camera_hz > 0:
-        from sim.camera import SimCamera
-
-        backend.camera_load = CameraLoad(SimCamera(world), camera_hz).start()
-    return backend
+    return WorldBackend(world)
