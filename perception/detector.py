@@ -32,6 +32,7 @@ import onnxruntime as ort
 from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
 
 from perception.results import Detection
+from perception.tiling import ViewSettings, merge_tiles, tile_layout
 from sygrid.detection_decode import postprocess
 from sygrid.errors import ModelError
 from sygrid.letterbox import Letterbox, letterbox, letterbox_at_scale, letterbox_geometry
@@ -128,6 +129,8 @@ class YoloSegDetector:
             input (a fixed-input model must be given None or its own size). None: the ``imgsz`` metadata, else 640.
         num_threads: onnxruntime intra-op threads.
         max_detections: most detections returned per image.
+        view: where and at what scale the detector looks (``perception.tiling.ViewSettings``); None: the plain
+            behaviour, one piece at the frame's scale. A scale or tiles need a model with a dynamic input.
 
     Raises:
         ModelError: the file is missing or not a loadable ONNX model, its input is not one ``[1, 3, H, W]`` image,
@@ -144,6 +147,7 @@ class YoloSegDetector:
         input_size: int | tuple[int, int] | None = None,
         num_threads: int = 2,
         max_detections: int = 300,
+        view: ViewSettings | None = None,
     ) -> None:
         if not 0.0 <= conf_threshold < 1.0:
             raise ValueError(f"conf_threshold must be in [0, 1), got {conf_threshold}")
@@ -160,6 +164,12 @@ class YoloSegDetector:
         self.session = self._open_session(self.path, int(num_threads))
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         self._check_input(input_size)
+        self.view = view or ViewSettings()
+        if not self.view.default and not self.dynamic_input:
+            raise ValueError(
+                f"view {self.view}: a scale or tiles need a model with a dynamic input; {self.path} has a fixed "
+                f"{self.input_hw[0]}x{self.input_hw[1]} input"
+            )
         self._check_outputs()
         self.class_names, self.class_obj_ids, self.obj_id_source = self._class_mapping(class_obj_ids)
         self.last_timings_ms: dict[str, float] = {}
@@ -322,10 +332,11 @@ class YoloSegDetector:
 
         Args:
             rgb: (H, W, 3) uint8 RGB image.
-            roi_xyxy: ``[x0, y0, x1, y1]`` integer pixels: look only there (a bin's region of the image). A model
-                with a dynamic input sees the region at the scale it would see the whole frame at (so ``input_size``
-                keeps its meaning and the parts their size in pixels), which costs the region's share of the
-                frame's area; a fixed input is filled by the region. None: the whole frame.
+            roi_xyxy: ``[x0, y0, x1, y1]`` integer pixels: look only there (a bin's region of the image). None: the
+                whole frame. The region is seen as ``view`` says (``perception.tiling.ViewSettings``): by default
+                at the scale the whole frame would be seen at (so ``input_size`` keeps its meaning and the parts
+                their size in pixels, at the region's share of the cost; a fixed input is filled by the region),
+                else at ``view.scale``, in one piece or in tiles.
 
         Returns:
             ``perception.results.Detection`` per kept box, with ``bbox_xyxy`` in image pixels (clipped to the image,
@@ -340,12 +351,43 @@ class YoloSegDetector:
             raise ValueError(f"rgb: expected a uint8 (H, W, 3) RGB image, got a {what}")
         if rgb.shape[0] < 1 or rgb.shape[1] < 1:
             raise ValueError(f"rgb: expected a non-empty image, got shape {rgb.shape}")
+        region = self._region(rgb.shape[:2], roi_xyxy)
+        timings = dict.fromkeys(("preprocess", "inference", "postprocess"), 0.0)
+        if self.view.tile_px is None:
+            detections = self._detect_piece(rgb, region, timings)
+        else:
+            scale = self.frame_scale(rgb.shape[:2])
+            tiles = tile_layout(region, max(1, round(self.view.tile_px / scale)), self.view.tile_overlap)
+            found, tile_index = [], []
+            for k, tile in enumerate(tiles):
+                pieces = self._detect_piece(rgb, tile.xyxy, timings)
+                found += pieces
+                tile_index += [k] * len(pieces)
+            t = time.perf_counter()
+            detections = merge_tiles(found, tile_index, self.view.merge_overlap)[: self.max_detections]
+            timings["postprocess"] += (time.perf_counter() - t) * 1e3
+            timings["tiles"] = float(len(tiles))
+        self.last_timings_ms = timings
+        return detections
+
+    def frame_scale(self, image_hw: tuple[int, int]) -> float:
+        """Network input pixels per image pixel at which this detector sees a frame of ``image_hw``: ``view.scale``,
+        else the scale that letterboxes the whole frame into ``input_hw``."""
+        if self.view.scale is not None:
+            return float(self.view.scale)
+        return letterbox_geometry(image_hw, self.input_hw, self.stride if self.dynamic_input else None).scale_x
+
+    def _detect_piece(
+        self, rgb: np.ndarray, box: tuple[int, int, int, int], timings: dict[str, float]
+    ) -> list[Detection]:
+        """Detections in the integer box ``[x0, y0, x1, y1)`` of ``rgb``, in frame pixels; adds to ``timings``."""
         t0 = time.perf_counter()
-        x0, y0, x1, y1 = self._region(rgb.shape[:2], roi_xyxy)
+        x0, y0, x1, y1 = box
         image = rgb[y0:y1, x0:x1]
-        if self.dynamic_input and image.shape[:2] != rgb.shape[:2]:
-            full = letterbox_geometry(rgb.shape[:2], self.input_hw, self.stride)
-            geometry = letterbox_at_scale(image.shape[:2], full.scale_x, self.stride)
+        if self.view.scale is not None:
+            geometry = letterbox_at_scale(image.shape[:2], self.view.scale, self.stride)
+        elif self.dynamic_input and image.shape[:2] != rgb.shape[:2]:
+            geometry = letterbox_at_scale(image.shape[:2], self.frame_scale(rgb.shape[:2]), self.stride)
         else:
             geometry = letterbox_geometry(image.shape[:2], self.input_hw, self.stride if self.dynamic_input else None)
         blob = to_blob(letterbox(np.ascontiguousarray(image), geometry), self.input_dtype)
@@ -357,11 +399,9 @@ class YoloSegDetector:
         if image.shape[:2] != rgb.shape[:2]:
             detections = [_to_frame(d, (x0, y0), rgb.shape[:2]) for d in detections]
         t3 = time.perf_counter()
-        self.last_timings_ms = {
-            "preprocess": (t1 - t0) * 1e3,
-            "inference": (t2 - t1) * 1e3,
-            "postprocess": (t3 - t2) * 1e3,
-        }
+        timings["preprocess"] += (t1 - t0) * 1e3
+        timings["inference"] += (t2 - t1) * 1e3
+        timings["postprocess"] += (t3 - t2) * 1e3
         return detections
 
     @staticmethod
