@@ -1,12 +1,12 @@
-"""YOLO instance segmentation at run time: numpy + onnxruntime (CPU), for our models and ultralytics' alike.
+"""YOLO instance segmentation at run time: numpy + onnxruntime, for our models and ultralytics' alike.
 
 The model contract is the ultralytics YOLOv8-seg ONNX layout:
 
 - input: one image tensor ``[1, 3, H, W]`` float (RGB, 0..1), fixed or dynamic ``H, W``;
 - ``output0``: ``[1, 4 + nc + nm, A]``, per anchor the box ``cx, cy, w, h`` in input pixels, ``nc`` per-class scores
   (already sigmoided, no objectness) and ``nm`` (32) mask coefficients;
-- ``output1``: the mask prototypes ``[1, nm, H/4, W/4]``. A detection-only model has no ``output1`` and an
-  ``output0`` of ``[1, 4 + nc, A]``.
+- ``output1``: the mask prototypes ``[1, nm, H/s, W/s]`` covering the input (``s`` = 4 in ultralytics' models, 2 or 4
+  in ours). A detection-only model has no ``output1`` and an ``output0`` of ``[1, 4 + nc, A]``.
 
 Class names come from the ONNX ``metadata_props`` (ultralytics writes ``names`` as a python dict string
 ``"{0: 'hex_nut', 1: 'washer'}"``, ``imgsz`` as ``"[640, 640]"`` and ``stride``); our exporter adds ``obj_ids``
@@ -31,6 +31,7 @@ import numpy as np
 import onnxruntime as ort
 from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
 
+from perception.providers import session_providers
 from perception.results import Detection
 from perception.tiling import ViewSettings, merge_tiles, tile_layout
 from sygrid.detection_decode import postprocess
@@ -118,7 +119,7 @@ def _dim(shape: Sequence, k: int) -> int | None:
 
 # ---------------------------------------------------------------------------------------------------- detector
 class YoloSegDetector:
-    """A YOLO(v8)-seg or detection ONNX model on onnxruntime's CPU provider.
+    """A YOLO(v8)-seg or detection ONNX model on onnxruntime (CPU, or CUDA where installed).
 
     Args:
         onnx_path: the ``.onnx`` file.
@@ -129,6 +130,8 @@ class YoloSegDetector:
             input (a fixed-input model must be given None or its own size). None: the ``imgsz`` metadata, else 640.
         num_threads: onnxruntime intra-op threads.
         max_detections: most detections returned per image.
+        providers: onnxruntime execution providers, ``"auto"`` (CUDA when offered), ``"cpu"`` or ``"cuda"``
+            (``perception.providers``).
         view: where and at what scale the detector looks (``perception.tiling.ViewSettings``); None: the plain
             behaviour, one piece at the frame's scale. A scale or tiles need a model with a dynamic input.
 
@@ -148,6 +151,7 @@ class YoloSegDetector:
         num_threads: int = 2,
         max_detections: int = 300,
         view: ViewSettings | None = None,
+        providers: str = "auto",
     ) -> None:
         if not 0.0 <= conf_threshold < 1.0:
             raise ValueError(f"conf_threshold must be in [0, 1), got {conf_threshold}")
@@ -161,7 +165,7 @@ class YoloSegDetector:
         self.conf_threshold = float(conf_threshold)
         self.iou_threshold = float(iou_threshold)
         self.max_detections = int(max_detections)
-        self.session = self._open_session(self.path, int(num_threads))
+        self.session = self._open_session(self.path, int(num_threads), session_providers(providers))
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         self._check_input(input_size)
         self.view = view or ViewSettings()
@@ -176,7 +180,7 @@ class YoloSegDetector:
 
     # ------------------------------------------------------------------------------------------- loading
     @staticmethod
-    def _open_session(path: Path, num_threads: int) -> ort.InferenceSession:
+    def _open_session(path: Path, num_threads: int, providers: list[str]) -> ort.InferenceSession:
         if not path.is_file():
             raise ModelError(f"{path}: ONNX model file not found" + (" (it is a directory)" if path.is_dir() else ""))
         options = ort.SessionOptions()
@@ -188,7 +192,7 @@ class YoloSegDetector:
         # assembly, the next session and the simulator on a small machine.
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
-            return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+            return ort.InferenceSession(str(path), sess_options=options, providers=providers)
         except _ORT_ERRORS as err:
             raise ModelError(f"{path}: not a loadable ONNX model ({type(err).__name__}: {err})") from err
 
@@ -236,7 +240,7 @@ class YoloSegDetector:
         return ModelError(
             f"{self.path}: outputs match no supported layout; found {found}; expected 'output0' [1, 4+nc+nm, A] "
             "(box cx, cy, w, h, nc class scores, nm mask coefficients) with 'output1' mask prototypes "
-            "[1, nm, H/4, W/4], or a detection-only 'output0' [1, 4+nc, A]"
+            "[1, nm, H/s, W/s], or a detection-only 'output0' [1, 4+nc, A]"
         )
 
     def _check_outputs(self) -> None:
