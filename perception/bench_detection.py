@@ -92,6 +92,7 @@ def run_benchmark(
         ms = _time(make(d.conf_threshold), root, split, items[:timing_images], v.region, dataset_bin)
         recall = report["breakdown"]["recall"]["all"]
         t_op = f"recall@{d.conf_threshold:g}"
+        del images, detections  # a variant's detections go before the next one's come
         rows.append({
             "name": v.name, "region": v.region, "input_size": v.input_size, "scale": report["scale"],
             "tile_px": v.view.tile_px, "tile_overlap": v.view.tile_overlap if v.view.tile_px else None,

@@ -67,9 +67,16 @@ def _window(a: np.ndarray, b: np.ndarray, shape: tuple[int, int]) -> tuple[slice
     return (slice(y0, y1), slice(x0, x1)) if x1 > x0 and y1 > y0 else None
 
 
-def _iou(inst: InstanceAnnotation, inst_box: np.ndarray, inst_px: int, det: DetectionLike, det_px: int) -> float:
+def _iou(
+    inst: InstanceAnnotation,
+    inst_box: np.ndarray,
+    inst_px: int,
+    det: DetectionLike,
+    mask: np.ndarray | None,
+    det_px: int,
+) -> float:
     box = np.asarray(det.bbox_xyxy, dtype=float)
-    if det.mask is None:  # box IoU against the visible box
+    if mask is None:  # box IoU against the visible box
         w = max(0.0, min(inst_box[2], box[2]) - max(inst_box[0], box[0]))
         h = max(0.0, min(inst_box[3], box[3]) - max(inst_box[1], box[1]))
         inter = w * h
@@ -78,7 +85,7 @@ def _iou(inst: InstanceAnnotation, inst_box: np.ndarray, inst_px: int, det: Dete
     window = _window(inst_box, box, inst.mask_visib.shape)
     if window is None:
         return 0.0
-    inter = int(np.count_nonzero(inst.mask_visib[window] & det.mask[window]))
+    inter = int(np.count_nonzero(inst.mask_visib[window] & mask[window]))
     union = inst_px + det_px - inter
     return inter / union if union else 0.0
 
@@ -89,7 +96,8 @@ def match_instances(
     """Per instance seen at least ``min_visib_fract``: (instance, the detection matched to it or None); see the
     module docstring for the rule."""
     free = sorted(detections, key=lambda d: -d.score)
-    det_px = {id(d): int(np.count_nonzero(d.mask)) if d.mask is not None else 0 for d in free}
+    masks = {id(d): d.mask for d in free}  # read once: a detection may build its mask on each access
+    det_px = {k: int(np.count_nonzero(m)) if m is not None else 0 for k, m in masks.items()}
     out = []
     for inst in ann.instances:
         if inst.visib_fract < min_visib_fract:
@@ -101,7 +109,7 @@ def match_instances(
         for d in free:
             if d.obj_id != inst.obj_id:
                 continue
-            iou = _iou(inst, inst_box, inst_px, d, det_px[id(d)])
+            iou = _iou(inst, inst_box, inst_px, d, masks[id(d)], det_px[id(d)])
             if iou >= best_iou:
                 best, best_iou = d, iou
         if best is not None:
