@@ -48,6 +48,9 @@ log = logging.getLogger(__name__)
 LEDGER_NAME = "dataset.json"
 LEDGER_FORMAT = "sygrid-dataset/1"
 IMAGES_PER_SCENE = 1000
+# Ledger keys of older versions: the recipe's and the scene's render depth_noise (stereo noise after rendering, now
+# the recipe's sensor).
+LEGACY_LEDGER_KEYS = {"recipe": ("depth_noise",), "render": ("depth_noise",)}
 
 
 class DatasetError(SygridError, RuntimeError):
@@ -152,14 +155,20 @@ def item_T_world_camera(recipe: Recipe, seed: int, index: int) -> np.ndarray:
 
 
 def ledger_recipe(out_dir: str | Path) -> tuple[Recipe, int]:
-    """The recipe (scene inlined) and seed a generated dataset folder was made with, from its ledger."""
+    """The recipe (scene inlined) and seed a generated dataset folder was made with, from its ledger: for its camera
+    and scene (the bin, the camera draws), not to regenerate it. The keys of older ledgers that no longer exist
+    (``LEGACY_LEDGER_KEYS``, none of which changes the camera draws) are left out."""
     path = Path(out_dir) / LEDGER_NAME
     if not path.is_file():
         raise ConfigError(f"{out_dir}: no {LEDGER_NAME} (not a folder made by 'sygrid generate')")
     data = read_json(path, "dataset ledger")
-    if not isinstance(data, dict) or data.get("format") != LEDGER_FORMAT or "recipe" not in data:
+    if not isinstance(data, dict) or data.get("format") != LEDGER_FORMAT or not isinstance(data.get("recipe"), dict):
         raise ConfigError(f"{path}: not a SyGRID dataset ledger (format {LEDGER_FORMAT!r} with a recipe expected)")
-    return parse_recipe(data["recipe"], f"{path}: recipe", Path(out_dir)), int(data["seed"])
+    recipe = {k: v for k, v in data["recipe"].items() if k not in LEGACY_LEDGER_KEYS["recipe"]}
+    if isinstance(recipe.get("scene"), dict) and isinstance(recipe["scene"].get("render"), dict):
+        render = {k: v for k, v in recipe["scene"]["render"].items() if k not in LEGACY_LEDGER_KEYS["render"]}
+        recipe["scene"] = {**recipe["scene"], "render": render}
+    return parse_recipe(recipe, f"{path}: recipe", Path(out_dir)), int(data["seed"])
 
 
 class DatasetBin:
