@@ -40,9 +40,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     pack.add_argument("--tile-px", type=int, default=None, help="the manifest's detector tiles (network px)")
     pack.add_argument("--region", choices=["full", "bin"], default="full", help="where the card's evaluation looks")
+    fails = sub.add_parser("breakdown", help="where a model folder's detector fails: card section, min_part_px")
+    fails.add_argument("--models", type=Path, required=True, help="model folder (manifest.json, detector.card.md)")
+    fails.add_argument("--test-data", type=Path, required=True, help="held-out dataset")
+    fails.add_argument("--max-images", type=int, default=None, help="evaluate on the first N test images")
+    fails.add_argument("--region", choices=["full", "bin"], default="full", help="where the detector looks")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.action == "breakdown":
+        return run_breakdown(args)
     det_log = _train_log(args.detector, "detector.onnx")
     pose_log = _train_log(args.pose, "pose.onnx")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -71,6 +78,42 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"wrote {args.out}: manifest.json, detector.onnx, pose.onnx, model cards" + (", evaluations" if evals else "")
     )
+    return 0
+
+
+BREAKDOWN_HEADING = "### Where it fails"
+
+
+def run_breakdown(args: argparse.Namespace) -> int:
+    """The detector alone at 0.001 on the test data (as ``pack`` evaluates it, with the breakdown): rewrites
+    ``eval_detector.json``, the card's "Where it fails" section and the manifest's ``detector.min_part_px`` (the
+    smallest nominal size recalled reliably at the operating threshold; left out when none is)."""
+    from perception.detector import YoloSegDetector
+    from perception.evaluation import EvalSettings, evaluate_detector
+    from perception.pipeline import PipelineOverrides, detector_view, load_manifest
+
+    manifest = load_manifest(args.models)
+    d = manifest.detector
+    detector = YoloSegDetector(args.models / d.onnx, conf_threshold=COCO_CONF, iou_threshold=d.iou_threshold,
+                               input_size=d.input_size, view=detector_view(d, PipelineOverrides()))  # fmt: skip
+    settings = EvalSettings(max_images=args.max_images, region=args.region)
+    report = evaluate_detector(detector, args.test_data, settings, operating_threshold=d.conf_threshold)
+    report["data"] = str(args.test_data)
+    write_json_atomic(args.models / "eval_detector.json", report)
+    data = read_json(args.models / "manifest.json", "model manifest")
+    min_px = report["breakdown"]["min_reliable_px"][f"{d.conf_threshold:g}"]
+    data["detector"].pop("min_part_px", None)
+    if math.isfinite(min_px):
+        data["detector"]["min_part_px"] = min_px
+    write_json_atomic(args.models / "manifest.json", data)
+    card_path = args.models / "detector.card.md"
+    card = card_path.read_text() if card_path.is_file() else "# Model card: detector\n"
+    card = card.split(BREAKDOWN_HEADING)[0].rstrip("\n") + "\n\n"
+    section = [f"Test set {_dataset_line(args.test_data)}, {report['n_images']} images, region {report['region']}, "
+               f"detector scale {report['scale']:.2f}.", ""]  # fmt: skip
+    card_path.write_text(card + "\n".join(breakdown_section(report["breakdown"], section)) + "\n")
+    print(f"wrote {args.models / 'eval_detector.json'}, {card_path} and manifest.json (min_part_px "
+          f"{min_px if math.isfinite(min_px) else 'none'})")  # fmt: skip
     return 0
 
 
@@ -216,16 +259,18 @@ def _detection_section(det: dict, pipeline_report: dict) -> list[str]:
     return lines
 
 
-def breakdown_section(b: dict) -> list[str]:
-    """Where the detector fails: recall and AP per part, size bin and visibility bin at each threshold (markdown)."""
+def breakdown_section(b: dict, intro: list[str] | None = None) -> list[str]:
+    """Where the detector fails: recall and AP per part, size bin and visibility bin at each threshold (markdown);
+    ``intro``: lines after the heading."""
     sizes = [label for label, _, _ in b["size_bins_px"]]
     visib = [label for label, _, _ in b["visibility_bins"]]
     labels = ["all", *sizes, *visib]
     header = "| part | " + " | ".join(["all", *(f"{s} px" for s in sizes), *(f"{v} visible" for v in visib)]) + " |"
     rule = "|---" * (len(labels) + 1) + "|"
     lines = [
-        "### Where it fails",
+        BREAKDOWN_HEADING,
         "",
+        *(intro or []),
         "Sizes: the longer side of the visible box in the image; instances less than 10 % visible left out. Recall: "
         "found by a detection of the same part with mask IoU >= 0.5 (n instances in brackets).",
     ]

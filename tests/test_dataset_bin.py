@@ -43,3 +43,12 @@ def test_the_bin_pose_is_written_read_back_and_re_derived(tiny_dataset):
                     assert x0 <= bx and y0 <= by and bx + bw <= x1 and by + bh <= y1
             assert region_box("full", None, ann) is None
             assert bin_region_camera(dataset_bin, ann).shape == (8, 3)
+
+
+def test_an_older_ledger_still_gives_the_recipe(tiny_dataset, tmp_path):
+    ledger = json.loads((tiny_dataset / "dataset.json").read_text())
+    ledger["recipe"]["depth_noise"] = False  # written before the sensor models
+    ledger["recipe"]["scene"]["render"]["depth_noise"] = False
+    (tmp_path / "dataset.json").write_text(json.dumps(ledger))
+    recipe, seed = ledger_recipe(tmp_path)
+    assert seed == ledger["seed"] and recipe.scene.camera == ledger_recipe(tiny_dataset)[0].scene.camera
