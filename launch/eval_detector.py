@@ -18,8 +18,9 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--region",
         choices=REGIONS,
-        default="full",
-        help="where the detector looks: the whole frame or the bin's box (from the dataset's bin pose)",
+        default="bin",
+        help="where the detector looks: the bin's box (from the dataset's bin pose; what a cell does with "
+        "detect_in_bin) or the whole frame (%(default)s)",
     )
     parser.add_argument(
         "--scale",

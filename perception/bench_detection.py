@@ -55,8 +55,10 @@ DEFAULT_VARIANTS = (
     Variant("bin @ 1.5", "bin", view=ViewSettings(scale=1.5)),
     Variant("tiles 640 px @ 1.67 (frame)", "full", view=ViewSettings(scale=640 / 384, tile_px=640)),
     Variant("tiles 320 px @ 1.0 (bin)", "bin", view=ViewSettings(scale=1.0, tile_px=320)),
+    Variant("tiles 256 px @ 1.0 (bin)", "bin", view=ViewSettings(scale=1.0, tile_px=256)),
+    Variant("tiles 320 px @ 1.0 (frame)", "full", view=ViewSettings(scale=1.0, tile_px=320)),
 )
-QUICK_VARIANTS = (DEFAULT_VARIANTS[0], DEFAULT_VARIANTS[3], DEFAULT_VARIANTS[4])
+QUICK_VARIANTS = (DEFAULT_VARIANTS[0], DEFAULT_VARIANTS[4], DEFAULT_VARIANTS[8])
 
 
 def run_benchmark(

@@ -35,7 +35,9 @@ from sygrid.metrics import DetectionLike, coco_ground_truth, coco_results
 SIZE_BINS: tuple[tuple[str, float, float], ...] = (("<20", 0.0, 20.0), ("20-50", 20.0, 50.0), (">50", 50.0, math.inf))
 VISIB_BINS: tuple[tuple[str, float, float], ...] = (("10-40%", 0.1, 0.4), ("40-70%", 0.4, 0.7), ("70-100%", 0.7, 1.01))
 NOMINAL_BINS_PX = (0.0, 8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0, 24.0, 28.0, 32.0, 40.0, 48.0, 64.0, math.inf)
-RELIABLE_RECALL = 0.8  # "resolved reliably": recall of well-seen instances at least this
+# "Resolved reliably": recall at a size at least this fraction of what the detector recalls of the same parts at any
+# size (the parts' own recall, so that a part hard at every size does not read as a size limit).
+RELIABLE_RELATIVE = 0.8
 WELL_SEEN = 0.5  # the nominal-size curve counts instances at least this visible (occlusion is not a size effect)
 MIN_CURVE_COUNT = 20  # a bin of the nominal-size curve with fewer instances is not trusted
 
@@ -174,24 +176,33 @@ def recall_table(
 
 def size_curve(records: Sequence[InstanceRecord], threshold: float, size: str = "nominal_px") -> list[dict]:
     """Recall at ``threshold`` of the instances seen at least ``WELL_SEEN``, per bin (``NOMINAL_BINS_PX``) of their
-    ``size`` (``"nominal_px"`` or ``"input_box_px"``, network input pixels): ``[{"lo_px", "hi_px", "n", "recall"}]``
-    (bins without instances left out)."""
+    ``size`` (``"nominal_px"`` or ``"input_box_px"``, network input pixels): ``[{"lo_px", "hi_px", "n", "recall",
+    "relative"}]`` (bins without instances left out). ``relative``: the bin's recall over the recall its instances'
+    parts have over all sizes (1: as well as the detector does on those parts anywhere)."""
     seen = [r for r in records if r.visib_fract >= WELL_SEEN and math.isfinite(getattr(r, size))]
+    part_recall = {}
+    for obj_id in {r.obj_id for r in seen}:
+        part_recall[obj_id] = _recall([r for r in seen if r.obj_id == obj_id], threshold)
     rows = []
     for lo, hi in itertools.pairwise(NOMINAL_BINS_PX):
         rs = [r for r in seen if lo <= getattr(r, size) < hi]
         if rs:
-            rows.append({"lo_px": lo, "hi_px": hi, "n": len(rs), "recall": _recall(rs, threshold)})
+            expected = sum(part_recall[r.obj_id] for r in rs)
+            relative = sum(r.found[threshold] for r in rs) / expected if expected > 0 else math.nan
+            rows.append(
+                {"lo_px": lo, "hi_px": hi, "n": len(rs), "recall": _recall(rs, threshold), "relative": relative}
+            )
     return rows
 
 
 def min_reliable_px(curve: Sequence[Mapping]) -> float:
     """The smallest nominal size (network input pixels) from which every trusted bin of ``curve`` (at least
-    ``MIN_CURVE_COUNT`` instances) reaches ``RELIABLE_RECALL``; NaN when the largest trusted bin does not."""
+    ``MIN_CURVE_COUNT`` instances) reaches ``RELIABLE_RELATIVE`` of its parts' recall; NaN when the largest trusted
+    bin does not."""
     trusted = [row for row in curve if row["n"] >= MIN_CURVE_COUNT]
     edge = math.nan
     for row in reversed(trusted):
-        if row["recall"] < RELIABLE_RECALL:
+        if not row["relative"] >= RELIABLE_RELATIVE:
             break
         edge = row["lo_px"]
     return edge

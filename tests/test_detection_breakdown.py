@@ -13,7 +13,7 @@ from sygrid.annotations import ImageAnnotation, annotate
 from sygrid.camera import CameraIntrinsics
 from sygrid.detection_breakdown import (
     MIN_CURVE_COUNT,
-    RELIABLE_RECALL,
+    RELIABLE_RELATIVE,
     ap_table,
     breakdown,
     instance_records,
@@ -105,12 +105,27 @@ def test_ap_with_no_detections_is_zero_where_there_is_ground_truth(image):
 
 def test_min_reliable_px_reads_the_curve_from_the_large_end():
     n = MIN_CURVE_COUNT
-    curve = [{"lo_px": 8.0, "hi_px": 12.0, "n": n, "recall": 0.3},
-             {"lo_px": 12.0, "hi_px": 16.0, "n": n, "recall": 0.9},
-             {"lo_px": 16.0, "hi_px": 20.0, "n": 2, "recall": 0.0},  # too few to trust: skipped
-             {"lo_px": 20.0, "hi_px": 24.0, "n": n, "recall": RELIABLE_RECALL}]  # fmt: skip
+    curve = [{"lo_px": 8.0, "hi_px": 12.0, "n": n, "relative": 0.5},
+             {"lo_px": 12.0, "hi_px": 16.0, "n": n, "relative": 0.9},
+             {"lo_px": 16.0, "hi_px": 20.0, "n": 2, "relative": 0.0},  # too few to trust: skipped
+             {"lo_px": 20.0, "hi_px": 24.0, "n": n, "relative": RELIABLE_RELATIVE}]  # fmt: skip
     assert min_reliable_px(curve) == 12.0
     assert math.isnan(min_reliable_px([{**curve[0], "lo_px": 40.0}]))
+
+
+def test_the_curve_compares_each_size_with_the_same_parts_at_any_size():
+    """A part recalled half the time everywhere is not a size limit; one missed only when small is."""
+    from sygrid.detection_breakdown import InstanceRecord, size_curve
+
+    def rec(obj_id: int, px: float, found: bool) -> InstanceRecord:
+        return InstanceRecord(0, obj_id, px, 1.0, px, {0.4: found})
+
+    hard = [rec(1, px, k % 2 == 0) for px in (9.0, 30.0) for k in range(40)]  # 50 % at both sizes
+    small_limited = [rec(2, 9.0, k < 10) for k in range(40)] + [rec(2, 30.0, True) for _ in range(40)]
+    curve = {row["lo_px"]: row for row in size_curve(hard + small_limited, 0.4)}
+    # part 2 recalls 50/80 overall; its small instances 10/40: 0.25 / 0.625 = 0.4 of its usual; part 1 at 1.0
+    assert curve[8.0]["relative"] == pytest.approx((20 + 10) / (40 * 0.5 + 40 * 50 / 80))
+    assert curve[28.0]["relative"] > 1.0 and min_reliable_px(list(curve.values())) == 28.0
 
 
 # ------------------------------------------------------------------------------------------------ part pixels
