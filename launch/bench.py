@@ -14,6 +14,7 @@ BENCHMARKS = {
     "perception": "perception.bench",
     "cell": "launch.bench_cell",
     "cell-detector": "launch.bench_cell_detector",
+    "detection": "perception.bench_detection",
 }
 
 

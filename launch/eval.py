@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from launch.eval_detector import add_detector_arguments, detector_breakdown, detector_overrides, warn_part_pixels
 from perception.evaluation import EvalSettings, evaluate, format_comparison, format_table
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from sygrid.errors import ConfigError
@@ -38,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", type=Path, default=None, help="JSON report (default: DATA/eval_<models>[_<sensor>].json)"
     )
+    add_detector_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -46,13 +48,18 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--sensor: expected distinct sensor names, got {args.sensor!r}")
     for name in sensors:
         sensor_preset(name, "--sensor")
-    overrides = PipelineOverrides(pose_method=args.pose_method, refine=args.refine, num_threads=args.threads)
+    overrides = PipelineOverrides(pose_method=args.pose_method, refine=args.refine, num_threads=args.threads,
+                                  **detector_overrides(args))  # fmt: skip
     pipeline = PerceptionPipeline.from_folder(args.models, overrides)
+    warn_part_pixels(args)
     reports = []
     for name in sensors:
-        settings = EvalSettings(split=args.split, max_images=args.max_images, sensor=name, sensor_seed=args.sensor_seed)
+        settings = EvalSettings(split=args.split, max_images=args.max_images, sensor=name, sensor_seed=args.sensor_seed,
+                                region=args.region)  # fmt: skip
         report = evaluate(pipeline, args.data, settings)
         print(format_table(report))
+        if name == "ideal":  # the detector alone on the stored frames: AP and recall per part, size and visibility
+            report["detector"] = detector_breakdown(args, pipeline, settings)
         print(f"wrote {write_json_atomic(_out_path(args, name, len(sensors)), report)}")
         reports.append(report)
     if len(reports) > 1:

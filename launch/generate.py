@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from launch.part_check import log_warnings, scene_warnings
 from sygrid.dataset import EXECUTORS, generate
 from sygrid.recipe import load_recipe
 
@@ -21,10 +22,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=1, help="parallel worker processes / Ray tasks")
     parser.add_argument("--executor", choices=sorted(EXECUTORS), default="local")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs only)")
+    parser.add_argument(
+        "--check-models", type=Path, default=Path("models/builtin"), help="warn when this folder's detector sees a "
+        "part too small (pixels per part)"
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
     recipe = load_recipe(args.recipe)
+    log_warnings(scene_warnings(recipe.scene, recipe.base_dir, args.check_models), f"{args.recipe} camera")
     summary = generate(
         recipe, args.out, args.count, args.seed, args.workers, args.executor, progress=not args.no_progress
     )

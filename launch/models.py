@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import math
 import shutil
 from pathlib import Path
 
@@ -34,9 +35,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pack.add_argument("--max-images", type=int, default=None, help="evaluate on the first N test images")
     pack.add_argument("--conf-threshold", type=float, default=0.4, help="the manifest's detector threshold")
     pack.add_argument("--method", choices=["direct", "pnp"], default="direct", help="the manifest's pose method")
+    pack.add_argument(
+        "--scale", type=float, default=None, help="the manifest's detector scale (network px per image px)"
+    )
+    pack.add_argument("--tile-px", type=int, default=None, help="the manifest's detector tiles (network px)")
+    pack.add_argument("--region", choices=["full", "bin"], default="full", help="where the card's evaluation looks")
+    fails = sub.add_parser("breakdown", help="where a model folder's detector fails: card section, min_part_px")
+    fails.add_argument("--models", type=Path, required=True, help="model folder (manifest.json, detector.card.md)")
+    fails.add_argument("--test-data", type=Path, required=True, help="held-out dataset")
+    fails.add_argument("--max-images", type=int, default=None, help="evaluate on the first N test images")
+    fails.add_argument("--region", choices=["full", "bin"], default="full", help="where the detector looks")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.action == "breakdown":
+        return run_breakdown(args)
     det_log = _train_log(args.detector, "detector.onnx")
     pose_log = _train_log(args.pose, "pose.onnx")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -45,20 +58,62 @@ def run(args: argparse.Namespace) -> int:
         shutil.copyfile(run_dir / name, tmp)
         tmp.replace(args.out / name)
     names = det_log["dataset"]["names"]
+    view = {k: v for k, v in (("scale", args.scale), ("tile_px", args.tile_px)) if v is not None}
     manifest = {
         "format": "sygrid-models/1",
         "objects": [{"builtin": n} for n in names],
-        "detector": {"onnx": "detector.onnx", "conf_threshold": args.conf_threshold},
+        "detector": {"onnx": "detector.onnx", "conf_threshold": args.conf_threshold, **view},
         "pose": {"onnx": "pose.onnx", "method": args.method},
         "refine": {"enabled": True},
     }
     write_json_atomic(args.out / "manifest.json", manifest)
     evals = _evaluate(args) if args.test_data else {}
+    if evals:  # the pixels-per-part threshold, from the measured recall curve at the operating threshold
+        min_px = evals["detector"]["breakdown"]["min_reliable_px"][f"{args.conf_threshold:g}"]
+        if math.isfinite(min_px):
+            manifest["detector"]["min_part_px"] = min_px
+            write_json_atomic(args.out / "manifest.json", manifest)
     (args.out / "detector.card.md").write_text(detector_card(det_log, args, evals))
     (args.out / "pose.card.md").write_text(pose_card(pose_log, args, evals))
     print(
         f"wrote {args.out}: manifest.json, detector.onnx, pose.onnx, model cards" + (", evaluations" if evals else "")
     )
+    return 0
+
+
+BREAKDOWN_HEADING = "### Where it fails"
+
+
+def run_breakdown(args: argparse.Namespace) -> int:
+    """The detector alone at 0.001 on the test data (as ``pack`` evaluates it, with the breakdown): rewrites
+    ``eval_detector.json``, the card's "Where it fails" section and the manifest's ``detector.min_part_px`` (the
+    smallest nominal size recalled reliably at the operating threshold; left out when none is)."""
+    from perception.detector import YoloSegDetector
+    from perception.evaluation import EvalSettings, evaluate_detector
+    from perception.pipeline import PipelineOverrides, detector_view, load_manifest
+
+    manifest = load_manifest(args.models)
+    d = manifest.detector
+    detector = YoloSegDetector(args.models / d.onnx, conf_threshold=COCO_CONF, iou_threshold=d.iou_threshold,
+                               input_size=d.input_size, view=detector_view(d, PipelineOverrides()))  # fmt: skip
+    settings = EvalSettings(max_images=args.max_images, region=args.region)
+    report = evaluate_detector(detector, args.test_data, settings, operating_threshold=d.conf_threshold)
+    report["data"] = str(args.test_data)
+    write_json_atomic(args.models / "eval_detector.json", report)
+    data = read_json(args.models / "manifest.json", "model manifest")
+    min_px = report["breakdown"]["min_reliable_px"][f"{d.conf_threshold:g}"]
+    data["detector"].pop("min_part_px", None)
+    if math.isfinite(min_px):
+        data["detector"]["min_part_px"] = min_px
+    write_json_atomic(args.models / "manifest.json", data)
+    card_path = args.models / "detector.card.md"
+    card = card_path.read_text() if card_path.is_file() else "# Model card: detector\n"
+    card = card.split(BREAKDOWN_HEADING)[0].rstrip("\n") + "\n\n"
+    section = [f"Test set {_dataset_line(args.test_data)}, {report['n_images']} images, region {report['region']}, "
+               f"detector scale {report['scale']:.2f}.", ""]  # fmt: skip
+    card_path.write_text(card + "\n".join(breakdown_section(report["breakdown"], section)) + "\n")
+    print(f"wrote {args.models / 'eval_detector.json'}, {card_path} and manifest.json (min_part_px "
+          f"{min_px if math.isfinite(min_px) else 'none'})")  # fmt: skip
     return 0
 
 
@@ -72,10 +127,13 @@ def _evaluate(args: argparse.Namespace) -> dict[str, dict]:
     from perception.detector import YoloSegDetector
     from perception.evaluation import EvalSettings, evaluate, evaluate_detector, format_table
     from perception.pipeline import PerceptionPipeline, PipelineOverrides
+    from perception.tiling import ViewSettings
 
-    settings = EvalSettings(max_images=args.max_images)
-    detector = YoloSegDetector(args.out / "detector.onnx", conf_threshold=COCO_CONF)
-    report = {**evaluate_detector(detector, args.test_data, settings), "data": str(args.test_data)}
+    settings = EvalSettings(max_images=args.max_images, region=args.region)
+    detector = YoloSegDetector(args.out / "detector.onnx", conf_threshold=COCO_CONF,
+                               view=ViewSettings(args.scale, args.tile_px))  # fmt: skip
+    report = evaluate_detector(detector, args.test_data, settings, operating_threshold=args.conf_threshold)
+    report["data"] = str(args.test_data)
     write_json_atomic(args.out / "eval_detector.json", report)
     evals = {"detector": report}
     for label, refine in (("direct", False), ("refined", True)):
@@ -196,7 +254,51 @@ def _detection_section(det: dict, pipeline_report: dict) -> list[str]:
             f"| {obj_id} | {row['box_ap50']:.3f} | {row['box_ap50_95']:.3f} | {row['mask_ap50_95']:.3f} "
             f"| {row.get('n_gt', '')} |"
         )
+    if "breakdown" in det:
+        lines += ["", *breakdown_section(det["breakdown"])]
     return lines
+
+
+def breakdown_section(b: dict, intro: list[str] | None = None) -> list[str]:
+    """Where the detector fails: recall and AP per part, size bin and visibility bin at each threshold (markdown);
+    ``intro``: lines after the heading."""
+    sizes = [label for label, _, _ in b["size_bins_px"]]
+    visib = [label for label, _, _ in b["visibility_bins"]]
+    labels = ["all", *sizes, *visib]
+    header = "| part | " + " | ".join(["all", *(f"{s} px" for s in sizes), *(f"{v} visible" for v in visib)]) + " |"
+    rule = "|---" * (len(labels) + 1) + "|"
+    lines = [
+        BREAKDOWN_HEADING,
+        "",
+        *(intro or []),
+        "Sizes: the longer side of the visible box in the image; instances less than 10 % visible left out. Recall: "
+        "found by a detection of the same part with mask IoU >= 0.5 (n instances in brackets).",
+    ]
+    for t in (f"{t:g}" for t in b["thresholds"]):
+        lines += ["", f"Recall at confidence {t}:", "", header, rule]
+        for part, row in b["recall"].items():
+            cells = [f"{_pct(row[k][f'recall@{t}'])} ({row[k]['n']})" for k in labels]
+            lines.append(f"| {part} | " + " | ".join(cells) + " |")
+    for t in (f"{t:g}" for t in b["thresholds"]):
+        lines += ["", f"Box AP50 / mask AP50-95 at confidence {t} (obj_id):", "", header, rule]
+        for part, row in b["ap"][t].items():
+            cells = [f"{_num(row[k]['box_ap50'])} / {_num(row[k]['mask_ap50_95'])}" for k in labels]
+            lines.append(f"| {part} | " + " | ".join(cells) + " |")
+        px = b["min_reliable_px"][t]
+        found = f"**{px:g} network px**." if math.isfinite(px) else "none (no size bin reaches the criterion)."
+        lines += [
+            "",
+            f"Smallest nominal part size (fx x diameter / distance x scale) resolved reliably at {t}: {found}",
+        ]
+    return lines
+
+
+def _pct(x: float) -> str:
+    return "n/a" if not math.isfinite(x) else f"{100 * x:.1f} %"
+
+
+def _num(x: float) -> str:
+    return "n/a" if not math.isfinite(x) else f"{x:.3f}"
 
 
 def _pose_section(evals: dict[str, dict]) -> list[str]:

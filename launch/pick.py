@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from launch.part_check import cell_warnings, log_warnings
 from launch.pick_stops import EXIT_CODES, EmulatorWatch, Interrupted, StopSignals, exit_code
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.pick_report import RunReport, Stage, StopReason
@@ -117,6 +118,7 @@ def open_cell(
             models_dir = setup.resolve(d.perception.models_dir)
             overrides = PipelineOverrides(
                 detector_input_size=d.perception.detector_input_size, conf_threshold=d.perception.conf_threshold,
+                detector_scale=d.perception.detector_scale, detector_tile_px=d.perception.detector_tile_px,
                 refine=d.perception.refine, max_refined=d.perception.max_refined, min_fitness=d.perception.min_fitness,
                 mask_erosion_px=d.perception.mask_erosion_px, num_threads=d.perception.num_threads,
             )  # fmt: skip
@@ -131,6 +133,10 @@ def open_cell(
                 floor_margin_m=d.perception.floor_margin_m,
             )  # fmt: skip
             models = perception.models
+            if planner_config.bin is not None:  # parts on the bin's floor, as far as its farthest corner
+                floor = planner_config.bin.inner_corners_camera(T_base_camera)[::2]
+                warnings = cell_warnings(perception.detector, models_dir, models.values(), camera.intrinsics, floor)
+                log_warnings(warnings, "pixels per part")
         planner = GraspPlanner(models, planner_config)
         robot = stack.enter_context(URRobot(setup.robot))
         gripper = stack.enter_context(make_gripper(setup.gripper, io=robot))

@@ -1,12 +1,12 @@
-"""YOLO instance segmentation at run time: numpy + onnxruntime (CPU), for our models and ultralytics' alike.
+"""YOLO instance segmentation at run time: numpy + onnxruntime, for our models and ultralytics' alike.
 
 The model contract is the ultralytics YOLOv8-seg ONNX layout:
 
 - input: one image tensor ``[1, 3, H, W]`` float (RGB, 0..1), fixed or dynamic ``H, W``;
 - ``output0``: ``[1, 4 + nc + nm, A]``, per anchor the box ``cx, cy, w, h`` in input pixels, ``nc`` per-class scores
   (already sigmoided, no objectness) and ``nm`` (32) mask coefficients;
-- ``output1``: the mask prototypes ``[1, nm, H/4, W/4]``. A detection-only model has no ``output1`` and an
-  ``output0`` of ``[1, 4 + nc, A]``.
+- ``output1``: the mask prototypes ``[1, nm, H/s, W/s]`` covering the input (``s`` = 4 in ultralytics' models, 2 or 4
+  in ours). A detection-only model has no ``output1`` and an ``output0`` of ``[1, 4 + nc, A]``.
 
 Class names come from the ONNX ``metadata_props`` (ultralytics writes ``names`` as a python dict string
 ``"{0: 'hex_nut', 1: 'washer'}"``, ``imgsz`` as ``"[640, 640]"`` and ``stride``); our exporter adds ``obj_ids``
@@ -31,7 +31,9 @@ import numpy as np
 import onnxruntime as ort
 from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
 
+from perception.providers import session_providers
 from perception.results import Detection
+from perception.tiling import ViewSettings, merge_tiles, tile_layout
 from sygrid.detection_decode import postprocess
 from sygrid.errors import ModelError
 from sygrid.letterbox import Letterbox, letterbox, letterbox_at_scale, letterbox_geometry
@@ -117,7 +119,7 @@ def _dim(shape: Sequence, k: int) -> int | None:
 
 # ---------------------------------------------------------------------------------------------------- detector
 class YoloSegDetector:
-    """A YOLO(v8)-seg or detection ONNX model on onnxruntime's CPU provider.
+    """A YOLO(v8)-seg or detection ONNX model on onnxruntime (CPU, or CUDA where installed).
 
     Args:
         onnx_path: the ``.onnx`` file.
@@ -128,6 +130,10 @@ class YoloSegDetector:
             input (a fixed-input model must be given None or its own size). None: the ``imgsz`` metadata, else 640.
         num_threads: onnxruntime intra-op threads.
         max_detections: most detections returned per image.
+        providers: onnxruntime execution providers, ``"auto"`` (CUDA when offered), ``"cpu"`` or ``"cuda"``
+            (``perception.providers``).
+        view: where and at what scale the detector looks (``perception.tiling.ViewSettings``); None: the plain
+            behaviour, one piece at the frame's scale. A scale or tiles need a model with a dynamic input.
 
     Raises:
         ModelError: the file is missing or not a loadable ONNX model, its input is not one ``[1, 3, H, W]`` image,
@@ -144,6 +150,8 @@ class YoloSegDetector:
         input_size: int | tuple[int, int] | None = None,
         num_threads: int = 2,
         max_detections: int = 300,
+        view: ViewSettings | None = None,
+        providers: str = "auto",
     ) -> None:
         if not 0.0 <= conf_threshold < 1.0:
             raise ValueError(f"conf_threshold must be in [0, 1), got {conf_threshold}")
@@ -157,16 +165,22 @@ class YoloSegDetector:
         self.conf_threshold = float(conf_threshold)
         self.iou_threshold = float(iou_threshold)
         self.max_detections = int(max_detections)
-        self.session = self._open_session(self.path, int(num_threads))
+        self.session = self._open_session(self.path, int(num_threads), session_providers(providers))
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         self._check_input(input_size)
+        self.view = view or ViewSettings()
+        if not self.view.default and not self.dynamic_input:
+            raise ValueError(
+                f"view {self.view}: a scale or tiles need a model with a dynamic input; {self.path} has a fixed "
+                f"{self.input_hw[0]}x{self.input_hw[1]} input"
+            )
         self._check_outputs()
         self.class_names, self.class_obj_ids, self.obj_id_source = self._class_mapping(class_obj_ids)
         self.last_timings_ms: dict[str, float] = {}
 
     # ------------------------------------------------------------------------------------------- loading
     @staticmethod
-    def _open_session(path: Path, num_threads: int) -> ort.InferenceSession:
+    def _open_session(path: Path, num_threads: int, providers: list[str]) -> ort.InferenceSession:
         if not path.is_file():
             raise ModelError(f"{path}: ONNX model file not found" + (" (it is a directory)" if path.is_dir() else ""))
         options = ort.SessionOptions()
@@ -178,7 +192,7 @@ class YoloSegDetector:
         # assembly, the next session and the simulator on a small machine.
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
-            return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+            return ort.InferenceSession(str(path), sess_options=options, providers=providers)
         except _ORT_ERRORS as err:
             raise ModelError(f"{path}: not a loadable ONNX model ({type(err).__name__}: {err})") from err
 
@@ -226,7 +240,7 @@ class YoloSegDetector:
         return ModelError(
             f"{self.path}: outputs match no supported layout; found {found}; expected 'output0' [1, 4+nc+nm, A] "
             "(box cx, cy, w, h, nc class scores, nm mask coefficients) with 'output1' mask prototypes "
-            "[1, nm, H/4, W/4], or a detection-only 'output0' [1, 4+nc, A]"
+            "[1, nm, H/s, W/s], or a detection-only 'output0' [1, 4+nc, A]"
         )
 
     def _check_outputs(self) -> None:
@@ -322,10 +336,11 @@ class YoloSegDetector:
 
         Args:
             rgb: (H, W, 3) uint8 RGB image.
-            roi_xyxy: ``[x0, y0, x1, y1]`` integer pixels: look only there (a bin's region of the image). A model
-                with a dynamic input sees the region at the scale it would see the whole frame at (so ``input_size``
-                keeps its meaning and the parts their size in pixels), which costs the region's share of the
-                frame's area; a fixed input is filled by the region. None: the whole frame.
+            roi_xyxy: ``[x0, y0, x1, y1]`` integer pixels: look only there (a bin's region of the image). None: the
+                whole frame. The region is seen as ``view`` says (``perception.tiling.ViewSettings``): by default
+                at the scale the whole frame would be seen at (so ``input_size`` keeps its meaning and the parts
+                their size in pixels, at the region's share of the cost; a fixed input is filled by the region),
+                else at ``view.scale``, in one piece or in tiles.
 
         Returns:
             ``perception.results.Detection`` per kept box, with ``bbox_xyxy`` in image pixels (clipped to the image,
@@ -340,12 +355,43 @@ class YoloSegDetector:
             raise ValueError(f"rgb: expected a uint8 (H, W, 3) RGB image, got a {what}")
         if rgb.shape[0] < 1 or rgb.shape[1] < 1:
             raise ValueError(f"rgb: expected a non-empty image, got shape {rgb.shape}")
+        region = self._region(rgb.shape[:2], roi_xyxy)
+        timings = dict.fromkeys(("preprocess", "inference", "postprocess"), 0.0)
+        if self.view.tile_px is None:
+            detections = self._detect_piece(rgb, region, timings)
+        else:
+            scale = self.frame_scale(rgb.shape[:2])
+            tiles = tile_layout(region, max(1, round(self.view.tile_px / scale)), self.view.tile_overlap)
+            found, tile_index = [], []
+            for k, tile in enumerate(tiles):
+                pieces = self._detect_piece(rgb, tile.xyxy, timings)
+                found += pieces
+                tile_index += [k] * len(pieces)
+            t = time.perf_counter()
+            detections = merge_tiles(found, tile_index, self.view.merge_overlap)[: self.max_detections]
+            timings["postprocess"] += (time.perf_counter() - t) * 1e3
+            timings["tiles"] = float(len(tiles))
+        self.last_timings_ms = timings
+        return detections
+
+    def frame_scale(self, image_hw: tuple[int, int]) -> float:
+        """Network input pixels per image pixel at which this detector sees a frame of ``image_hw``: ``view.scale``,
+        else the scale that letterboxes the whole frame into ``input_hw``."""
+        if self.view.scale is not None:
+            return float(self.view.scale)
+        return letterbox_geometry(image_hw, self.input_hw, self.stride if self.dynamic_input else None).scale_x
+
+    def _detect_piece(
+        self, rgb: np.ndarray, box: tuple[int, int, int, int], timings: dict[str, float]
+    ) -> list[Detection]:
+        """Detections in the integer box ``[x0, y0, x1, y1)`` of ``rgb``, in frame pixels; adds to ``timings``."""
         t0 = time.perf_counter()
-        x0, y0, x1, y1 = self._region(rgb.shape[:2], roi_xyxy)
+        x0, y0, x1, y1 = box
         image = rgb[y0:y1, x0:x1]
-        if self.dynamic_input and image.shape[:2] != rgb.shape[:2]:
-            full = letterbox_geometry(rgb.shape[:2], self.input_hw, self.stride)
-            geometry = letterbox_at_scale(image.shape[:2], full.scale_x, self.stride)
+        if self.view.scale is not None:
+            geometry = letterbox_at_scale(image.shape[:2], self.view.scale, self.stride)
+        elif self.dynamic_input and image.shape[:2] != rgb.shape[:2]:
+            geometry = letterbox_at_scale(image.shape[:2], self.frame_scale(rgb.shape[:2]), self.stride)
         else:
             geometry = letterbox_geometry(image.shape[:2], self.input_hw, self.stride if self.dynamic_input else None)
         blob = to_blob(letterbox(np.ascontiguousarray(image), geometry), self.input_dtype)
@@ -357,11 +403,9 @@ class YoloSegDetector:
         if image.shape[:2] != rgb.shape[:2]:
             detections = [_to_frame(d, (x0, y0), rgb.shape[:2]) for d in detections]
         t3 = time.perf_counter()
-        self.last_timings_ms = {
-            "preprocess": (t1 - t0) * 1e3,
-            "inference": (t2 - t1) * 1e3,
-            "postprocess": (t3 - t2) * 1e3,
-        }
+        timings["preprocess"] += (t1 - t0) * 1e3
+        timings["inference"] += (t2 - t1) * 1e3
+        timings["postprocess"] += (t3 - t2) * 1e3
         return detections
 
     @staticmethod

@@ -24,9 +24,11 @@ from tqdm import tqdm
 
 from perception.camera import Frame
 from perception.detector import YoloSegDetector
+from perception.detector_eval import bin_region_camera, detector_report, run_detector
 from perception.pipeline import PerceptionPipeline
 from perception.results import ObjectPose
 from sygrid.annotations import ImageAnnotation
+from sygrid.dataset import DatasetBin
 from sygrid.errors import ConfigError
 from sygrid.metrics import (
     PoseErrors,
@@ -50,6 +52,7 @@ class EvalSettings:
     match_iou: float = 0.5
     sensor: str = "ideal"  # a sygrid.sensor preset the frames go through
     sensor_seed: int = 0
+    region: str = "full"  # where the detector looks: "full" frame or the "bin"'s box (perception.detector_eval)
 
 
 def bop_items(root: Path, split: str) -> list[tuple[int, int]]:
@@ -116,8 +119,11 @@ def evaluate(
     if not items:
         raise ConfigError(f"{root / split}: no images")
     images, detections, records, timings, depth_rows, sensor_ms = [], [], [], [], [], []
+    dataset_bin = DatasetBin(data_dir) if s.region == "bin" else None
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
+        if dataset_bin is not None:  # the bin moves with each generated view
+            pipeline.region_camera_m = bin_region_camera(dataset_bin, ann)
         if depth is None:
             raise ConfigError(f"{root / split / f'{scene_id:06d}'}: image {image_id} has no depth map")
         depth_true = load_bop_true_depth(root, ann, split)
@@ -158,19 +164,24 @@ def evaluate(
 
 
 def evaluate_detector(
-    detector: YoloSegDetector, data_dir: str | Path, settings: EvalSettings | None = None, progress: bool = True
+    detector: YoloSegDetector,
+    data_dir: str | Path,
+    settings: EvalSettings | None = None,
+    progress: bool = True,
+    operating_threshold: float | None = None,
 ) -> dict:
     """Box and mask mAP of ``detector`` alone on the split's images (for the COCO convention of a low confidence
-    threshold, e.g. 0.001, where the pipeline runs at its operating threshold)."""
+    threshold, e.g. 0.001, where the pipeline runs at its operating threshold), with the per-part, size and
+    visibility breakdown at the detector's threshold and at ``operating_threshold`` (``perception.detector_eval``)."""
     s = settings or EvalSettings()
     root, split, items = eval_items(data_dir, s)
-    images, detections = [], []
-    for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
-        ann, rgb, _ = load_bop_item(root, scene_id, image_id, split=split)
-        images.append(ann)
-        detections.append(detector.detect(rgb))
-    metrics = detection_metrics(images, detections, min_visib_fract=s.min_visib_fract)
-    return {"split": split, "n_images": len(items), "conf_threshold": detector.conf_threshold, **metrics.as_dict()}
+    region = "bin" if s.region == "bin" else "full"
+    dataset_bin = DatasetBin(data_dir) if region == "bin" else None
+    images, detections, ms = run_detector(detector, root, split, items, region, dataset_bin, progress)
+    operating = detector.conf_threshold if operating_threshold is None else operating_threshold
+    report = detector_report(detector, images, detections, operating, s.min_visib_fract, s.match_iou)
+    return {"split": split, "n_images": len(items), "conf_threshold": detector.conf_threshold, "region": region,
+            "ms_median": float(np.median(ms)) if ms else math.nan, **report}  # fmt: skip
 
 
 def _metal_mask(ann: ImageAnnotation, models: dict[int, ObjectModel]) -> np.ndarray | None:

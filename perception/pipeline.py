@@ -37,6 +37,7 @@ from perception.detector import YoloSegDetector
 from perception.pose import PoseEstimator
 from perception.refine import DepthRefiner, RefineConfig
 from perception.results import Detection, ObjectPose
+from perception.tiling import DEFAULT_TILE_OVERLAP, ViewSettings
 from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.drop import resolve_object
 from sygrid.errors import ConfigError
@@ -64,6 +65,12 @@ class DetectorEntry(_Strict):
     conf_threshold: float = Field(default=0.4, gt=0, lt=1)
     iou_threshold: float = Field(default=0.6, gt=0, le=1)
     input_size: int | None = Field(default=None, ge=32, le=4096)
+    # Where and at what scale the detector looks (perception.tiling.ViewSettings) and the smallest part size in
+    # network pixels it resolves reliably (sygrid.part_pixels); None: the plain full-frame behaviour / no check.
+    scale: float | None = Field(default=None, ge=0.05, le=8)
+    tile_px: int | None = Field(default=None, ge=32, le=4096)
+    tile_overlap: float = Field(default=DEFAULT_TILE_OVERLAP, ge=0, le=0.9)
+    min_part_px: float | None = Field(default=None, gt=0)
 
 
 class PoseEntry(_Strict):
@@ -97,6 +104,8 @@ class PipelineOverrides:
     min_fitness: float | None = None  # the refinement's acceptance (perception.refine.RefineConfig.min_fitness)
     mask_erosion_px: int | None = None  # perception.refine.RefineConfig.mask_erosion_px
     num_threads: int = 2
+    detector_scale: float | None = None  # perception.tiling.ViewSettings.scale
+    detector_tile_px: int | None = None  # perception.tiling.ViewSettings.tile_px (0: no tiles)
 
 
 @dataclass
@@ -181,6 +190,7 @@ class PerceptionPipeline:
             iou_threshold=d.iou_threshold,
             input_size=o.detector_input_size or d.input_size,
             num_threads=o.num_threads,
+            view=detector_view(d, o),
         )
         pose = PoseEstimator(folder / manifest.pose.onnx, models=models, num_threads=o.num_threads)
         refine = manifest.refine.enabled if o.refine is None else o.refine
@@ -261,6 +271,12 @@ class PerceptionPipeline:
                 out.append(self.refiner.refine(pose, depth_m, frame.intrinsics, self.models[pose.obj_id]))
                 n_refined += _icp_status(out[-1]) == "refined"
         return out
+
+
+def detector_view(entry: DetectorEntry, overrides: PipelineOverrides) -> ViewSettings:
+    """The detector's view: the overrides' scale and tiles where given, else the manifest's."""
+    tile_px = entry.tile_px if overrides.detector_tile_px is None else (overrides.detector_tile_px or None)
+    return ViewSettings(overrides.detector_scale or entry.scale, tile_px, entry.tile_overlap)
 
 
 def region_of_interest(

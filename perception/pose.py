@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
+from perception.providers import session_providers
 from perception.results import Detection, ObjectPose
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ModelError
@@ -89,7 +90,7 @@ class PoseEstimator:
         # after, and on a 2-core CPU spinning threads starve it (solvePnPRansac became tens of times slower).
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
-            self._session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+            self._session = ort.InferenceSession(str(path), options, providers=session_providers())
         except Exception as exc:  # onnxruntime raises its own pybind error types for unreadable graphs
             raise ModelError(f"{path}: not a loadable ONNX model ({type(exc).__name__}: {exc})") from exc
         self._read_metadata()

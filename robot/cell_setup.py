@@ -16,8 +16,8 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
                   launch.sim_calibration) | "sim" (sim: the camera's true pose) | "file", file = "calib.json"
                   (robot.calibration)
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
-                  conf_threshold, detector_input_size, detect_in_bin, ignore_floor, floor_margin_m,
-                  min_fitness, mask_erosion_px (refinement settings)
+                  conf_threshold, detector_input_size, detector_scale, detector_tile_px, detect_in_bin,
+                  ignore_floor, floor_margin_m, min_fitness, mask_erosion_px (refinement settings)
     [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
     [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
     [planner]     robot.grasp_config.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
@@ -107,6 +107,8 @@ class PerceptionSection(_Strict):
     max_refined: int | None = Field(default=None, ge=1)
     conf_threshold: float | None = Field(default=None, gt=0, lt=1)
     detector_input_size: int | None = Field(default=None, ge=32, le=4096)
+    detector_scale: float | None = Field(default=None, ge=0.05, le=8)  # network px per image px (manifest's: None)
+    detector_tile_px: int | None = Field(default=None, ge=0, le=4096)  # tiles over the bin's box (0: none)
     detect_in_bin: bool = True  # the detector looks only at the bin's image box (the planner's bin, calibration)
     ignore_floor: bool = True  # refinement ignores depth on the bin's floor (seen through holes in a part's mask)
     floor_margin_m: float | None = Field(default=None, ge=0, lt=0.05)  # None: perception.pipeline.FLOOR_MARGIN_M

@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
 from sygrid.mjspec import open_box_parts
+from sygrid.scene import bin_inner_corners
 from sygrid.transforms import invert, is_rigid, make_T, transform_points
 
 _NEIGHBOUR_SAMPLES = 400  # of a part's surface sample, the points it contributes as obstacles
@@ -78,9 +79,7 @@ class BinGeometry:
 
     def inner_corners_camera(self, T_base_camera: np.ndarray) -> np.ndarray:
         """(8, 3) the corners of the inner volume (floor and rim), where parts can be, in the camera frame."""
-        hx, hy, hz = np.asarray(self.inner_size_m) / 2.0
-        corners = np.array([(x, y, z) for x in (-hx, hx) for y in (-hy, hy) for z in (0.0, 2.0 * hz)])
-        return transform_points(invert(T_base_camera) @ self.T_base_bin, corners)
+        return transform_points(invert(T_base_camera) @ self.T_base_bin, bin_inner_corners(self.inner_size_m))
 
     def floor_plane_camera(self, T_base_camera: np.ndarray) -> np.ndarray:
         """(4,) the inner floor's plane ``(a, b, c, d)`` in the camera frame: a point p lies ``(a, b, c) . p + d``

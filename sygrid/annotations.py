@@ -55,6 +55,8 @@ class ImageAnnotation:
 
     ``scene_id`` / ``image_id`` name the image (BOP ``scene_id/image_id``; other writers build file names from
     them). ``depth_scale_mm``: millimetres per unit of the depth PNG when the image is written in BOP format.
+    ``T_camera_world``: (4, 4) float64 pose of the scene's world frame in the camera frame, metres (a generated
+    scene's world frame is the bin's: origin at the centre of its inner floor, z up), or None where unknown.
     """
 
     image_id: int
@@ -62,6 +64,7 @@ class ImageAnnotation:
     instances: tuple[InstanceAnnotation, ...]
     scene_id: int = 0
     depth_scale_mm: float = DEFAULT_DEPTH_SCALE_MM
+    T_camera_world: np.ndarray | None = None
 
     @property
     def name(self) -> str:

@@ -35,10 +35,10 @@ from sygrid.drop import drop_scene, resolve_objects
 from sygrid.errors import ConfigError, SygridError
 from sygrid.fileio import read_json, remove_stale_temporaries, write_json_atomic
 from sygrid.objects.model import ObjectModel
-from sygrid.recipe import Recipe
+from sygrid.recipe import Recipe, parse_recipe
 from sygrid.render import intrinsics_from_spec, render_item
 from sygrid.render.camera_pose import camera_T_world_camera
-from sygrid.scene import METALS
+from sygrid.scene import METALS, SceneSpec
 from sygrid.sensor import metal_mask, sensor_preset
 from sygrid.transforms import invert
 from sygrid.writers import BopWriter, CocoWriter, YoloWriter
@@ -48,6 +48,9 @@ log = logging.getLogger(__name__)
 LEDGER_NAME = "dataset.json"
 LEDGER_FORMAT = "sygrid-dataset/1"
 IMAGES_PER_SCENE = 1000
+# Ledger keys of older versions: the recipe's and the scene's render depth_noise (stereo noise after rendering, now
+# the recipe's sensor).
+LEGACY_LEDGER_KEYS = {"recipe": ("depth_noise",), "render": ("depth_noise",)}
 
 
 class DatasetError(SygridError, RuntimeError):
@@ -97,10 +100,7 @@ def make_item(recipe: Recipe, seed: int, index: int) -> Item:
     t_drop = time.perf_counter() - t0
 
     rng = np.random.default_rng(render_ss)
-    scene = recipe.scene
-    if rng.random() < recipe.spec.raster_fraction:
-        scene = scene.model_copy(update={"render": scene.render.model_copy(update={"mode": "raster"})})
-    T_world_camera = camera_T_world_camera(scene.camera, rng)
+    scene, T_world_camera = _draw_view(recipe, rng)
     intrinsics = intrinsics_from_spec(scene.camera)
     rendered = render_item(
         scene,
@@ -131,11 +131,64 @@ def make_item(recipe: Recipe, seed: int, index: int) -> Item:
         intrinsics=intrinsics,
         instances=tuple(instances),
         scene_id=index // IMAGES_PER_SCENE,
+        T_camera_world=invert(T_world_camera),
     )
     is_val = recipe.spec.split == "train" and np.random.default_rng(split_ss).random() < recipe.spec.val_fraction
     timings = {"drop": t_drop, **{f"render_{k}": v for k, v in rendered.timings.items()}, "sensor": t_sensor}
     timings["item"] = time.perf_counter() - t0
     return Item(index, annotation, rgb, depth_m, bool(is_val), scene.render.mode, timings, depth_true_m)
+
+
+def _draw_view(recipe: Recipe, rng: np.random.Generator) -> tuple[SceneSpec, np.ndarray]:
+    """The first draws of an item's render stream: the render mode (the scene with it), then ``T_world_camera``."""
+    scene = recipe.scene
+    if rng.random() < recipe.spec.raster_fraction:
+        scene = scene.model_copy(update={"render": scene.render.model_copy(update={"mode": "raster"})})
+    return scene, camera_T_world_camera(scene.camera, rng)
+
+
+def item_T_world_camera(recipe: Recipe, seed: int, index: int) -> np.ndarray:
+    """(4, 4) the camera pose of item ``index`` (world frame = the bin's), drawn again without dropping or rendering:
+    the same stream ``make_item`` draws it from."""
+    render_ss = np.random.SeedSequence([seed, index]).spawn(3)[1]
+    return _draw_view(recipe, np.random.default_rng(render_ss))[1]
+
+
+def ledger_recipe(out_dir: str | Path) -> tuple[Recipe, int]:
+    """The recipe (scene inlined) and seed a generated dataset folder was made with, from its ledger: for its camera
+    and scene (the bin, the camera draws), not to regenerate it. The keys of older ledgers that no longer exist
+    (``LEGACY_LEDGER_KEYS``, none of which changes the camera draws) are left out."""
+    path = Path(out_dir) / LEDGER_NAME
+    if not path.is_file():
+        raise ConfigError(f"{out_dir}: no {LEDGER_NAME} (not a folder made by 'sygrid generate')")
+    data = read_json(path, "dataset ledger")
+    if not isinstance(data, dict) or data.get("format") != LEDGER_FORMAT or not isinstance(data.get("recipe"), dict):
+        raise ConfigError(f"{path}: not a SyGRID dataset ledger (format {LEDGER_FORMAT!r} with a recipe expected)")
+    recipe = {k: v for k, v in data["recipe"].items() if k not in LEGACY_LEDGER_KEYS["recipe"]}
+    if isinstance(recipe.get("scene"), dict) and isinstance(recipe["scene"].get("render"), dict):
+        render = {k: v for k, v in recipe["scene"]["render"].items() if k not in LEGACY_LEDGER_KEYS["render"]}
+        recipe["scene"] = {**recipe["scene"], "render": render}
+    return parse_recipe(recipe, f"{path}: recipe", Path(out_dir)), int(data["seed"])
+
+
+class DatasetBin:
+    """Where the bin is in the images of a generated dataset: its inner size (the recipe's container) and, per
+    image, ``T_camera_bin`` (the bin frame is the scene's world frame: origin at the inner floor's centre, z up).
+
+    The pose comes from the image's annotation (``ImageAnnotation.T_camera_world``, written since datasets record
+    it) or, for an older dataset, from the ledger's recipe and seed (``item_T_world_camera``).
+    """
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out_dir = Path(out_dir)
+        self.recipe, self.seed = ledger_recipe(out_dir)
+        self.inner_size_m = tuple(float(v) for v in self.recipe.scene.container.inner_size_m)
+
+    def T_camera_bin(self, ann: ImageAnnotation) -> np.ndarray:
+        if ann.T_camera_world is not None:
+            return np.asarray(ann.T_camera_world, dtype=np.float64)
+        index = ann.scene_id * IMAGES_PER_SCENE + ann.image_id
+        return invert(item_T_world_camera(self.recipe, self.seed, index))
 
 
 def _make_item_safely(recipe: Recipe, seed: int, index: int) -> tuple[int, Item | None, str | None]:

@@ -11,9 +11,11 @@ Frames: the scene ("world") frame has its origin at the centre of the bin's inne
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -135,6 +137,13 @@ class ContainerSpec(_Strict):
         if min(size) <= 0:
             raise ValueError(f"every side must be > 0, got {list(size)}")
         return size
+
+
+def bin_inner_corners(inner_size_m: Sequence[float]) -> np.ndarray:
+    """(8, 3) the corners of a bin's inner volume (floor and rim), where parts can be, in the bin frame (metres;
+    origin at the centre of the inner floor, z up)."""
+    hx, hy, hz = (float(v) / 2.0 for v in inner_size_m)
+    return np.array([(x, y, z) for x in (-hx, hx) for y in (-hy, hy) for z in (0.0, 2.0 * hz)])
 
 
 class IntrinsicsSpec(_Strict):

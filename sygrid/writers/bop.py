@@ -8,6 +8,9 @@ Layout under ``root``::
     <split>/SSSSSS/mask/IIIIII_GGGGGG.png, mask_visib/...      (GGGGGG = index in the scene_gt list;
                                                                 an instance without a full mask gets its visible one)
     <split>/SSSSSS/scene_gt.json, scene_camera.json, scene_gt_info.json
+                                                               (scene_camera.json: cam_K, depth_scale and, where
+                                                                the scene's world frame is known, cam_R_w2c and
+                                                                cam_t_w2c; older datasets lack these two)
 
 Every file goes through ``write_bytes_atomic``; the per-scene JSONs are read, updated and rewritten atomically,
 images and masks first and ``scene_gt.json`` last, so a crash leaves either the old or the new entry, never half
@@ -70,9 +73,32 @@ def gt_info_as_json(inst: InstanceAnnotation) -> dict:
     }
 
 
-def camera_as_json(intrinsics: CameraIntrinsics, depth_scale_mm: float) -> dict:
-    """A ``scene_camera.json`` entry (new dict)."""
-    return {"cam_K": [float(v) for v in intrinsics.K.reshape(-1)], "depth_scale": float(depth_scale_mm)}
+def camera_as_json(
+    intrinsics: CameraIntrinsics, depth_scale_mm: float, T_camera_world: np.ndarray | None = None
+) -> dict:
+    """A ``scene_camera.json`` entry (new dict); with ``T_camera_world`` (4x4, metres) also BOP's world-to-camera
+    pose ``cam_R_w2c`` (row-major) and ``cam_t_w2c`` (mm)."""
+    entry = {"cam_K": [float(v) for v in intrinsics.K.reshape(-1)], "depth_scale": float(depth_scale_mm)}
+    if T_camera_world is not None:
+        T = np.asarray(T_camera_world, dtype=np.float64)
+        entry["cam_R_w2c"] = [float(v) for v in T[:3, :3].reshape(-1)]
+        entry["cam_t_w2c"] = [float(v) * MM_PER_M for v in T[:3, 3]]
+    return entry
+
+
+def T_camera_world_from_json(entry: dict, where: str) -> np.ndarray | None:
+    """(4, 4) metres from a ``scene_camera.json`` entry's ``cam_R_w2c`` / ``cam_t_w2c``; None when it has none
+    (datasets written before the pose was recorded). ``where`` names the file and key for errors."""
+    if "cam_R_w2c" not in entry and "cam_t_w2c" not in entry:
+        return None
+    try:
+        R = np.asarray(entry["cam_R_w2c"], dtype=np.float64).reshape(3, 3)
+        t = np.asarray(entry["cam_t_w2c"], dtype=np.float64).reshape(3) / MM_PER_M
+    except (KeyError, ValueError, TypeError) as err:
+        raise ConfigError(f"{where}: expected cam_R_w2c (9 numbers) and cam_t_w2c (3 numbers, mm): {err}") from err
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
 
 
 def depth_to_png_units(depth_m: np.ndarray, depth_scale_mm: float) -> np.ndarray:
@@ -172,7 +198,7 @@ class BopWriter:
         key = str(ann.image_id)
         updates = (
             ("scene_gt_info.json", [gt_info_as_json(i) for i in ann.instances]),
-            ("scene_camera.json", camera_as_json(ann.intrinsics, ann.depth_scale_mm)),
+            ("scene_camera.json", camera_as_json(ann.intrinsics, ann.depth_scale_mm, ann.T_camera_world)),
             ("scene_gt.json", [gt_as_json(i) for i in ann.instances]),  # last: the entry that commits the image
         )
         for fname, entry in updates:
@@ -236,7 +262,11 @@ def load_bop_item(
                 px_count_valid=int(info.get("px_count_valid", px_all)),
             )
         )
-    ann = ImageAnnotation(image_id, intrinsics, tuple(instances), scene_id=scene_id, depth_scale_mm=depth_scale_mm)
+    T_camera_world = T_camera_world_from_json(cam, f"{sdir / 'scene_camera.json'}[{key}]")
+    ann = ImageAnnotation(
+        image_id, intrinsics, tuple(instances), scene_id=scene_id, depth_scale_mm=depth_scale_mm,
+        T_camera_world=T_camera_world,
+    )  # fmt: skip
     return ann, rgb, depth_m
 
 

@@ -28,7 +28,7 @@ from sygrid.letterbox import letterbox_geometry as _letterbox_geometry
 from sygrid.train.detector.config import AugmentConfig
 from sygrid.train.detector.data import DetectionDataset, load_instances
 
-MASK_STRIDE = 4  # prototype resolution: 1/4 of the network input
+MASK_STRIDE = 4  # default prototype resolution: 1/4 of the network input (ModelConfig.proto_stride)
 
 
 # --------------------------------------------------------------------------------------------------- geometry
@@ -125,14 +125,19 @@ class Example:
 
 
 def targets_from_ids(
-    ids: np.ndarray, classes: np.ndarray, min_area_px: int = 4, min_side_px: float = 2.0
+    ids: np.ndarray,
+    classes: np.ndarray,
+    min_area_px: int = 4,
+    min_side_px: float = 2.0,
+    mask_stride: int = MASK_STRIDE,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Boxes and stride-4 mask coverage of every instance left in an id map (dropping slivers below
-    ``min_area_px`` pixels or ``min_side_px`` box side). Returns ``(classes, boxes_xyxy, masks)`` as in ``Example``."""
+    """Boxes and mask coverage at ``mask_stride`` (the prototypes' stride) of every instance left in an id map
+    (dropping slivers below ``min_area_px`` pixels or ``min_side_px`` box side). Returns ``(classes, boxes_xyxy,
+    masks)`` as in ``Example``."""
     h, w = ids.shape
-    if h % MASK_STRIDE or w % MASK_STRIDE:
-        raise ValueError(f"id map {h}x{w}: both sides must be multiples of {MASK_STRIDE}")
-    mh, mw = h // MASK_STRIDE, w // MASK_STRIDE
+    if h % mask_stride or w % mask_stride:
+        raise ValueError(f"id map {h}x{w}: both sides must be multiples of {mask_stride}")
+    mh, mw = h // mask_stride, w // mask_stride
     areas = np.bincount(ids.ravel(), minlength=len(classes) + 1)
     slices = ndimage.find_objects(ids, max_label=len(classes))
     keep_cls, boxes, masks = [], [], []
@@ -142,11 +147,11 @@ def targets_from_ids(
         y0, y1, x0, x1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
         if min(x1 - x0, y1 - y0) < min_side_px:
             continue
-        # Coverage of each stride-4 cell, computed on the box expanded to whole cells.
-        cy0, cx0 = y0 // MASK_STRIDE, x0 // MASK_STRIDE
-        cy1, cx1 = -(-y1 // MASK_STRIDE), -(-x1 // MASK_STRIDE)
-        region = ids[cy0 * MASK_STRIDE : cy1 * MASK_STRIDE, cx0 * MASK_STRIDE : cx1 * MASK_STRIDE] == k + 1
-        cover = region.reshape(cy1 - cy0, MASK_STRIDE, cx1 - cx0, MASK_STRIDE).mean(axis=(1, 3), dtype=np.float32)
+        # Coverage of each mask cell, computed on the box expanded to whole cells.
+        cy0, cx0 = y0 // mask_stride, x0 // mask_stride
+        cy1, cx1 = -(-y1 // mask_stride), -(-x1 // mask_stride)
+        region = ids[cy0 * mask_stride : cy1 * mask_stride, cx0 * mask_stride : cx1 * mask_stride] == k + 1
+        cover = region.reshape(cy1 - cy0, mask_stride, cx1 - cx0, mask_stride).mean(axis=(1, 3), dtype=np.float32)
         mask = np.zeros((mh, mw), dtype=np.float32)
         mask[cy0:cy1, cx0:cx1] = cover
         keep_cls.append(int(classes[k]))
@@ -165,6 +170,7 @@ def train_example(
     rng: np.random.Generator,
     mosaic: bool = True,
     imgsz: int | None = None,
+    mask_stride: int = MASK_STRIDE,
 ) -> Example:
     """Training example ``index`` of the train split on a ``size`` x ``size`` canvas (a multiple of 32), augmented by
     ``cfg`` with ``rng``; a mosaic of four images with probability ``cfg.mosaic`` (when ``mosaic``).
@@ -172,6 +178,7 @@ def train_example(
     ``imgsz``: the input side the model will run at (default ``size``). Images are scaled as the runtime letterbox
     into ``imgsz`` scales them (times the random zoom), so a canvas smaller than ``imgsz`` is a crop at the
     runtime's object scale: with ``cfg.focus``, centred on the labelled parts rather than the empty floor.
+    ``mask_stride``: the mask targets' stride (the model's ``proto_stride``).
     """
     imgsz = imgsz or size
     n = len(dataset.images["train"])
@@ -185,7 +192,7 @@ def train_example(
         A = _random_geometry(rng, cfg, size, (fx * r, fy * r)) @ np.diag([r, r, 1.0])
         image, ids = _warp(src, src_ids, A, size)
     image = _colour(image, cfg, rng)
-    classes, boxes, masks = targets_from_ids(ids, classes)
+    classes, boxes, masks = targets_from_ids(ids, classes, mask_stride=mask_stride)
     return Example(np.ascontiguousarray(image), classes, boxes, masks)
 
 
@@ -224,13 +231,15 @@ def _mosaic(
     return image, ids, np.concatenate(all_classes)
 
 
-def val_example(dataset: DetectionDataset, index: int, size: int, stride: int) -> tuple[Example, Letterbox]:
+def val_example(
+    dataset: DetectionDataset, index: int, size: int, stride: int, mask_stride: int = MASK_STRIDE
+) -> tuple[Example, Letterbox]:
     """Validation example ``index``: letterboxed as the runtime does for a dynamic-input model (no augmentation)."""
     src, src_ids, classes = load_instances(dataset, "val", index)
     geometry = letterbox_geometry(src.shape[:2], size, stride)
     image = letterbox(src, geometry)
     ids = letterbox(src_ids, geometry, cv2.INTER_NEAREST)
-    classes, boxes, masks = targets_from_ids(ids, classes)
+    classes, boxes, masks = targets_from_ids(ids, classes, mask_stride=mask_stride)
     return Example(image, classes, boxes, masks), geometry
 
 

@@ -15,17 +15,20 @@ import torch
 
 
 def make_anchors(
-    shapes: Sequence[tuple[int, int]], strides: Sequence[int], dtype: torch.dtype = torch.float32
+    shapes: Sequence[tuple[int, int]],
+    strides: Sequence[int],
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Anchor points (A, 2) ``(x, y)`` in cells of their level, and each anchor's stride (A, 1) in input pixels,
     level by level, row-major within a level (the order of the flattened head outputs)."""
     points, stride_list = [], []
     for (h, w), s in zip(shapes, strides, strict=True):
-        ys = torch.arange(h, dtype=dtype) + 0.5
-        xs = torch.arange(w, dtype=dtype) + 0.5
+        ys = torch.arange(h, dtype=dtype, device=device) + 0.5
+        xs = torch.arange(w, dtype=dtype, device=device) + 0.5
         gy, gx = torch.meshgrid(ys, xs, indexing="ij")
         points.append(torch.stack((gx, gy), -1).reshape(-1, 2))
-        stride_list.append(torch.full((h * w, 1), float(s), dtype=dtype))
+        stride_list.append(torch.full((h * w, 1), float(s), dtype=dtype, device=device))
     return torch.cat(points), torch.cat(stride_list)
 
 

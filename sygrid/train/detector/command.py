@@ -10,7 +10,8 @@ import argparse
 import json
 from dataclasses import fields
 
-from sygrid.train.detector.config import MODEL_SIZES, TrainConfig
+from sygrid.train.detector.config import MODEL_SIZES, PROTO_STRIDES, TrainConfig
+from sygrid.train.device_choice import DEVICE_CHOICES
 
 DEFAULTS = {f.name: f.default for f in fields(TrainConfig)}
 
@@ -40,6 +41,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="network size: f (femto, 0.43 M parameters), p (pico, 1.0 M), n (YOLOv8n's scale, 3.3 M), "
         "s (11.8 M) (%(default)s)",
     )
+    parser.add_argument("--p2", action="store_true", help="add a stride-4 detection level (parts a few cells wide)")
+    parser.add_argument(
+        "--proto-stride", type=int, default=DEFAULTS["proto_stride"], choices=PROTO_STRIDES,
+        help="mask prototypes' stride: 4, or 2 for finer masks (%(default)s)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--device", default=DEFAULTS["device"], choices=DEVICE_CHOICES,
+        help="auto: CUDA (mixed precision) when torch sees it, else the CPU (%(default)s)",
+    )  # fmt: skip
     parser.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="initialisation, data order, augmentation")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     parser.add_argument(
@@ -86,6 +96,9 @@ def run(args: argparse.Namespace) -> int:
             train_size=args.train_size,
             batch=args.batch,
             size=args.width,
+            p2=args.p2,
+            proto_stride=args.proto_stride,
+            device=args.device,
             seed=args.seed,
             threads=args.threads,
             max_iters=args.max_iters,

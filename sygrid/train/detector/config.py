@@ -5,7 +5,10 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
+from sygrid.train.device_choice import DEVICE_CHOICES
+
 MODEL_SIZES = ("f", "p", "n", "s")  # the keys of model.SIZES (checked equal in the tests)
+PROTO_STRIDES = (2, 4)  # model.PROTO_STRIDES
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,8 @@ class TrainConfig:
             ``augment``).
         batch: images per iteration.
         size: network size, a key of ``model.SIZES`` (``"f"``, ``"p"``, ``"n"``, ``"s"``).
+        p2: a stride-4 detection level (``model.ModelConfig.p2``); proto_stride: the mask prototypes' stride, 4 or 2.
+        device: ``"auto"`` (CUDA when torch sees it), ``"cpu"`` or ``"cuda"`` (``sygrid.train.device``).
         seed: weights initialisation, data order and augmentation.
         threads: torch intra-op threads. On the shared 2-core machines of this project one thread trained as fast as
             two or faster (1.0 s vs 1.3 s per iteration): a second thread mostly waits for a core.
@@ -99,6 +104,9 @@ class TrainConfig:
     train_size: int | None = 320
     batch: int = 8
     size: str = "p"
+    p2: bool = False
+    proto_stride: int = 4
+    device: str = "auto"
     seed: int = 0
     threads: int = 1
     max_iters: int | None = None
@@ -132,6 +140,10 @@ class TrainConfig:
             raise ValueError(f"size: expected one of {MODEL_SIZES}, got {self.size!r}")
         if self.max_iters is not None and self.max_iters < 1:
             raise ValueError(f"max_iters must be >= 1 or None, got {self.max_iters}")
+        if self.proto_stride not in PROTO_STRIDES:
+            raise ValueError(f"proto_stride: expected one of {PROTO_STRIDES}, got {self.proto_stride}")
+        if self.device not in DEVICE_CHOICES:
+            raise ValueError(f"device: expected one of {DEVICE_CHOICES}, got {self.device!r}")
         unknown = set(self.augment) - {f.name for f in fields(AugmentConfig)}
         if unknown:
             raise ValueError(

@@ -47,6 +47,9 @@ class Targets:
     valid: torch.Tensor
     masks: torch.Tensor
 
+    def to(self, device: torch.device) -> Targets:
+        return Targets(*(t.to(device, non_blocking=True) for t in (self.labels, self.boxes, self.valid, self.masks)))
+
 
 def dfl_loss(logits: torch.Tensor, target: torch.Tensor, reg_max: int) -> torch.Tensor:
     """(n, 4 * reg_max) logits, (n, 4) target distances in ``[0, reg_max - 1)`` -> (n,) mean over the 4 sides of
@@ -102,7 +105,7 @@ class SegmentationLoss:
         pred_dist, pred_logits = pred[..., : 4 * reg_max], pred[..., 4 * reg_max :]
         batch = pred.shape[0]
         input_h, input_w = raw[0].shape[2] * self.strides[0], raw[0].shape[3] * self.strides[0]
-        anchors, stride = make_anchors([r.shape[2:] for r in raw], self.strides, pred.dtype)
+        anchors, stride = make_anchors([r.shape[2:] for r in raw], self.strides, pred.dtype, pred.device)
 
         pred_boxes = dist_to_box(dfl_expectation(pred_dist, reg_max), anchors)  # cells of each anchor's level
         assigned = self.assigner(
@@ -151,7 +154,9 @@ class SegmentationLoss:
     ) -> torch.Tensor:
         _, nm, mh, mw = proto.shape
         total = proto.sum() * 0.0
-        scale = torch.tensor([mw / input_w, mh / input_h, mw / input_w, mh / input_h], dtype=proto.dtype)
+        scale = torch.tensor(
+            [mw / input_w, mh / input_h, mw / input_w, mh / input_h], dtype=proto.dtype, device=proto.device
+        )
         for i in range(fg.shape[0]):
             fg_i = fg[i]
             if not bool(fg_i.any()):

@@ -44,6 +44,7 @@ from sygrid.train.detector.evaluate import coco_evaluate, val_detections
 from sygrid.train.detector.export import ExportReport, export_onnx
 from sygrid.train.detector.loss import LOSS_NAMES, SegmentationLoss, Targets
 from sygrid.train.detector.model import ModelConfig, YoloSeg, build_model, count_parameters
+from sygrid.train.device import autocast, grad_scaler, resolve_device, to_float32
 
 log = logging.getLogger(__name__)
 
@@ -162,14 +163,20 @@ class _Trainer:
         self.cfg = cfg
         self.out = Path(cfg.out)
         self.out.mkdir(parents=True, exist_ok=True)
+        try:
+            self.device = resolve_device(cfg.device)
+        except ValueError as err:
+            raise TrainError(f"--device: {err}") from err
         self.dataset: DetectionDataset = open_dataset(cfg.data, labels=cfg.labels, obj_ids=cfg.obj_ids)
-        self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz)
+        self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz,
+                                     p2=cfg.p2, proto_stride=cfg.proto_stride)  # fmt: skip
         torch.manual_seed(cfg.seed)
         self.model = build_model(self.model_cfg)
         self.memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
-        self.model.to(memory_format=self.memory_format)
+        self.model.to(self.device, memory_format=self.memory_format)
         self.ema = ModelEMA(self.model, cfg.ema_decay, cfg.ema_tau)
         self.optimizer = torch.optim.AdamW(_param_groups(self.model, cfg.weight_decay), lr=cfg.lr, betas=(0.9, 0.999))
+        self.scaler = grad_scaler(self.device)
         self.loss = SegmentationLoss(self.dataset.num_classes, self.model_cfg.reg_max, self.model.strides)
         n = len(self.dataset.images["train"])
         self.iters_per_epoch = math.ceil(n / cfg.batch)
@@ -272,6 +279,7 @@ class _Trainer:
                     example_rng(cfg.seed, epoch, int(i)),
                     mosaic,
                     imgsz=cfg.imgsz,
+                    mask_stride=self.model_cfg.proto_stride,
                 )
                 for i in indices
             ]
@@ -305,15 +313,20 @@ class _Trainer:
             lr = learning_rate(self.cfg, self.iteration, self.iters_per_epoch)
             for group in self.optimizer.param_groups:
                 group["lr"] = lr
-            total, terms = self.loss(self.model(images), targets)
+            images = images.to(self.device, non_blocking=True)
+            with autocast(self.device):
+                outputs = self.model(images)
+            total, terms = self.loss(to_float32(outputs), targets.to(self.device))
             if not math.isfinite(float(total.detach())):
                 raise TrainError(
                     f"epoch {epoch + 1}, iteration {self.iteration}: the loss is {float(total.detach())} ({terms})"
                 )
             self.optimizer.zero_grad(set_to_none=True)
-            total.backward()
+            self.scaler.scale(total).backward()
+            self.scaler.unscale_(self.optimizer)
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), GRAD_CLIP_NORM)
-            self.optimizer.step()
+            self.scaler.step(self.optimizer)
+            self.scaler.update()
             self.ema.update(self.model)
             self.iteration += 1
             n += 1
@@ -340,7 +353,7 @@ class _Trainer:
         detections = []
         for start in range(0, n, self.cfg.batch):
             items = [
-                val_example(self.dataset, i, self.cfg.imgsz, stride)
+                val_example(self.dataset, i, self.cfg.imgsz, stride, self.model_cfg.proto_stride)
                 for i in range(start, min(start + self.cfg.batch, n))
             ]
             by_shape: dict[tuple, list[int]] = {}
@@ -349,7 +362,9 @@ class _Trainer:
             results: dict[int, object] = {}
             for idx in by_shape.values():
                 images, _ = collate([items[j][0] for j in idx], self.cfg.channels_last)
-                output0, protos = model(images)
+                with autocast(self.device):
+                    output0, protos = model(images.to(self.device))
+                output0, protos = output0.float().cpu(), protos.float().cpu()
                 for row, j in enumerate(idx):
                     results[j] = val_detections(
                         output0[row].numpy(), protos[row].numpy(), items[j][1], self.dataset.num_classes

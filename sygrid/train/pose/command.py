@@ -12,6 +12,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from sygrid.errors import ConfigError
+from sygrid.train.device_choice import DEVICE_CHOICES
 from sygrid.train.pose.config import TrainConfig
 
 DEFAULTS = {f.name: f.default for f in fields(TrainConfig)}
@@ -43,6 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--threads", type=int, default=DEFAULTS["threads"], help="torch CPU threads (default: torch's choice)"
     )
+    parser.add_argument(
+        "--device", default=DEFAULTS["device"], choices=DEVICE_CHOICES,
+        help="auto: CUDA (mixed precision) when torch sees it, else the CPU (%(default)s)",
+    )  # fmt: skip
     parser.add_argument("--max-iters", type=int, default=None, help="stop after this many iterations in all")
     parser.add_argument("--val-max", type=int, default=DEFAULTS["val_max"], help="validation instances (%(default)s)")
     parser.add_argument(
@@ -89,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
         lr=args.lr,
         seed=args.seed,
         threads=args.threads,
+        device=args.device,
         max_iters=args.max_iters,
         objects=_obj_ids(args.objects),
         min_visib_fract=args.min_visib,

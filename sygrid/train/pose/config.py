@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from sygrid.errors import ConfigError
+from sygrid.train.device_choice import DEVICE_CHOICES
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,8 @@ class TrainConfig:
 
     ``epochs`` passes over the training instances (``max_iters`` caps the iterations); ``output_stride``: input
     size / dense output size; ``width``: backbone width; ``val_max``: validation instances used (spread evenly);
-    ``checkpoint_every``: iterations between checkpoints. Architecture defaults come from ``PoseNetConfig``.
+    ``checkpoint_every``: iterations between checkpoints; ``device``: ``"auto"``, ``"cpu"`` or ``"cuda"``
+    (``sygrid.train.device``). Architecture defaults come from ``PoseNetConfig``.
     """
 
     data_dir: Path
@@ -81,6 +83,7 @@ class TrainConfig:
     warmup_iters: int = 300
     seed: int = 0
     threads: int | None = None
+    device: str = "auto"
     max_iters: int | None = None
     objects: tuple[int, ...] | None = None
     min_visib_fract: float = 0.2
@@ -96,6 +99,8 @@ class TrainConfig:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.max_iters is not None and self.max_iters < 1:
             raise ConfigError(f"max_iters must be >= 1, got {self.max_iters}")
+        if self.device not in DEVICE_CHOICES:
+            raise ConfigError(f"device: expected one of {DEVICE_CHOICES}, got {self.device!r}")
         if self.output_stride not in (2, 4, 8) or self.input_size % (4 * self.output_stride):
             raise ConfigError(
                 f"input_size {self.input_size} / output_stride {self.output_stride}: the stride must be 2, 4 or 8 "

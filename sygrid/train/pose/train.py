@@ -28,6 +28,7 @@ from sygrid.fileio import write_bytes_atomic, write_json_atomic
 from sygrid.metrics import pose_errors, pose_metrics_table
 from sygrid.objects.model import ObjectModel
 from sygrid.pose_geometry import decode_direct, decode_pnp
+from sygrid.train.device import autocast, grad_scaler, resolve_device, to_float32
 from sygrid.train.pose.config import TrainConfig
 from sygrid.train.pose.data import CoordinateRenderer, InstanceCrop, SampleConfig, collate, index_split, make_sample
 from sygrid.train.pose.export import export_onnx
@@ -70,18 +71,17 @@ def evaluate(
     ``sygrid.metrics.pose_metrics_table``; a failed PnP counts as a miss.
     """
     wrapper = PoseNetForExport(net).eval()
+    device = next(net.parameters()).device
     records: dict[str, list] = {m: [] for m in methods}
     with torch.no_grad():
         for start in range(0, len(crops), batch_size):
             chunk = crops[start : start + batch_size]
             batch = collate([make_sample(c, tables, renderer, sample_config, None) for c in chunk])
             onehot = np.eye(tables.num_classes, dtype=np.float32)[batch["class_index"]]
-            xyz, mask, _, rot6d, site = (
-                t.numpy()
-                for t in wrapper(
-                    torch.from_numpy(batch["image"]), torch.from_numpy(batch["coord2d"]), torch.from_numpy(onehot)
-                )
-            )
+            inputs = (torch.from_numpy(a).to(device) for a in (batch["image"], batch["coord2d"], onehot))
+            with autocast(device):
+                outputs = wrapper(*inputs)
+            xyz, mask, _, rot6d, site = (t.float().cpu().numpy() for t in outputs)
             for j, crop in enumerate(chunk):
                 c = crop.class_index
                 centre, size = batch["roi"][j, :2], float(batch["roi"][j, 2])
@@ -146,6 +146,10 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
         raise ConfigError(f"{last_path} exists: pass --resume to continue that run, or choose another --out")
     if config.threads is not None:
         torch.set_num_threads(int(config.threads))
+    try:
+        device = resolve_device(config.device)
+    except ValueError as err:
+        raise ConfigError(f"--device: {err}") from err
     torch.manual_seed(config.seed)
     bop = Path(config.data_dir) / "bop"
     if not bop.is_dir():
@@ -171,9 +175,10 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
              len(val_crops), list(tables.obj_ids))  # fmt: skip
 
     net_cfg = config.net_config(tables.num_classes)
-    net = PoseNet(net_cfg)
-    criterion = PoseLoss(tables, config.loss_weights)
+    net = PoseNet(net_cfg).to(device)
+    criterion = PoseLoss(tables, config.loss_weights).to(device)
     optimizer = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    scaler = grad_scaler(device)
     n = len(train_crops)
     iters_per_epoch = max(1, n // config.batch_size)
     total = config.epochs * iters_per_epoch
@@ -239,15 +244,18 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
         rngs = np.random.SeedSequence([config.seed, it]).spawn(len(idx))
         samples = [make_sample(train_crops[i], tables, renderer, sample_cfg, np.random.default_rng(r))
                    for i, r in zip(idx, rngs, strict=True)]  # fmt: skip
-        batch = {k: torch.from_numpy(v) for k, v in collate(samples).items() if k != "roi"}
+        batch = {k: torch.from_numpy(v).to(device) for k, v in collate(samples).items() if k != "roi"}
         onehot = torch.nn.functional.one_hot(batch["class_index"], tables.num_classes).float()
         t1 = time.perf_counter()
-        outputs = net(batch["image"], batch["coord2d"], onehot)
-        loss, parts = criterion(outputs, batch)
+        with autocast(device):
+            outputs = net(batch["image"], batch["coord2d"], onehot)
+        loss, parts = criterion(to_float32(outputs), batch)
         optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        scaler.scale(loss).backward()
+        scaler.unscale_(optimizer)
         torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
-        optimizer.step()
+        scaler.step(optimizer)
+        scaler.update()
         scheduler.step()
         t2 = time.perf_counter()
         data_seconds += t1 - t0
@@ -298,6 +306,7 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
                           "model": net.state_dict(), "val": None})  # fmt: skip
     best_state = _load(best_path)
     net.load_state_dict(best_state["model"])
+    net.cpu()  # the export and its check against onnxruntime run on the CPU
     check_crops = (val_crops or train_crops)[: min(8, len(val_crops or train_crops))]
     check = collate([make_sample(c, tables, renderer, sample_cfg, None) for c in check_crops])
     check["class_onehot"] = np.eye(tables.num_classes, dtype=np.float32)[check["class_index"]]
