@@ -1,0 +1,173 @@
+"""Detection masks cleaned with depth before a pose is fitted to them.
+
+A detector's mask is a filled blob at a coarse scale: it takes in the floor seen through a nut's or washer's hole,
+a rim of floor or bin wall around the part, and sometimes a sliver of a neighbour. Fitting a model to those points
+pulls the pose off, and the principal axes of the cloud with them. The clean-up keeps the pixels that can be the
+part's surface:
+
+1. pixels without depth go;
+2. with a known floor plane (the cell knows its bin), pixels less than ``floor_margin_m`` above it go (no part
+   surface lies on the floor itself);
+3. the mask is cut along depth discontinuities (neighbouring pixels whose depths differ by more than ``jump_m``,
+   more than a part's own surface steps between neighbouring pixels) into connected pieces;
+4. the largest piece is the part; a smaller piece that lies behind it (its median depth more than ``jump_m``
+   farther) is what is seen past the part's edge or through its hole, and goes, as do pieces of fewer than
+   ``min_piece_px`` pixels. Pieces level with or in front of the largest stay (the part's other faces).
+
+Returns the cleaned mask and what was removed, per reason (``details``), for the pose's diagnostics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from perception.observation import Observation
+from sygrid.camera import CameraIntrinsics
+
+
+@dataclass(frozen=True)
+class MaskCleanupConfig:
+    """Attributes:
+    jump_m: a depth difference between 4-neighbours larger than this [m] cuts the mask there.
+    min_piece_px: pieces behind their neighbours smaller than this (pixels) are dropped.
+    rim_px: pieces behind their neighbours that an erosion by this many pixels removes are a rim: dropped.
+    floor_margin_m: with a floor plane, pixels less than this [m] above it are floor.
+    """
+
+    jump_m: float = 0.008
+    min_piece_px: int = 4
+    rim_px: int = 1
+    floor_margin_m: float = 0.0015
+
+    def __post_init__(self) -> None:
+        if self.jump_m <= 0 or self.min_piece_px < 1 or self.floor_margin_m < 0:
+            raise ValueError(
+                "MaskCleanupConfig: need jump_m > 0, min_piece_px >= 1 and floor_margin_m >= 0, got "
+                f"{self.jump_m}, {self.min_piece_px}, {self.floor_margin_m}"
+            )
+
+
+def floor_height_m(
+    depth_m: np.ndarray, intrinsics: CameraIntrinsics, floor_plane_camera: np.ndarray, x0: int = 0, y0: int = 0
+) -> np.ndarray:
+    """Height [m] above the plane ``(a, b, c, d)`` (camera frame, unit normal pointing up) of each pixel of the
+    depth crop whose top-left pixel is ``(x0, y0)``; NaN where there is no depth."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    h, w = depth.shape
+    K = intrinsics.K
+    n, d = np.asarray(floor_plane_camera[:3], dtype=float), float(floor_plane_camera[3])
+    # height = z * (n . ray(u, v)) + d with the ray of unit depth through the pixel (separable in u and v)
+    along_u = n[0] * (np.arange(x0, x0 + w) - K[0, 2]) / K[0, 0]
+    along_v = n[1] * (np.arange(y0, y0 + h) - K[1, 2]) / K[1, 1]
+    height = depth * (along_v[:, None] + along_u[None, :] + n[2]) + d
+    return np.where(depth > 0, height, np.nan)
+
+
+def clean_mask(
+    obs: Observation, config: MaskCleanupConfig | None = None, floor_plane_camera: np.ndarray | None = None
+) -> tuple[Observation, dict]:
+    """The observation with its mask reduced to the pixels that can be the part's surface (module docstring).
+
+    Args:
+        obs: the detection's crop (depth and mask).
+        config: the settings (defaults if None).
+        floor_plane_camera: ``(a, b, c, d)`` the floor in the camera frame, or None.
+
+    Returns:
+        ``(cleaned observation, details)``, details: ``pixels`` (in the mask), ``no_depth``, ``floor``, ``behind``
+        (pieces behind the part), ``small`` (tiny pieces), ``kept``.
+    """
+    cfg = config or MaskCleanupConfig()
+    depth = obs.depth_m
+    valid = obs.mask & (depth > 0)
+    details = {"pixels": int(obs.mask.sum()), "no_depth": 0, "floor": 0, "hole": 0, "rim": 0, "kept": 0}
+    details["no_depth"] = details["pixels"] - int(valid.sum())
+    if floor_plane_camera is not None:
+        on_floor = valid & (
+            floor_height_m(depth, obs.intrinsics, floor_plane_camera, obs.x0, obs.y0) < cfg.floor_margin_m
+        )
+        details["floor"] = int(on_floor.sum())
+        valid &= ~on_floor
+    pieces = _pieces(depth, valid, cfg.jump_m)
+    n = int(pieces.max())
+    if n == 0:
+        return obs.with_mask(valid), details
+    sizes = np.bincount(pieces.ravel(), minlength=n + 1)[1:]
+    main = int(np.argmax(sizes))
+    keep = np.ones(n + 1, dtype=bool)
+    keep[0] = False
+    if n > 1:
+        behind = _behind_pieces(depth, pieces, n, cfg.jump_m)
+        inside = _enclosed_pieces(pieces, obs.mask, n)
+        thin = _thin_pieces(pieces, n, cfg.rim_px)
+        for k in range(n):
+            if k == main or not behind[k]:
+                continue
+            if inside[k] or thin[k] or sizes[k] < cfg.min_piece_px:
+                keep[k + 1] = False
+                details["hole" if inside[k] else "rim"] += int(sizes[k])
+    kept = keep[pieces]
+    details["kept"] = int(kept.sum())
+    return obs.with_mask(kept), details
+
+
+def _behind_pieces(depth: np.ndarray, pieces: np.ndarray, n: int, jump_m: float) -> np.ndarray:
+    """(n,) bool: pieces that lie behind the pieces they touch (the median depth step across their shared border,
+    this piece minus the neighbour, exceeds ``jump_m``); a piece touching no other is not behind."""
+    ks, steps = [], []
+    for a, b, da, db in (
+        (pieces[:, :-1], pieces[:, 1:], depth[:, :-1], depth[:, 1:]),
+        (pieces[:-1, :], pieces[1:, :], depth[:-1, :], depth[1:, :]),
+    ):
+        border = (a > 0) & (b > 0) & (a != b)
+        ks += [a[border] - 1, b[border] - 1]
+        steps += [da[border] - db[border], db[border] - da[border]]
+    k_all, step_all = np.concatenate(ks), np.concatenate(steps)
+    out = np.zeros(n, dtype=bool)
+    for k in np.unique(k_all):
+        out[k] = float(np.median(step_all[k_all == k])) > jump_m
+    return out
+
+
+def _enclosed_pieces(pieces: np.ndarray, mask: np.ndarray, n: int) -> np.ndarray:
+    """(n,) bool: pieces that touch neither the mask's outside (a pixel not in the mask, or the crop's edge) nor
+    a mask pixel without depth: what is seen through a hole of the part."""
+    outside = np.pad(~mask, 1, constant_values=True)
+    near_outside = outside[:-2, 1:-1] | outside[2:, 1:-1] | outside[1:-1, :-2] | outside[1:-1, 2:]
+    touching = np.unique(pieces[near_outside & (pieces > 0)]) - 1
+    out = np.ones(n, dtype=bool)
+    out[touching] = False
+    return out
+
+
+def _thin_pieces(pieces: np.ndarray, n: int, rim_px: int) -> np.ndarray:
+    """(n,) bool: pieces no part of which survives an erosion by ``rim_px`` pixels (a rim along an edge)."""
+    out = np.ones(n, dtype=bool)
+    for k in range(n):
+        piece = (pieces == k + 1).astype(np.uint8)
+        if cv2.erode(piece, np.ones((3, 3), np.uint8), iterations=rim_px).any():
+            out[k] = False
+    return out
+
+
+def _pieces(depth: np.ndarray, valid: np.ndarray, jump_m: float) -> np.ndarray:
+    """Connected pieces (4-neighbourhood) of ``valid`` pixels that no depth jump above ``jump_m`` separates:
+    (h, w) int32 labels, 0 = not in any piece (the links across a jump are dropped before labelling)."""
+    h, w = depth.shape
+    index = np.arange(h * w).reshape(h, w)
+    right = valid[:, :-1] & valid[:, 1:] & (np.abs(depth[:, :-1] - depth[:, 1:]) <= jump_m)
+    down = valid[:-1, :] & valid[1:, :] & (np.abs(depth[:-1, :] - depth[1:, :]) <= jump_m)
+    rows = np.concatenate([index[:, :-1][right], index[:-1, :][down]])
+    cols = np.concatenate([index[:, 1:][right], index[1:, :][down]])
+    graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(h * w, h * w))
+    _, component = connected_components(graph, directed=False)
+    labels = np.zeros(h * w, dtype=np.int32)
+    flat = valid.ravel()
+    _, compact = np.unique(component[flat], return_inverse=True)
+    labels[flat] = compact.astype(np.int32) + 1
+    return labels.reshape(h, w)

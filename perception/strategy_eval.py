@@ -1,0 +1,198 @@
+"""Every pose strategy measured per part on a generated test set, with ground-truth masks (the pose stage alone),
+and the choice of a strategy per part.
+
+For every ground-truth instance seen at least ``min_visib_fract``, a detection is made from its visible mask and
+box; each strategy (``perception.pose_strategies``) estimates the pose; the record keeps its pose errors
+(``sygrid.metrics.pose_errors``), its time (a share of the network's batch time for the strategies that use the
+network) and the verification's verdict. A wrong-class trial per instance fits the model of another part (the next
+obj_id) with each strategy: its verification must refuse it.
+
+The choice per part is the cheapest strategy (median ms per object) whose ADD(-S) recall reaches the bar, else the
+most accurate one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from perception.evaluation import EvalSettings, eval_items
+from perception.pose import PoseEstimator
+from perception.pose_strategies import NETWORK_STRATEGIES, STRATEGIES, StrategyRunner
+from perception.results import Detection, ObjectPose
+from sygrid.annotations import InstanceAnnotation
+from sygrid.errors import ConfigError
+from sygrid.metrics import ADD_THRESHOLD_FRACTION, pose_errors
+from sygrid.objects.model import ObjectModel
+from sygrid.writers import load_bop_item
+
+
+@dataclass(frozen=True)
+class StrategyRecord:
+    """One strategy's result on one instance: ``correct`` (ADD(-S) < 0.1 d; False when no pose), ``re_deg`` and
+    ``te_m`` (NaN when no pose), ``ms``, ``accepted`` (the verification's verdict), ``wrong_class_accepted`` (the
+    verdict on the wrong-class trial, None where not run)."""
+
+    obj_id: int
+    strategy: str
+    correct: bool
+    re_deg: float
+    te_m: float
+    ms: float
+    accepted: bool
+    confidence: float
+    wrong_class_accepted: bool | None = None
+    visib_fract: float = math.nan
+    image: str = ""
+
+
+@dataclass
+class StrategyStats:
+    """Per (obj_id, strategy): the records' summary (``row``)."""
+
+    records: list[StrategyRecord] = field(default_factory=list)
+
+    def row(self) -> dict:
+        r = self.records
+        n = len(r)
+        correct = [x.correct for x in r]
+        accepted = [x.accepted for x in r]
+        n_acc = sum(accepted)
+        n_correct = sum(correct)
+        wrong_trials = [x.wrong_class_accepted for x in r if x.wrong_class_accepted is not None]
+        return {
+            "n": n,
+            "add_recall": n_correct / n if n else math.nan,
+            "accepted_recall": sum(a and c for a, c in zip(accepted, correct, strict=True)) / n if n else math.nan,
+            "median_re_deg": _median([x.re_deg for x in r]),
+            "median_te_mm": 1e3 * _median([x.te_m for x in r]),
+            "median_ms": _median([x.ms for x in r]),
+            "false_accept": sum(a and not c for a, c in zip(accepted, correct, strict=True)) / n_acc
+            if n_acc
+            else math.nan,
+            "false_refuse": sum(c and not a for a, c in zip(accepted, correct, strict=True)) / n_correct
+            if n_correct
+            else math.nan,
+            "wrong_class_accept": sum(wrong_trials) / len(wrong_trials) if wrong_trials else math.nan,
+        }
+
+
+def _median(values: list[float]) -> float:
+    v = [x for x in values if math.isfinite(x)]
+    return float(np.median(v)) if v else math.nan
+
+
+def gt_detection(inst: InstanceAnnotation, obj_id: int | None = None) -> Detection:
+    """A detection from a ground-truth instance: its visible mask and that mask's box (``obj_id`` overrides the
+    class, for the wrong-class trials)."""
+    ys, xs = np.nonzero(inst.mask_visib)
+    box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=float)
+    return Detection(0, int(inst.obj_id if obj_id is None else obj_id), 1.0, box, inst.mask_visib)
+
+
+def evaluate_strategies(
+    runner: StrategyRunner,
+    network: PoseEstimator,
+    models: dict[int, ObjectModel],
+    data_dir: str | Path,
+    strategies: tuple[str, ...] = STRATEGIES,
+    settings: EvalSettings | None = None,
+    wrong_class: bool = True,
+    progress: bool = True,
+) -> dict[tuple[int, str], StrategyStats]:
+    """Runs every strategy on every evaluated instance; (obj_id, strategy) -> stats."""
+    s = settings or EvalSettings()
+    root, split, items = eval_items(data_dir, s)
+    if not items:
+        raise ConfigError(f"{root / split}: no images")
+    stats: dict[tuple[int, str], StrategyStats] = {}
+    ids = sorted(models)
+    for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
+        ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
+        if depth is None:
+            raise ConfigError(f"{root / split / f'{scene_id:06d}'}: image {image_id} has no depth map")
+        instances = [i for i in ann.instances if i.visib_fract >= s.min_visib_fract and i.obj_id in models]
+        instances = [i for i in instances if i.mask_visib.any()]
+        if not instances:
+            continue
+        detections = [gt_detection(i) for i in instances]
+        wrong = [gt_detection(i, ids[(ids.index(i.obj_id) + 1) % len(ids)]) for i in instances]
+        t = time.perf_counter()
+        net = network.estimate(rgb, detections + wrong, ann.intrinsics)
+        net_ms = 1e3 * (time.perf_counter() - t) / max(len(net), 1)
+        by_det = {id(p.detection): p for p in net}
+        for inst, det, bad in zip(instances, detections, wrong, strict=True):
+            model = models[inst.obj_id]
+            for strategy in strategies:
+                uses_net = strategy in NETWORK_STRATEGIES
+                pose = _run(runner, strategy, det, depth, ann.intrinsics, model, by_det.get(id(det)), uses_net)
+                ms = pose.details.get("time_ms", 0.0) + (net_ms if uses_net else 0.0) if pose else math.nan
+                wrong_accepted = None
+                if wrong_class and len(ids) > 1:
+                    bad_pose = _run(runner, strategy, bad, depth, ann.intrinsics, models[bad.obj_id],
+                                    by_det.get(id(bad)), uses_net)  # fmt: skip
+                    wrong_accepted = bool(bad_pose is not None and bad_pose.verified)
+                stats.setdefault((inst.obj_id, strategy), StrategyStats()).records.append(
+                    _record(inst, model, strategy, pose, ms, wrong_accepted, f"{ann.name}/{inst.inst_id}")
+                )
+    return stats
+
+
+def _run(
+    runner: StrategyRunner,
+    strategy: str,
+    det: Detection,
+    depth: np.ndarray,
+    intrinsics,
+    model: ObjectModel,
+    net: ObjectPose | None,
+    uses_net: bool,
+) -> ObjectPose | None:
+    if uses_net and net is None:
+        return None
+    return runner.estimate(strategy, det, depth, intrinsics, model, net if uses_net else None)
+
+
+def _record(
+    inst: InstanceAnnotation,
+    model: ObjectModel,
+    strategy: str,
+    pose: ObjectPose | None,
+    ms: float,
+    wrong_accepted: bool | None,
+    image: str,
+) -> StrategyRecord:
+    err = pose_errors(None if pose is None else pose.T_camera_object, inst.T_camera_obj, model)
+    return StrategyRecord(
+        obj_id=inst.obj_id,
+        strategy=strategy,
+        correct=err.correct(ADD_THRESHOLD_FRACTION),
+        re_deg=err.re_deg if pose is not None else math.nan,
+        te_m=err.te_m if pose is not None else math.nan,
+        ms=ms,
+        accepted=bool(pose is not None and pose.verified),
+        confidence=pose.score if pose is not None else 0.0,
+        wrong_class_accepted=wrong_accepted,
+        visib_fract=inst.visib_fract,
+        image=image,
+    )
+
+
+def choose(stats: dict[tuple[int, str], StrategyStats], bar: float) -> dict[int, str]:
+    """Per obj_id: the cheapest strategy whose ADD(-S) recall reaches ``bar``, else the most accurate."""
+    rows: dict[int, list[tuple[str, dict]]] = {}
+    for (obj_id, strategy), st in stats.items():
+        rows.setdefault(obj_id, []).append((strategy, st.row()))
+    out = {}
+    for obj_id, options in rows.items():
+        good = [(row["median_ms"], name) for name, row in options if row["add_recall"] >= bar]
+        if good:
+            out[obj_id] = min(good)[1]
+        else:
+            out[obj_id] = max(options, key=lambda o: (o[1]["add_recall"], -o[1]["median_ms"]))[0]
+    return out
