@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from perception.refine import model_surface
-from perception.verify import ModelRaycaster, raycaster
+from perception.verify import raycaster
 from sygrid.objects.model import ObjectModel
 
 _RIDGE = 1e-6  # relative ridge weight on the normal equations (of their trace)
@@ -37,7 +37,6 @@ class IcpConfig:
     max_iterations: iterations per stage at most.
     max_scene_points: depth points used at most (an even subsample beyond that).
     converged_fraction: an update moving the object's points less than this x diameter ends a stage.
-    point_weight: weight of a point-to-point term beside the point-to-plane one.
     occlusion: drop matches to model points that the part's own surface hides from the camera (ray cast); without
         it only the back faces are dropped, and a scene point can match the inside of a pipe's far wall.
     """
@@ -49,7 +48,6 @@ class IcpConfig:
     max_scene_points: int = 300
     converged_fraction: float = 1e-4
     occlusion: bool = True
-    point_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if self.model_points < 10 or not self.distance_fractions or min(self.distance_fractions) <= 0:
@@ -134,19 +132,19 @@ def icp(
     """Point-to-plane ICP from ``T_camera_object`` of the (n, 3) camera-frame depth points ``scene`` [m]."""
     cfg = config or IcpConfig()
     cpm = closest_point_map(model, cfg.model_points, cfg.grid_cells, max(cfg.distance_fractions))
-    caster = raycaster(model) if cfg.occlusion else None
     diameter = float(model.diameter_m)
     scene = subsample(np.asarray(scene, dtype=np.float64), cfg.max_scene_points)
-    R = np.array(T_camera_object[:3, :3], dtype=np.float64)
-    t = np.array(T_camera_object[:3, 3], dtype=np.float64)
+    T = np.array(T_camera_object, dtype=np.float64)
     iterations = 0
     converged = cfg.converged_fraction * diameter
     for fraction in cfg.distance_fractions:
         distance = fraction * diameter
+        seen = _seen(T, cpm, model, cfg.occlusion)  # the pose moves little within a stage
         for _ in range(cfg.max_iterations):
             iterations += 1
+            R, t = T[:3, :3], T[:3, 3]
             x = (scene - t) @ R  # object frame: R^T (s - t)
-            keep, q, n = _matches(x, R, t, cpm, distance, caster)
+            keep, q, n = _matches(x, cpm, seen, distance)
             if len(q) < 6:
                 break
             x = x[keep]
@@ -156,65 +154,44 @@ def icp(
             A[:, 1] = x[:, 2] * n[:, 0] - x[:, 0] * n[:, 2]
             A[:, 2] = x[:, 0] * n[:, 1] - x[:, 1] * n[:, 0]
             A[:, 3:] = n
-            b = ((q - x) * n).sum(axis=1)
             H = A.T @ A
-            g = A.T @ b
-            if cfg.point_weight > 0:  # + w |x + w x x + v - q|^2: holds what planes let slide (a leg along its edge)
-                H_pt, g_pt = _point_to_point(x, q - x)
-                H += cfg.point_weight * H_pt
-                g += cfg.point_weight * g_pt
             H[np.diag_indices(6)] += _RIDGE * np.trace(H)
-            w_v = np.linalg.solve(H, g)
+            w_v = np.linalg.solve(H, A.T @ ((q - x) * n).sum(axis=1))
             # the scene moves by (dR, v) in the object frame, x' = dR x + v; the object pose becomes T (dR, v)^-1
-            R = R @ _rotation(w_v[:3]).T
-            t = t - R @ w_v[3:]
+            T[:3, :3] = R @ _rotation(w_v[:3]).T
+            T[:3, 3] = t - T[:3, :3] @ w_v[3:]
             if np.linalg.norm(w_v[3:]) + np.linalg.norm(w_v[:3]) * diameter / 2 < converged:
                 break
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    x = (scene - t) @ R
-    keep, q, n = _matches(x, R, t, cpm, cfg.distance_fractions[-1] * diameter, caster)
+    x = (scene - T[:3, 3]) @ T[:3, :3]
+    keep, q, n = _matches(x, cpm, _seen(T, cpm, model, cfg.occlusion), cfg.distance_fractions[-1] * diameter)
     fitness = float(keep.mean()) if len(scene) else 0.0
     rmse = float(np.sqrt(np.mean(((q - x[keep]) * n).sum(axis=1) ** 2))) if len(q) else math.nan
     return IcpResult(T, fitness, rmse, iterations)
 
 
+def _seen(T: np.ndarray, cpm: ClosestPointMap, model: ObjectModel, occlusion: bool) -> np.ndarray:
+    """(n,) bool: the model samples the camera sees at pose ``T``: facing it and, with ``occlusion``, not hidden by
+    the part's own surface (ray cast)."""
+    eye = -(T[:3, :3].T @ T[:3, 3])  # the camera centre in the object frame
+    facing = ((cpm.points - eye) * cpm.normals).sum(axis=1) < 0
+    if occlusion and facing.any():
+        facing[facing] = raycaster(model).visible(T, cpm.points[facing])
+    return facing
+
+
 def _matches(
-    x: np.ndarray,
-    R: np.ndarray,
-    t: np.ndarray,
-    cpm: ClosestPointMap,
-    distance: float,
-    caster: ModelRaycaster | None = None,
+    x: np.ndarray, cpm: ClosestPointMap, seen: np.ndarray, distance: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For object-frame points ``x``: the (n,) mask of kept matches (nearest sample within ``distance`` whose
-    normal faces the camera) and the kept matches' model points and normals."""
+    """For object-frame points ``x``: the (n,) mask of kept matches (the nearest sample, within ``distance``,
+    among those ``seen``) and the kept matches' model points and normals."""
     idx = cpm.lookup(x)
     found = idx >= 0
+    found[found] = seen[idx[found]]
     q = cpm.points[idx[found]]
-    n = cpm.normals[idx[found]]
-    eye = -(R.T @ t)  # the camera centre in the object frame
-    ok = (((q - eye) * n).sum(axis=1) < 0) & (((q - x[found]) ** 2).sum(axis=1) < distance * distance)
-    if caster is not None and ok.any():  # faces the camera, but is it hidden behind the part's own surface?
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, t
-        ok[ok] = caster.visible(T, q[ok])
+    ok = ((q - x[found]) ** 2).sum(axis=1) < distance * distance
     keep = np.zeros(len(x), dtype=bool)
     keep[np.flatnonzero(found)[ok]] = True
-    return keep, q[ok], n[ok]
-
-
-def _point_to_point(x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normal equations (H (6, 6), g (6,)) of sum |w x x_i + v - r_i|^2 over the points ``x`` and residuals ``r``:
-    the Jacobian of ``w x x + v`` is ``[-[x]_x, I]``."""
-    n = len(x)
-    J = np.zeros((n, 3, 6))
-    J[:, 0, 1], J[:, 0, 2] = x[:, 2], -x[:, 1]
-    J[:, 1, 0], J[:, 1, 2] = -x[:, 2], x[:, 0]
-    J[:, 2, 0], J[:, 2, 1] = x[:, 1], -x[:, 0]
-    J[:, 0, 3] = J[:, 1, 4] = J[:, 2, 5] = 1.0
-    J = J.reshape(3 * n, 6)
-    return J.T @ J, J.T @ r.reshape(-1)
+    return keep, q[ok], cpm.normals[idx[found][ok]]
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:

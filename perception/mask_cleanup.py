@@ -37,11 +37,20 @@ class MaskCleanupConfig:
     min_piece_px: pieces behind their neighbours smaller than this (pixels) are dropped.
     rim_px: pieces behind their neighbours that an erosion by this many pixels removes are a rim: dropped.
     floor_margin_m: with a floor plane, pixels less than this [m] above it are floor.
+    local_floor: without a floor plane, take the plane the part lies on from the depth around its mask
+        (``support_plane``): the ring ``support_ring_px`` wide around the mask, ``support_trials`` RANSAC triples,
+        inliers within ``support_tolerance_m``, at least ``support_fraction`` of at least ``support_min_points``.
     """
 
     jump_m: float = 0.008
     min_piece_px: int = 4
     rim_px: int = 1
+    local_floor: bool = True
+    support_ring_px: int = 4
+    support_min_points: int = 20
+    support_trials: int = 64
+    support_tolerance_m: float = 0.001
+    support_fraction: float = 0.5
     floor_margin_m: float = 0.0015
 
     def __post_init__(self) -> None:
@@ -68,6 +77,43 @@ def floor_height_m(
     return np.where(depth > 0, height, np.nan)
 
 
+def support_plane(obs: Observation, config: MaskCleanupConfig | None = None) -> np.ndarray | None:
+    """The plane the part lies on, from the depth just around its mask: ``(a, b, c, d)`` with the unit normal
+    towards the camera, or None when no plane holds ``support_fraction`` of the ring's points (a cluttered or
+    empty surround). RANSAC over seeded triples of the ring's points (inliers within ``support_tolerance_m``),
+    refined by least squares on the inliers."""
+    cfg = config or MaskCleanupConfig()
+    kernel = np.ones((3, 3), np.uint8)
+    ring = cv2.dilate(obs.mask.astype(np.uint8), kernel, iterations=cfg.support_ring_px).astype(bool) & ~obs.mask
+    ring &= obs.depth_m > 0
+    ys, xs = np.nonzero(ring)
+    if len(xs) < cfg.support_min_points:
+        return None
+    z = obs.depth_m[ys, xs]
+    K = obs.intrinsics.K
+    p = np.column_stack([(xs + obs.x0 - K[0, 2]) * z / K[0, 0], (ys + obs.y0 - K[1, 2]) * z / K[1, 1], z])
+    rng = np.random.default_rng(0)
+    triples = p[rng.integers(0, len(p), size=(cfg.support_trials, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    good = length > 1e-9
+    if not good.any():
+        return None
+    normals = normals[good] / length[good, None]
+    offsets = -(normals * triples[good, 0]).sum(axis=1)
+    inliers = np.abs(p @ normals.T + offsets) < cfg.support_tolerance_m  # (n, trials)
+    best = int(np.argmax(inliers.sum(axis=0)))
+    chosen = inliers[:, best]
+    if chosen.sum() < cfg.support_fraction * len(p):
+        return None
+    q = p[chosen]
+    centre = q.mean(axis=0)
+    normal = np.linalg.svd(q - centre, full_matrices=False)[2][2]
+    if normal @ centre > 0:  # point towards the camera (the origin)
+        normal = -normal
+    return np.append(normal, -normal @ centre)
+
+
 def clean_mask(
     obs: Observation, config: MaskCleanupConfig | None = None, floor_plane_camera: np.ndarray | None = None
 ) -> tuple[Observation, dict]:
@@ -88,11 +134,18 @@ def clean_mask(
     details = {"pixels": int(obs.mask.sum()), "no_depth": 0, "floor": 0, "hole": 0, "rim": 0, "kept": 0}
     details["no_depth"] = details["pixels"] - int(valid.sum())
     if floor_plane_camera is not None:
-        on_floor = valid & (
-            floor_height_m(depth, obs.intrinsics, floor_plane_camera, obs.x0, obs.y0) < cfg.floor_margin_m
-        )
+        height = floor_height_m(depth, obs.intrinsics, floor_plane_camera, obs.x0, obs.y0)
+        on_floor = valid & (height < cfg.floor_margin_m)
         details["floor"] = int(on_floor.sum())
         valid &= ~on_floor
+    elif cfg.local_floor and (plane := support_plane(obs, cfg)) is not None:
+        height = floor_height_m(depth, obs.intrinsics, plane, obs.x0, obs.y0)
+        # a part lies on its support, so the mask's pixels are on or above it; a plane above most of them is
+        # something else in the surround (a taller neighbour), and the part's pixels below it are kept
+        if np.median(height[valid]) > -cfg.floor_margin_m:
+            on_floor = valid & (np.abs(height) < cfg.floor_margin_m)
+            details["floor"] = int(on_floor.sum())
+            valid &= ~on_floor
     pieces = _pieces(depth, valid, cfg.jump_m)
     n = int(pieces.max())
     if n == 0:

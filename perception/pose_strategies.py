@@ -47,7 +47,9 @@ class StrategyConfig:
     icp_hypotheses: hypotheses refined by ICP (the best by the coarse score), for the ``+icp`` strategies.
     coarse_tolerance_fraction: the verification's tolerance (x diameter) when ranking unrefined hypotheses.
     align_steps: depth alignments of each hypothesis (``_align``).
-    escape: when the best ICP fit is short of ``good_confidence``, try it turned about its own axes (``_turns``).
+    escape_rounds: while the best ICP fit is short of ``good_confidence``, try it turned about its own axes
+        (``_turns``), at most this many times (each from the best so far, while it improves).
+    escape_quick: rank the turns by their verification after a short ICP (not the coarse score).
     good_confidence: a fit this confident ends the search (no further hypothesis is refined).
     polish_steps: step sizes (x diameter) of the slide search on a fit short of ``good_confidence`` (``_polish``).
     mask_erosion_px: mask pixels peeled off the cleaned mask's border before fitting (edge depth mixes surfaces).
@@ -56,8 +58,9 @@ class StrategyConfig:
 
     icp_hypotheses: int = 3
     coarse_tolerance_fraction: float = 0.15
-    align_steps: int = 2
-    escape: bool = True
+    align_steps: int = 1
+    escape_rounds: int = 2
+    escape_quick: bool = True
     good_confidence: float = 0.95
     polish_steps: tuple[float, ...] = (0.08, 0.04, 0.02)
     mask_erosion_px: int = 0
@@ -169,6 +172,13 @@ class StrategyRunner:
         config: StrategyConfig | None = None,
     ) -> None:
         self.icp_config = icp_config or IcpConfig()
+        self.quick_icp = IcpConfig(
+            **{
+                **self.icp_config.__dict__,
+                "distance_fractions": self.icp_config.distance_fractions[:1],
+                "max_iterations": 4,
+            }
+        )
         self.verifier = verifier or PoseVerifier()
         self.cleanup = cleanup or MaskCleanupConfig()
         self.config = config or StrategyConfig()
@@ -189,7 +199,7 @@ class StrategyRunner:
         Raises:
             ValueError: unknown strategy, a network strategy without ``network_pose``, or a model of another part.
         """
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         check_strategy(strategy, "strategy")
         if model.obj_id != detection.obj_id:
             raise ValueError(f"model: obj_id {model.obj_id} is not the detection's obj_id {detection.obj_id}")
@@ -220,20 +230,17 @@ class StrategyRunner:
                     hypotheses.append((T, f"axes_{k}"))
         if not hypotheses:
             return self._unverified(network_pose, strategy, "no hypothesis shows any surface to the camera", t0)
-        cfg = self.config
-        verify = self.verifier.verify
-        hypotheses = [(self._align(T, model, obs), src) for T, src in hypotheses]
-        if refine:
-            candidates = self._refine_ranked(hypotheses, scene, model, obs)
-            best = max(candidates, key=lambda c: c.verification.confidence)
-            if cfg.escape and best.verification.confidence < cfg.good_confidence:
-                candidates += self._refine_ranked(self._turns(best, scene, model, obs), scene, model, obs)
-            if cfg.polish_steps:
-                best = max(candidates, key=lambda c: c.verification.confidence)
-                if best.verification.confidence < cfg.good_confidence:
-                    candidates.append(self._polish(best, scene, model, obs))
+        if base == "rgb":  # the network's pose as it is: depth only verifies it
+            candidates = [
+                _Candidate(hypotheses[0][0], hypotheses[0][1], self.verifier.verify(hypotheses[0][0], model, obs))
+            ]
+        elif refine:
+            candidates = self._search(hypotheses, scene, model, obs)
         else:
-            candidates = [_Candidate(T, src, verify(T, model, obs)) for T, src in hypotheses]
+            candidates = []
+            for T, src in hypotheses:
+                T_aligned, _ = self._aligned(T, model, obs)
+                candidates.append(_Candidate(T_aligned, src, self.verifier.verify(T_aligned, model, obs)))
         best = max(candidates, key=lambda c: c.verification.confidence)
         details = {
             **(network_pose.details if network_pose is not None else {}),
@@ -243,6 +250,7 @@ class StrategyRunner:
             "cleanup": cleanup,
             "verify": best.verification.as_dict(),
             "time_ms": (time.perf_counter() - t0) * 1e3,
+            "cpu_ms": (time.process_time() - c0) * 1e3,
         }
         if best.icp is not None:
             details["icp"] = best.icp
@@ -251,28 +259,61 @@ class StrategyRunner:
         v = best.verification
         return ObjectPose(detection, best.T, v.confidence, strategy, details, verified=v.accepted)
 
-    def _align(self, T: np.ndarray, model: ObjectModel, obs: Observation) -> np.ndarray:
-        """``T`` moved along its viewing ray so that the rendered model meets the observed surface (the median
-        depth difference over the mask), ``align_steps`` times: the centroid of the visible model surface is a
-        biased guess where the hypothesis shows other faces than the camera sees."""
-        T = T.copy()
-        for _ in range(self.config.align_steps):
-            offset = self.verifier.depth_offset_m(T, model, obs)
-            T[:3, 3] *= 1.0 + offset / T[2, 3]
-        return T
-
-    def _refine_ranked(
+    def _search(
         self, hypotheses: list[tuple[np.ndarray, str]], scene: np.ndarray, model: ObjectModel, obs: Observation
     ) -> list[_Candidate]:
-        """ICP from the ``icp_hypotheses`` best hypotheses by the coarse score, best first, stopping at the first
-        fit whose confidence reaches ``good_confidence``."""
+        """ICP from the best hypotheses; short of ``good_confidence``, from the best fit's turns (``_turns``),
+        then the slide search (``_polish``). Every fit comes back verified."""
+        cfg = self.config
+        candidates = self._refine_ranked(hypotheses, scene, model, obs)
+        best = max(candidates, key=lambda c: c.verification.confidence)
+        for _ in range(cfg.escape_rounds):
+            if best.verification.confidence >= cfg.good_confidence:
+                break
+            turned = self._refine_ranked(self._turns(best, scene, model), scene, model, obs, cfg.escape_quick)
+            candidates += turned
+            better = max(turned, key=lambda c: c.verification.confidence, default=best)
+            if better.verification.confidence <= best.verification.confidence:
+                break
+            best = better
+        if cfg.polish_steps and best.verification.confidence < cfg.good_confidence:
+            candidates.append(self._polish(best, scene, model, obs))
+        return candidates
+
+    def _aligned(self, T: np.ndarray, model: ObjectModel, obs: Observation) -> tuple[np.ndarray, Verification]:
+        """A hypothesis moved along its viewing ray onto the observed surface (``align_steps`` times: the centroid
+        of the visible model surface is a biased guess where the hypothesis shows other faces than the camera
+        sees) and its coarse score (``coarse_tolerance_fraction``)."""
+        v = None
+        for _ in range(max(self.config.align_steps, 1)):
+            T, v = self.verifier.align(
+                T, model, obs, self.config.coarse_tolerance_fraction, move=self.config.align_steps > 0
+            )
+        return T, v
+
+    def _refine_ranked(
+        self,
+        hypotheses: list[tuple[np.ndarray, str]],
+        scene: np.ndarray,
+        model: ObjectModel,
+        obs: Observation,
+        quick: bool = False,
+    ) -> list[_Candidate]:
+        """ICP from the ``icp_hypotheses`` best hypotheses by the coarse score (``quick``: by the verification after
+        a short ICP, ``quick_icp``), best first, stopping at the first fit whose confidence reaches
+        ``good_confidence``."""
         cfg = self.config
         if not hypotheses:
             return []
-        coarse = [self.verifier.verify(T, model, obs, cfg.coarse_tolerance_fraction).confidence for T, _ in hypotheses]
+        aligned = [(*self._aligned(T, model, obs), src) for T, src in hypotheses]
+        if quick:
+            short = [icp(T, scene, model, self.quick_icp).T_camera_object for T, _, _ in aligned]
+            aligned = [
+                (T, self.verifier.verify(T, model, obs), src) for T, (_, _, src) in zip(short, aligned, strict=True)
+            ]
         out = []
-        for i in np.argsort(coarse)[::-1][: cfg.icp_hypotheses]:
-            out.append(self._icp(*hypotheses[i], scene, model, obs))
+        for i in np.argsort([-v.confidence for _, v, _ in aligned], kind="stable")[: cfg.icp_hypotheses]:
+            out.append(self._icp(aligned[i][0], aligned[i][2], scene, model, obs))
             if out[-1].verification.confidence >= cfg.good_confidence:
                 break
         return out
@@ -306,18 +347,16 @@ class StrategyRunner:
             else _Candidate(T, f"{c.source}+polish", v, c.icp)
         )
 
-    def _turns(
-        self, best: _Candidate, scene: np.ndarray, model: ObjectModel, obs: Observation
-    ) -> list[tuple[np.ndarray, str]]:
+    def _turns(self, best: _Candidate, scene: np.ndarray, model: ObjectModel) -> list[tuple[np.ndarray, str]]:
         """Hypotheses around a fit short of ``good_confidence``: its pose turned by every axis map that the part's
         symmetry does not make equivalent (90 and 180 degree turns about its own principal axes: a bolt's head on
-        the wrong end, a bracket's legs swapped), re-centred and aligned."""
+        the wrong end, a bracket's legs swapped), re-centred."""
         E, maps = _distinct_axis_maps(model)
         out = []
         for k, Q in enumerate(maps[1:], start=1):
             T = centred_pose(best.T[:3, :3] @ E @ Q @ E.T, best.T[:3, 3], scene, model)
             if T is not None:
-                out.append((self._align(T, model, obs), f"{best.source}+turn_{k}"))
+                out.append((T, f"{best.source}+turn_{k}"))
         return out
 
     def _icp(self, T: np.ndarray, source: str, scene: np.ndarray, model: ObjectModel, obs: Observation) -> _Candidate:

@@ -7,7 +7,8 @@ box; each strategy (``perception.pose_strategies``) estimates the pose; the reco
 network) and the verification's verdict. A wrong-class trial per instance fits the model of another part (the next
 obj_id) with each strategy: its verification must refuse it.
 
-The choice per part is the cheapest strategy (median ms per object) whose ADD(-S) recall reaches the bar, else the
+The choice per part is the cheapest strategy (median CPU milliseconds per object: steadier than wall time on a
+shared machine) whose ADD(-S) recall reaches the bar, else the
 most accurate one.
 """
 
@@ -15,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,8 +36,8 @@ from sygrid.writers import load_bop_item
 @dataclass(frozen=True)
 class StrategyRecord:
     """One strategy's result on one instance: ``correct`` (ADD(-S) < 0.1 d; False when no pose), ``re_deg`` and
-    ``te_m`` (NaN when no pose), ``ms``, ``accepted`` (the verification's verdict), ``wrong_class_accepted`` (the
-    verdict on the wrong-class trial, None where not run)."""
+    ``te_m`` (NaN when no pose), wall and CPU milliseconds, the verification's ``confidence`` (0 when no pose)
+    and that of the wrong-class trial (NaN where not run); ``image`` names the instance (``scene_image/inst``)."""
 
     obj_id: int
     strategy: str
@@ -44,42 +45,37 @@ class StrategyRecord:
     re_deg: float
     te_m: float
     ms: float
-    accepted: bool
+    cpu_ms: float
     confidence: float
-    wrong_class_accepted: bool | None = None
+    wrong_class_confidence: float = math.nan
     visib_fract: float = math.nan
     image: str = ""
 
 
-@dataclass
-class StrategyStats:
-    """Per (obj_id, strategy): the records' summary (``row``)."""
+def summarize(records: list[StrategyRecord], min_confidence: float) -> dict:
+    """The records' figures with poses accepted at ``min_confidence``: ADD(-S) recall over all estimates and over
+    the accepted ones (of all instances), median re/te/ms, false accepts (wrong among the accepted), false refusals
+    (refused among the correct) and the wrong-class trials accepted (fractions; NaN where undefined)."""
+    n = len(records)
+    correct = np.array([x.correct for x in records], dtype=bool)
+    accepted = np.array([x.confidence >= min_confidence for x in records], dtype=bool)
+    wrong = np.array([x.wrong_class_confidence for x in records if math.isfinite(x.wrong_class_confidence)])
+    return {
+        "n": n,
+        "add_recall": _ratio(correct.sum(), n),
+        "accepted_recall": _ratio((accepted & correct).sum(), n),
+        "median_re_deg": _median([x.re_deg for x in records]),
+        "median_te_mm": 1e3 * _median([x.te_m for x in records]),
+        "median_ms": _median([x.ms for x in records]),
+        "median_cpu_ms": _median([x.cpu_ms for x in records]),
+        "false_accept": _ratio((accepted & ~correct).sum(), accepted.sum()),
+        "false_refuse": _ratio((~accepted & correct).sum(), correct.sum()),
+        "wrong_class_accept": _ratio((wrong >= min_confidence).sum(), len(wrong)),
+    }
 
-    records: list[StrategyRecord] = field(default_factory=list)
 
-    def row(self) -> dict:
-        r = self.records
-        n = len(r)
-        correct = [x.correct for x in r]
-        accepted = [x.accepted for x in r]
-        n_acc = sum(accepted)
-        n_correct = sum(correct)
-        wrong_trials = [x.wrong_class_accepted for x in r if x.wrong_class_accepted is not None]
-        return {
-            "n": n,
-            "add_recall": n_correct / n if n else math.nan,
-            "accepted_recall": sum(a and c for a, c in zip(accepted, correct, strict=True)) / n if n else math.nan,
-            "median_re_deg": _median([x.re_deg for x in r]),
-            "median_te_mm": 1e3 * _median([x.te_m for x in r]),
-            "median_ms": _median([x.ms for x in r]),
-            "false_accept": sum(a and not c for a, c in zip(accepted, correct, strict=True)) / n_acc
-            if n_acc
-            else math.nan,
-            "false_refuse": sum(c and not a for a, c in zip(accepted, correct, strict=True)) / n_correct
-            if n_correct
-            else math.nan,
-            "wrong_class_accept": sum(wrong_trials) / len(wrong_trials) if wrong_trials else math.nan,
-        }
+def _ratio(a: int, b: int) -> float:
+    return float(a) / float(b) if b else math.nan
 
 
 def _median(values: list[float]) -> float:
@@ -104,13 +100,13 @@ def evaluate_strategies(
     settings: EvalSettings | None = None,
     wrong_class: bool = True,
     progress: bool = True,
-) -> dict[tuple[int, str], StrategyStats]:
-    """Runs every strategy on every evaluated instance; (obj_id, strategy) -> stats."""
+) -> dict[tuple[int, str], list[StrategyRecord]]:
+    """Runs every strategy on every evaluated instance; (obj_id, strategy) -> records."""
     s = settings or EvalSettings()
     root, split, items = eval_items(data_dir, s)
     if not items:
         raise ConfigError(f"{root / split}: no images")
-    stats: dict[tuple[int, str], StrategyStats] = {}
+    stats: dict[tuple[int, str], list[StrategyRecord]] = {}
     ids = sorted(models)
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
@@ -122,9 +118,10 @@ def evaluate_strategies(
             continue
         detections = [gt_detection(i) for i in instances]
         wrong = [gt_detection(i, ids[(ids.index(i.obj_id) + 1) % len(ids)]) for i in instances]
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         net = network.estimate(rgb, detections + wrong, ann.intrinsics)
         net_ms = 1e3 * (time.perf_counter() - t) / max(len(net), 1)
+        net_cpu_ms = 1e3 * (time.process_time() - c) / max(len(net), 1)
         by_det = {id(p.detection): p for p in net}
         for inst, det, bad in zip(instances, detections, wrong, strict=True):
             model = models[inst.obj_id]
@@ -132,13 +129,14 @@ def evaluate_strategies(
                 uses_net = strategy in NETWORK_STRATEGIES
                 pose = _run(runner, strategy, det, depth, ann.intrinsics, model, by_det.get(id(det)), uses_net)
                 ms = pose.details.get("time_ms", 0.0) + (net_ms if uses_net else 0.0) if pose else math.nan
-                wrong_accepted = None
+                cpu_ms = pose.details.get("cpu_ms", 0.0) + (net_cpu_ms if uses_net else 0.0) if pose else math.nan
+                wrong_confidence = math.nan
                 if wrong_class and len(ids) > 1:
                     bad_pose = _run(runner, strategy, bad, depth, ann.intrinsics, models[bad.obj_id],
                                     by_det.get(id(bad)), uses_net)  # fmt: skip
-                    wrong_accepted = bool(bad_pose is not None and bad_pose.verified)
-                stats.setdefault((inst.obj_id, strategy), StrategyStats()).records.append(
-                    _record(inst, model, strategy, pose, ms, wrong_accepted, f"{ann.name}/{inst.inst_id}")
+                    wrong_confidence = bad_pose.score if bad_pose is not None else 0.0
+                stats.setdefault((inst.obj_id, strategy), []).append(
+                    _record(inst, model, strategy, pose, ms, cpu_ms, wrong_confidence, f"{ann.name}/{inst.inst_id}")
                 )
     return stats
 
@@ -164,7 +162,8 @@ def _record(
     strategy: str,
     pose: ObjectPose | None,
     ms: float,
-    wrong_accepted: bool | None,
+    cpu_ms: float,
+    wrong_confidence: float,
     image: str,
 ) -> StrategyRecord:
     err = pose_errors(None if pose is None else pose.T_camera_object, inst.T_camera_obj, model)
@@ -175,24 +174,37 @@ def _record(
         re_deg=err.re_deg if pose is not None else math.nan,
         te_m=err.te_m if pose is not None else math.nan,
         ms=ms,
-        accepted=bool(pose is not None and pose.verified),
+        cpu_ms=cpu_ms,
         confidence=pose.score if pose is not None else 0.0,
-        wrong_class_accepted=wrong_accepted,
+        wrong_class_confidence=wrong_confidence,
         visib_fract=inst.visib_fract,
         image=image,
     )
 
 
-def choose(stats: dict[tuple[int, str], StrategyStats], bar: float) -> dict[int, str]:
-    """Per obj_id: the cheapest strategy whose ADD(-S) recall reaches ``bar``, else the most accurate."""
-    rows: dict[int, list[tuple[str, dict]]] = {}
-    for (obj_id, strategy), st in stats.items():
-        rows.setdefault(obj_id, []).append((strategy, st.row()))
+def choose(records: dict[tuple[int, str], list[StrategyRecord]], bar: float) -> dict[int, str]:
+    """Per obj_id: the cheapest strategy (median CPU ms) whose ADD(-S) recall reaches ``bar``, else the most
+    accurate (ties: the cheaper)."""
+    options: dict[int, list[tuple[str, dict]]] = {}
+    for (obj_id, strategy), recs in records.items():
+        options.setdefault(obj_id, []).append((strategy, summarize(recs, 1.0)))
     out = {}
-    for obj_id, options in rows.items():
-        good = [(row["median_ms"], name) for name, row in options if row["add_recall"] >= bar]
+    for obj_id, rows in sorted(options.items()):
+        good = [(row["median_cpu_ms"], name) for name, row in rows if row["add_recall"] >= bar]
         if good:
             out[obj_id] = min(good)[1]
         else:
-            out[obj_id] = max(options, key=lambda o: (o[1]["add_recall"], -o[1]["median_ms"]))[0]
+            out[obj_id] = max(rows, key=lambda o: (o[1]["add_recall"], -o[1]["median_cpu_ms"]))[0]
     return out
+
+
+def choose_threshold(
+    records: list[StrategyRecord], max_false_accept: float, grid: tuple[float, ...] = tuple(np.arange(0.5, 0.991, 0.01))
+) -> float:
+    """The lowest verification threshold on ``grid`` at which the false accepts of ``records`` stay within
+    ``max_false_accept`` (the grid's last value when none does)."""
+    for threshold in grid:
+        fa = summarize(records, float(threshold))["false_accept"]
+        if not fa > max_false_accept:  # NaN (nothing accepted) passes
+            return round(float(threshold), 2)
+    return round(float(grid[-1]), 2)

@@ -55,7 +55,7 @@ class VerifyConfig:
     tolerance_min_m: float = 0.001
     depth_noise_m: float = 0.0
     min_confidence: float = 0.7
-    max_rays: int = 4096
+    max_rays: int = 1500
     window_margin_px: int = 4
     background_reach_fraction: float = 0.3
     threads: int = 2
@@ -207,18 +207,6 @@ class PoseVerifier:
         in_mask = obs.mask[y0:y1:stride, x0:x1:stride]
         return rendered, slope, observed, in_mask
 
-    def depth_offset_m(self, T_camera_object: np.ndarray, model: ObjectModel, obs: Observation) -> float:
-        """The median of observed minus rendered depth [m] over the mask's pixels where both exist (how far the
-        model at this pose lies in front of the part's surface); 0 where none overlap."""
-        T = np.asarray(T_camera_object, dtype=np.float64)
-        caster = raycaster(model)
-        window = _window(obs, T, caster, 0) if np.isfinite(T).all() and T[2, 3] > 0 else None
-        if window is None:
-            return 0.0
-        rendered, _, observed, in_mask = self._render(T, caster, obs, window)
-        both = in_mask & (rendered > 0) & (observed > 0)
-        return float(np.median(observed[both] - rendered[both])) if both.any() else 0.0
-
     def verify(
         self,
         T_camera_object: np.ndarray,
@@ -229,13 +217,50 @@ class PoseVerifier:
         """The agreement of ``model`` at ``T_camera_object`` with the observation; a pose that renders nothing in
         the crop gets confidence 0. ``tolerance_fraction`` overrides the configured one (a coarse score for
         ranking unrefined hypotheses)."""
+        return self.align(T_camera_object, model, obs, tolerance_fraction, move=False)[1]
+
+    def align(
+        self,
+        T_camera_object: np.ndarray,
+        model: ObjectModel,
+        obs: Observation,
+        tolerance_fraction: float | None = None,
+        move: bool = True,
+    ) -> tuple[np.ndarray, Verification]:
+        """The pose moved along its viewing ray so that the rendered model meets the observed surface (the median
+        of observed minus rendered depth over the mask's pixels where both exist), and its verification, from one
+        rendering (the moved pose's depths are the rendered ones scaled by the move, its silhouette taken as
+        unchanged). ``move`` False: the pose as given and its exact verification."""
         cfg = self.config
-        T = np.asarray(T_camera_object, dtype=np.float64)
+        T = np.array(T_camera_object, dtype=np.float64)
         caster = raycaster(model)
         window = _window(obs, T, caster, cfg.window_margin_px) if np.isfinite(T).all() and T[2, 3] > 0 else None
         if window is None:
-            return _empty(int(obs.mask.sum()))
+            return T, _empty(int(obs.mask.sum()))
         rendered, slope, observed, in_mask = self._render(T, caster, obs, window)
+        if move:
+            both = in_mask & (rendered > 0) & (observed > 0)
+            if both.any():
+                scale = 1.0 + float(np.median(observed[both] - rendered[both])) / T[2, 3]
+                T[:3, 3] *= scale
+                rendered = rendered * scale
+        stride = max(1, round((window[2] - window[0]) / max(rendered.shape[1], 1)))
+        return T, self._score(T, model, obs, rendered, slope, observed, in_mask, stride, tolerance_fraction)
+
+    def _score(
+        self,
+        T: np.ndarray,
+        model: ObjectModel,
+        obs: Observation,
+        rendered: np.ndarray,
+        slope: np.ndarray,
+        observed: np.ndarray,
+        in_mask: np.ndarray,
+        stride: int,
+        tolerance_fraction: float | None,
+    ) -> Verification:
+        """The verification figures from a rendering and the observation at the same (strided) pixels."""
+        cfg = self.config
         hit = rendered > 0
         valid = observed > 0
         residual = observed - rendered
@@ -249,15 +274,12 @@ class PoseVerifier:
         n_inlier, n_violation = int(inlier.sum()), int(violation.sum())
         # Mask pixels the model leaves open whose depth lies behind the model's surface next to them are background
         # seen past the part (through its hole, around its edge in a loose mask): no part surface left unexplained.
-        stride = max(1, round((window[2] - window[0]) / max(rendered.shape[1], 1)))
-        reach = max(
-            2, math.ceil(cfg.background_reach_fraction * model.diameter_m * obs.intrinsics.fx / T[2, 3] / stride)
-        )
+        reach = cfg.background_reach_fraction * model.diameter_m * obs.intrinsics.fx / T[2, 3] / stride
+        reach = max(2, math.ceil(reach))
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
         nearby = cv2.dilate(rendered.astype(np.float32), kernel)
         background = in_mask & valid & ~hit & (nearby > 0) & (observed > nearby + self.tolerance_m(model, nearby))
-        mask_valid = in_mask & valid & ~background
-        n_mask = int(mask_valid.sum())
+        n_mask = int((in_mask & valid & ~background).sum())
         fit = n_inlier / (n_inlier + n_violation) if n_inlier + n_violation else 0.0
         coverage = int((inlier & in_mask).sum()) / n_mask if n_mask else 0.0
         seen = hit & ~occluded
