@@ -32,6 +32,8 @@ from sygrid.metrics import ADD_THRESHOLD_FRACTION, pose_errors
 from sygrid.objects.model import ObjectModel
 from sygrid.writers import load_bop_item
 
+THRESHOLDS = tuple(round(0.5 + 0.01 * k, 2) for k in range(50))  # the verification thresholds choose_threshold tries
+
 
 @dataclass(frozen=True)
 class StrategyRecord:
@@ -199,12 +201,12 @@ def choose(records: dict[tuple[int, str], list[StrategyRecord]], bar: float) -> 
 
 
 def choose_threshold(
-    records: list[StrategyRecord], max_false_accept: float, grid: tuple[float, ...] = tuple(np.arange(0.5, 0.991, 0.01))
+    records: list[StrategyRecord], max_false_accept: float, grid: tuple[float, ...] = THRESHOLDS
 ) -> float:
     """The lowest verification threshold on ``grid`` at which the false accepts of ``records`` stay within
     ``max_false_accept`` (the grid's last value when none does)."""
     for threshold in grid:
-        fa = summarize(records, float(threshold))["false_accept"]
+        fa = summarize(records, threshold)["false_accept"]
         if not fa > max_false_accept:  # NaN (nothing accepted) passes
-            return round(float(threshold), 2)
-    return round(float(grid[-1]), 2)
+            return threshold
+    return grid[-1]
