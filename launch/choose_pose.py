@@ -7,8 +7,9 @@ With ground-truth masks (the pose stage alone, ``perception.strategy_eval``), ev
 ``perception.pose_strategies`` runs on every instance seen at least 10 %; the table gives per part and strategy the
 ADD(-S) recall, the recall of the accepted estimates, median re and te, median wall and CPU milliseconds per object,
 and the verification's false accepts, false refusals and accepted wrong-class fits. The choice per part is the
-cheapest strategy whose recall reaches ``--bar``, else the most accurate; the verification threshold is the lowest
-that keeps the chosen strategies' false accepts within ``--max-false-accept``. Writes ``MODELS/pose_strategies.json``
+cheapest strategy whose recall of accepted estimates reaches ``--bar`` (refused poses are dropped by the pipeline),
+else the most accurate; the verification threshold is the lowest that keeps the chosen strategies' false accepts
+within ``--max-false-accept`` (the two chosen in turn until they agree). Writes ``MODELS/pose_strategies.json``
 (every figure, the command and the data) and the choice into ``MODELS/manifest.json`` (``pose.strategies`` and
 ``verify.min_confidence``), both atomically.
 """
@@ -48,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     from perception.pipeline import load_manifest
     from perception.pose import PoseEstimator
     from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
-    from perception.strategy_eval import choose, choose_threshold, evaluate_strategies, summarize
+    from perception.strategy_eval import choose_all, evaluate_strategies, summarize
     from perception.verify import PoseVerifier, VerifyConfig
     from sygrid.drop import resolve_object
 
@@ -68,9 +69,8 @@ def run(args: argparse.Namespace) -> int:
     runner = StrategyRunner(verifier=PoseVerifier(verify))
     settings = EvalSettings(split=args.split, max_images=args.max_images)
     records = evaluate_strategies(runner, network, models, args.data, strategies, settings)
-    choice = choose(records, args.bar)
+    choice, threshold = choose_all(records, args.bar, args.max_false_accept)
     chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
-    threshold = choose_threshold(chosen, args.max_false_accept)
     names = {obj_id: m.name for obj_id, m in models.items()}
     print(format_choice(records, choice, threshold, names))
     report = {

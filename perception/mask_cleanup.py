@@ -133,8 +133,10 @@ def clean_mask(
     valid = obs.mask & (depth > 0)
     details = {"pixels": int(obs.mask.sum()), "no_depth": 0, "floor": 0, "hole": 0, "rim": 0, "kept": 0}
     details["no_depth"] = details["pixels"] - int(valid.sum())
+    support = None
     if floor_plane_camera is not None:
-        height = floor_height_m(depth, obs.intrinsics, floor_plane_camera, obs.x0, obs.y0)
+        support = np.asarray(floor_plane_camera, dtype=float)
+        height = floor_height_m(depth, obs.intrinsics, support, obs.x0, obs.y0)
         on_floor = valid & (height < cfg.floor_margin_m)
         details["floor"] = int(on_floor.sum())
         valid &= ~on_floor
@@ -142,14 +144,15 @@ def clean_mask(
         height = floor_height_m(depth, obs.intrinsics, plane, obs.x0, obs.y0)
         # a part lies on its support, so the mask's pixels are on or above it; a plane above most of them is
         # something else in the surround (a taller neighbour), and the part's pixels below it are kept
-        if np.median(height[valid]) > -cfg.floor_margin_m:
+        if valid.any() and np.median(height[valid]) > -cfg.floor_margin_m:
+            support = plane
             on_floor = valid & (np.abs(height) < cfg.floor_margin_m)
             details["floor"] = int(on_floor.sum())
             valid &= ~on_floor
     pieces = _pieces(depth, valid, cfg.jump_m)
     n = int(pieces.max())
     if n == 0:
-        return obs.with_mask(valid), details
+        return obs.with_mask(valid, support), details
     sizes = np.bincount(pieces.ravel(), minlength=n + 1)[1:]
     main = int(np.argmax(sizes))
     keep = np.ones(n + 1, dtype=bool)
@@ -166,7 +169,7 @@ def clean_mask(
                 details["hole" if inside[k] else "rim"] += int(sizes[k])
     kept = keep[pieces]
     details["kept"] = int(kept.sum())
-    return obs.with_mask(kept), details
+    return obs.with_mask(kept, support), details
 
 
 def _behind_pieces(depth: np.ndarray, pieces: np.ndarray, n: int, jump_m: float) -> np.ndarray:

@@ -24,7 +24,8 @@ class Observation:
     """What a detection's poses are verified against: a crop of the depth image and the part's (cleaned) mask.
 
     ``depth_m``: (h, w) float64 metres, 0 = no data; ``mask``: (h, w) bool; ``x0, y0``: the crop's top-left pixel
-    in the image; ``intrinsics``: the full image's camera.
+    in the image; ``intrinsics``: the full image's camera; ``support``: ``(a, b, c, d)`` the surface the part lies
+    on (camera frame, unit normal towards the camera), None where unknown: no part of it can lie below.
     """
 
     depth_m: np.ndarray
@@ -32,6 +33,7 @@ class Observation:
     x0: int
     y0: int
     intrinsics: CameraIntrinsics
+    support: np.ndarray | None = None
 
     @classmethod
     def crop(
@@ -68,6 +70,7 @@ class Observation:
         )
         return cls.crop(depth_m, detection.mask, intrinsics, box)
 
-    def with_mask(self, mask: np.ndarray) -> Observation:
-        """The same crop with another (h, w) mask."""
-        return Observation(self.depth_m, np.asarray(mask, dtype=bool), self.x0, self.y0, self.intrinsics)
+    def with_mask(self, mask: np.ndarray, support: np.ndarray | None = None) -> Observation:
+        """The same crop with another (h, w) mask (and support, where given)."""
+        support = self.support if support is None else np.asarray(support, dtype=float)
+        return Observation(self.depth_m, np.asarray(mask, dtype=bool), self.x0, self.y0, self.intrinsics, support)

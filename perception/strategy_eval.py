@@ -184,20 +184,39 @@ def _record(
     )
 
 
-def choose(records: dict[tuple[int, str], list[StrategyRecord]], bar: float) -> dict[int, str]:
-    """Per obj_id: the cheapest strategy (median CPU ms) whose ADD(-S) recall reaches ``bar``, else the most
+def choose(records: dict[tuple[int, str], list[StrategyRecord]], bar: float, min_confidence: float) -> dict[int, str]:
+    """Per obj_id: the cheapest strategy (median CPU ms) whose recall of accepted estimates (at
+    ``min_confidence``: what the pipeline delivers, refused poses being dropped) reaches ``bar``, else the most
     accurate (ties: the cheaper)."""
     options: dict[int, list[tuple[str, dict]]] = {}
     for (obj_id, strategy), recs in records.items():
-        options.setdefault(obj_id, []).append((strategy, summarize(recs, 1.0)))
+        options.setdefault(obj_id, []).append((strategy, summarize(recs, min_confidence)))
     out = {}
     for obj_id, rows in sorted(options.items()):
-        good = [(row["median_cpu_ms"], name) for name, row in rows if row["add_recall"] >= bar]
+        good = [(row["median_cpu_ms"], name) for name, row in rows if row["accepted_recall"] >= bar]
         if good:
             out[obj_id] = min(good)[1]
         else:
-            out[obj_id] = max(rows, key=lambda o: (o[1]["add_recall"], -o[1]["median_cpu_ms"]))[0]
+            out[obj_id] = max(rows, key=lambda o: (o[1]["accepted_recall"], -o[1]["median_cpu_ms"]))[0]
     return out
+
+
+def choose_all(
+    records: dict[tuple[int, str], list[StrategyRecord]], bar: float, max_false_accept: float
+) -> tuple[dict[int, str], float]:
+    """The strategy per obj_id (``choose``) and the verification threshold that keeps the chosen strategies' false
+    accepts within ``max_false_accept`` (``choose_threshold``), each chosen given the other until they agree
+    (a few rounds; the threshold starts from all records together)."""
+    threshold = choose_threshold([r for recs in records.values() for r in recs], max_false_accept)
+    choice = choose(records, bar, threshold)
+    for _ in range(4):
+        chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
+        threshold = choose_threshold(chosen, max_false_accept)
+        again = choose(records, bar, threshold)
+        if again == choice:
+            break
+        choice = again
+    return choice, threshold
 
 
 def choose_threshold(

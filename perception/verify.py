@@ -188,9 +188,9 @@ class PoseVerifier:
 
     def _render(
         self, T: np.ndarray, caster: ModelRaycaster, obs: Observation, window: tuple[int, int, int, int]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The model's depth ray-cast through ``window`` (crop pixels, strided to at most ``max_rays``) and its
-        slope (``ModelRaycaster.depth``), with the observed depth and the mask at the same pixels."""
+    ) -> _Rendering:
+        """The model's depth ray-cast through ``window`` (crop pixels, strided to at most ``max_rays``) with the
+        observation at the same pixels."""
         cfg = self.config
         x0, y0, x1, y1 = window
         stride = max(1, math.ceil(math.sqrt((x1 - x0) * (y1 - y0) / cfg.max_rays)))
@@ -202,10 +202,18 @@ class PoseVerifier:
         dirs[..., 1] = ((v - K[1, 2]) / K[1, 1])[:, None]
         dirs[..., 2] = 1.0
         rendered, slope = caster.depth(T, dirs.reshape(-1, 3), cfg.threads)
-        rendered, slope = rendered.reshape(len(v), len(u)), slope.reshape(len(v), len(u))
-        observed = obs.depth_m[y0:y1:stride, x0:x1:stride]
-        in_mask = obs.mask[y0:y1:stride, x0:x1:stride]
-        return rendered, slope, observed, in_mask
+        shape = (len(v), len(u))
+        height = None
+        if obs.support is not None:  # the height of the model's surface above the support
+            height = rendered.reshape(shape) * (dirs @ obs.support[:3]) + float(obs.support[3])
+        return _Rendering(
+            rendered.reshape(shape),
+            slope.reshape(shape),
+            obs.depth_m[y0:y1:stride, x0:x1:stride],
+            obs.mask[y0:y1:stride, x0:x1:stride],
+            height,
+            stride,
+        )
 
     def verify(
         self,
@@ -237,30 +245,21 @@ class PoseVerifier:
         window = _window(obs, T, caster, cfg.window_margin_px) if np.isfinite(T).all() and T[2, 3] > 0 else None
         if window is None:
             return T, _empty(int(obs.mask.sum()))
-        rendered, slope, observed, in_mask = self._render(T, caster, obs, window)
+        r = self._render(T, caster, obs, window)
         if move:
-            both = in_mask & (rendered > 0) & (observed > 0)
+            both = r.in_mask & (r.rendered > 0) & (r.observed > 0)
             if both.any():
-                scale = 1.0 + float(np.median(observed[both] - rendered[both])) / T[2, 3]
+                scale = 1.0 + float(np.median(r.observed[both] - r.rendered[both])) / T[2, 3]
                 T[:3, 3] *= scale
-                rendered = rendered * scale
-        stride = max(1, round((window[2] - window[0]) / max(rendered.shape[1], 1)))
-        return T, self._score(T, model, obs, rendered, slope, observed, in_mask, stride, tolerance_fraction)
+                r = _Rendering(r.rendered * scale, r.slope, r.observed, r.in_mask, None, r.stride)
+        return T, self._score(T, model, obs, r, tolerance_fraction)
 
     def _score(
-        self,
-        T: np.ndarray,
-        model: ObjectModel,
-        obs: Observation,
-        rendered: np.ndarray,
-        slope: np.ndarray,
-        observed: np.ndarray,
-        in_mask: np.ndarray,
-        stride: int,
-        tolerance_fraction: float | None,
+        self, T: np.ndarray, model: ObjectModel, obs: Observation, r: _Rendering, tolerance_fraction: float | None
     ) -> Verification:
         """The verification figures from a rendering and the observation at the same (strided) pixels."""
         cfg = self.config
+        rendered, slope, observed, in_mask, stride = r.rendered, r.slope, r.observed, r.in_mask, r.stride
         hit = rendered > 0
         valid = observed > 0
         residual = observed - rendered
@@ -270,7 +269,9 @@ class PoseVerifier:
         behind = both & (residual > tol)  # the observed surface is behind the model: free space violated
         in_front = both & (residual < -tol)
         violation = behind | (in_front & in_mask)
-        occluded = in_front & ~in_mask
+        if r.height is not None:  # the part cannot reach through what it lies on
+            violation |= hit & (r.height < -self.tolerance_m(model, rendered))
+        occluded = in_front & ~in_mask & ~violation
         n_inlier, n_violation = int(inlier.sum()), int(violation.sum())
         # Mask pixels the model leaves open whose depth lies behind the model's surface next to them are background
         # seen past the part (through its hole, around its edge in a loose mask): no part surface left unexplained.
@@ -300,6 +301,19 @@ class PoseVerifier:
             mask_pixels=n_mask,
             rmse_m=rmse,
         )
+
+
+@dataclass(frozen=True)
+class _Rendering:
+    """The model's z-depth and slope at (strided) crop pixels, the observed depth and mask there, the rendered
+    surface's height above the observation's support (None without one) and the pixel stride."""
+
+    rendered: np.ndarray
+    slope: np.ndarray
+    observed: np.ndarray
+    in_mask: np.ndarray
+    height: np.ndarray | None
+    stride: int
 
 
 def _empty(mask_pixels: int) -> Verification:

@@ -18,7 +18,7 @@ from perception.observation import Observation
 from perception.pipeline import PerceptionPipeline, load_manifest
 from perception.pose_strategies import STRATEGIES, StrategyRunner, axis_rotations
 from perception.results import ObjectPose
-from perception.strategy_eval import StrategyRecord, choose, choose_threshold, summarize
+from perception.strategy_eval import StrategyRecord, choose, choose_all, choose_threshold, summarize
 from sygrid.errors import ConfigError
 from sygrid.metrics import pose_errors
 from sygrid.objects.parts import builtin_part
@@ -126,8 +126,11 @@ def test_the_choice_is_the_cheapest_strategy_that_meets_the_bar_else_the_most_ac
         (2, "rgbd+icp"): [_record(2, "rgbd+icp", k < 6, 5.0, 0.9) for k in range(10)],  # 60 %
         (2, "depth+icp"): [_record(2, "depth+icp", k < 8, 9.0, 0.9) for k in range(10)],  # 80 %
     }
-    assert choose(records, 0.9) == {1: "rgbd+icp", 2: "depth+icp"}
-    assert choose(records, 0.95) == {1: "depth+icp", 2: "depth+icp"}
+    assert choose(records, 0.9, 0.9) == {1: "rgbd+icp", 2: "depth+icp"}
+    assert choose(records, 0.95, 0.9) == {1: "depth+icp", 2: "depth+icp"}
+    # at 0.975 rgbd+icp's 0.97 are refused; on part 2 everything is, and the cheaper of the two stays
+    assert choose(records, 0.9, 0.975) == {1: "depth+icp", 2: "rgbd+icp"}
+    assert choose_all(records, 0.9, 0.2) == ({1: "rgbd+icp", 2: "depth+icp"}, 0.5)
     mixed = [_record(1, "s", True, 1.0, 0.9 + 0.001 * k) for k in range(99)] + [_record(1, "s", False, 1.0, 0.92)]
     assert choose_threshold(mixed, 0.0) == 0.93  # the one wrong estimate (0.92) is refused from 0.93 on
     row = summarize(mixed, 0.93)
