@@ -46,7 +46,7 @@ class IcpConfig:
     distance_fractions: tuple[float, ...] = (0.2, 0.08, 0.04)
     max_iterations: int = 10
     max_scene_points: int = 300
-    converged_fraction: float = 1e-4
+    converged_fraction: float = 1e-3
     occlusion: bool = True
 
     def __post_init__(self) -> None:
@@ -93,12 +93,12 @@ class ClosestPointMap:
 
     def lookup(self, x: np.ndarray) -> np.ndarray:
         """(n,) sample index of each object-frame point's cell, -1 outside the grid or beyond the reach."""
-        ijk = np.floor((x - self.origin) / self.cell_m).astype(np.int64)
-        shape = np.array(self.index.shape)
-        inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
+        f = (x - self.origin) * (1.0 / self.cell_m)
+        nx, ny, nz = self.index.shape
+        inside = (f[:, 0] >= 0) & (f[:, 1] >= 0) & (f[:, 2] >= 0) & (f[:, 0] < nx) & (f[:, 1] < ny) & (f[:, 2] < nz)
+        ijk = f[inside].astype(np.int64)  # non-negative: truncation is the floor
         out = np.full(len(x), -1, dtype=np.int64)
-        i = ijk[inside]
-        out[inside] = self.index[i[:, 0], i[:, 1], i[:, 2]]
+        out[inside] = self.index.ravel()[(ijk[:, 0] * ny + ijk[:, 1]) * nz + ijk[:, 2]]
         return out
 
 
@@ -137,9 +137,11 @@ def icp(
     T = np.array(T_camera_object, dtype=np.float64)
     iterations = 0
     converged = cfg.converged_fraction * diameter
-    for fraction in cfg.distance_fractions:
+    seen = _seen(T, cpm, model, cfg.occlusion)
+    for stage, fraction in enumerate(cfg.distance_fractions):
         distance = fraction * diameter
-        seen = _seen(T, cpm, model, cfg.occlusion)  # the pose moves little within a stage
+        if 0 < stage == len(cfg.distance_fractions) - 1:  # the fine stage sees from where the coarse ones ended
+            seen = _seen(T, cpm, model, cfg.occlusion)
         for _ in range(cfg.max_iterations):
             iterations += 1
             R, t = T[:3, :3], T[:3, 3]
@@ -163,7 +165,7 @@ def icp(
             if np.linalg.norm(w_v[3:]) + np.linalg.norm(w_v[:3]) * diameter / 2 < converged:
                 break
     x = (scene - T[:3, 3]) @ T[:3, :3]
-    keep, q, n = _matches(x, cpm, _seen(T, cpm, model, cfg.occlusion), cfg.distance_fractions[-1] * diameter)
+    keep, q, n = _matches(x, cpm, seen, cfg.distance_fractions[-1] * diameter)
     fitness = float(keep.mean()) if len(scene) else 0.0
     rmse = float(np.sqrt(np.mean(((q - x[keep]) * n).sum(axis=1) ** 2))) if len(q) else math.nan
     return IcpResult(T, fitness, rmse, iterations)

@@ -38,6 +38,7 @@ from sygrid.transforms import make_T
 
 STRATEGIES = ("rgb", "rgbd", "rgbd+icp", "depth", "depth+icp", "hybrid", "hybrid+icp")
 NETWORK_STRATEGIES = frozenset(s for s in STRATEGIES if s.split("+")[0] in ("rgb", "rgbd", "hybrid"))
+CENTRE_POINTS = 300  # model surface samples that place a hypothesis on the depth points' centroid
 EQUIVALENT_DEG = 10.0  # two axis assignments closer than this (modulo the part's symmetries) are one hypothesis
 
 
@@ -132,7 +133,7 @@ def centred_pose(R: np.ndarray, t_hint: np.ndarray, scene: np.ndarray, model: Ob
     """The pose with rotation ``R`` whose camera-facing model surface has the depth points' centroid (the depth
     says where the part is far better than an RGB estimate of its distance); None when no surface faces the
     camera. ``t_hint``: where the visibility is judged from (the part's rough position)."""
-    points, normals = model_surface(model, 1000, 0)
+    points, normals = model_surface(model, CENTRE_POINTS, 0)
     T = make_T(R, t_hint)
     p_cam, _ = visible_model_points(T, points, normals)
     if len(p_cam) < 3:

@@ -45,6 +45,7 @@ class VerifyConfig:
         depth_noise_m: the camera's depth noise (one standard deviation) at 1 m; 0 for exact depth.
         min_confidence: a pose whose confidence is below this is refused.
         max_rays: rays cast at most per verification (a large window is sampled with a pixel stride).
+        coarse_rays: rays cast at most for a coarse score (``align``, ranking unrefined hypotheses).
         window_margin_px: pixels added around the window (mask box united with the model's projected box).
         background_reach_fraction: a mask pixel the model leaves open counts as background seen past the part when
             its depth lies behind the model's farthest surface within this x diameter around it.
@@ -56,6 +57,7 @@ class VerifyConfig:
     depth_noise_m: float = 0.0
     min_confidence: float = 0.7
     max_rays: int = 1500
+    coarse_rays: int = 500
     window_margin_px: int = 4
     background_reach_fraction: float = 0.3
     threads: int = 2
@@ -66,10 +68,14 @@ class VerifyConfig:
                 "VerifyConfig: need tolerance_fraction >= 0, tolerance_min_m > 0 and depth_noise_m >= 0, got "
                 f"{self.tolerance_fraction}, {self.tolerance_min_m}, {self.depth_noise_m}"
             )
-        if not 0.0 <= self.min_confidence <= 1.0 or self.max_rays < 16 or self.window_margin_px < 0:
+        if (
+            not 0.0 <= self.min_confidence <= 1.0
+            or min(self.max_rays, self.coarse_rays) < 16
+            or self.window_margin_px < 0
+        ):
             raise ValueError(
-                "VerifyConfig: need min_confidence in [0, 1], max_rays >= 16 and window_margin_px >= 0, got "
-                f"{self.min_confidence}, {self.max_rays}, {self.window_margin_px}"
+                "VerifyConfig: need min_confidence in [0, 1], max_rays and coarse_rays >= 16 and window_margin_px >= 0,"
+                f" got {self.min_confidence}, {self.max_rays}, {self.coarse_rays}, {self.window_margin_px}"
             )
 
 
@@ -187,13 +193,13 @@ class PoseVerifier:
         return base + 3.0 * cfg.depth_noise_m * np.square(depth_m)
 
     def _render(
-        self, T: np.ndarray, caster: ModelRaycaster, obs: Observation, window: tuple[int, int, int, int]
+        self, T: np.ndarray, caster: ModelRaycaster, obs: Observation, window: tuple[int, int, int, int], rays: int
     ) -> _Rendering:
-        """The model's depth ray-cast through ``window`` (crop pixels, strided to at most ``max_rays``) with the
+        """The model's depth ray-cast through ``window`` (crop pixels, strided to at most ``rays``) with the
         observation at the same pixels."""
         cfg = self.config
         x0, y0, x1, y1 = window
-        stride = max(1, math.ceil(math.sqrt((x1 - x0) * (y1 - y0) / cfg.max_rays)))
+        stride = max(1, math.ceil(math.sqrt((x1 - x0) * (y1 - y0) / rays)))
         u = np.arange(x0, x1, stride) + obs.x0
         v = np.arange(y0, y1, stride) + obs.y0
         K = obs.intrinsics.K
@@ -238,14 +244,14 @@ class PoseVerifier:
         """The pose moved along its viewing ray so that the rendered model meets the observed surface (the median
         of observed minus rendered depth over the mask's pixels where both exist), and its verification, from one
         rendering (the moved pose's depths are the rendered ones scaled by the move, its silhouette taken as
-        unchanged). ``move`` False: the pose as given and its exact verification."""
+        unchanged), at most ``coarse_rays``. ``move`` False: the pose as given and its exact verification."""
         cfg = self.config
         T = np.array(T_camera_object, dtype=np.float64)
         caster = raycaster(model)
         window = _window(obs, T, caster, cfg.window_margin_px) if np.isfinite(T).all() and T[2, 3] > 0 else None
         if window is None:
             return T, _empty(int(obs.mask.sum()))
-        r = self._render(T, caster, obs, window)
+        r = self._render(T, caster, obs, window, cfg.coarse_rays if move else cfg.max_rays)
         if move:
             both = r.in_mask & (r.rendered > 0) & (r.observed > 0)
             if both.any():
