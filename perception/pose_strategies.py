@@ -1,6 +1,6 @@
 """Pose strategies: how a part's pose is found from a detection, the frame's depth and (where used) the pose network.
 
-A strategy is a source of hypotheses, optionally refined by ICP (``perception.refine``), and the verification
+A strategy is a source of hypotheses, optionally refined by ICP (``perception.icp``), and the verification
 (``perception.verify``) chooses among them and gives the result its confidence:
 
 - ``rgb``: the network's pose as it is (no depth in the fit);
@@ -10,7 +10,12 @@ A strategy is a source of hypotheses, optionally refined by ICP (``perception.re
   axes and signs that the part's symmetry does not make equivalent (``axis_rotations``), each translated as above;
 - ``hybrid``: the ``depth`` hypotheses and the ``rgbd`` one (the network's rotation where the shape leaves the
   principal axes ambiguous);
-- ``+icp`` on any of the depth-based ones: the ``icp_hypotheses`` best-verified hypotheses are refined by ICP.
+- ``+icp`` on any of the depth-based ones: each hypothesis is moved along its viewing ray onto the observed surface
+  and scored coarsely, the ``icp_hypotheses`` best are refined by ICP (the first to reach ``good_confidence`` ends
+  it); short of that, the best fit turned about its own axes is tried (``_turns``), then slid along them
+  (``_polish``);
+- ``+search``: as ``+icp``, but every hypothesis is ranked by its verification after a short ICP (dearer, for
+  parts whose coarse scores mislead, such as a bolt seen end-on or a bracket's legs).
 
 The mask is cleaned with depth first (``perception.mask_cleanup``). Every estimate carries the verification of the
 chosen hypothesis in ``details["verify"]``, its confidence as the pose's ``score`` and the verdict as ``verified``.
@@ -36,7 +41,9 @@ from sygrid.metrics import symmetric_pose_errors
 from sygrid.objects.model import ObjectModel
 from sygrid.transforms import make_T
 
-STRATEGIES = ("rgb", "rgbd", "rgbd+icp", "depth", "depth+icp", "hybrid", "hybrid+icp")
+STRATEGIES = (
+    "rgb", "rgbd", "rgbd+icp", "depth", "depth+icp", "depth+search", "hybrid", "hybrid+icp", "hybrid+search",
+)  # fmt: skip
 NETWORK_STRATEGIES = frozenset(s for s in STRATEGIES if s.split("+")[0] in ("rgb", "rgbd", "hybrid"))
 CENTRE_POINTS = 300  # model surface samples that place a hypothesis on the depth points' centroid
 EQUIVALENT_DEG = 10.0  # two axis assignments closer than this (modulo the part's symmetries) are one hypothesis
@@ -53,6 +60,7 @@ class StrategyConfig:
     escape_quick: rank the turns by their verification after a short ICP (not the coarse score).
     good_confidence: a fit this confident ends the search (no further hypothesis is refined).
     polish_steps: step sizes (x diameter) of the slide search on a fit short of ``good_confidence`` (``_polish``).
+    slide_fractions: the turns (``_turns``) also take the fit slid by these (x diameter) along its longest axis.
     mask_erosion_px: mask pixels peeled off the cleaned mask's border before fitting (edge depth mixes surfaces).
     min_points: fewer depth points than this in the cleaned mask: the network's pose (or none) with confidence 0.
     """
@@ -64,6 +72,7 @@ class StrategyConfig:
     escape_quick: bool = True
     good_confidence: float = 0.95
     polish_steps: tuple[float, ...] = (0.08, 0.04, 0.02)
+    slide_fractions: tuple[float, ...] = (0.25, 0.5)
     mask_erosion_px: int = 0
     min_points: int = 10
 
@@ -236,7 +245,7 @@ class StrategyRunner:
                 _Candidate(hypotheses[0][0], hypotheses[0][1], self.verifier.verify(hypotheses[0][0], model, obs))
             ]
         elif refine:
-            candidates = self._search(hypotheses, scene, model, obs)
+            candidates = self._search(hypotheses, scene, model, obs, quick=refine == "search")
         else:
             candidates = []
             for T, src in hypotheses:
@@ -261,12 +270,17 @@ class StrategyRunner:
         return ObjectPose(detection, best.T, v.confidence, strategy, details, verified=v.accepted)
 
     def _search(
-        self, hypotheses: list[tuple[np.ndarray, str]], scene: np.ndarray, model: ObjectModel, obs: Observation
+        self,
+        hypotheses: list[tuple[np.ndarray, str]],
+        scene: np.ndarray,
+        model: ObjectModel,
+        obs: Observation,
+        quick: bool = False,
     ) -> list[_Candidate]:
-        """ICP from the best hypotheses; short of ``good_confidence``, from the best fit's turns (``_turns``),
-        then the slide search (``_polish``). Every fit comes back verified."""
+        """ICP from the best hypotheses (``quick``: ranked after a short ICP each); short of ``good_confidence``, from
+        the best fit's turns (``_turns``), then the slide search (``_polish``). Every fit comes back verified."""
         cfg = self.config
-        candidates = self._refine_ranked(hypotheses, scene, model, obs)
+        candidates = self._refine_ranked(hypotheses, scene, model, obs, quick)
         best = max(candidates, key=lambda c: c.verification.confidence)
         for _ in range(cfg.escape_rounds):
             if best.verification.confidence >= cfg.good_confidence:
@@ -358,6 +372,14 @@ class StrategyRunner:
             T = centred_pose(best.T[:3, :3] @ E @ Q @ E.T, best.T[:3, 3], scene, model)
             if T is not None:
                 out.append((T, f"{best.source}+turn_{k}"))
+        # slid along its longest axis: the visible surface may be one end of the part (a bolt's head, the shank
+        # hidden under a neighbour), which the centroid placed at the middle
+        longest = best.T[:3, :3] @ E[:, 2]
+        for fraction in self.config.slide_fractions:
+            for sign in (1.0, -1.0):
+                T = best.T.copy()
+                T[:3, 3] += sign * fraction * float(model.diameter_m) * longest
+                out.append((T, f"{best.source}+slide_{sign * fraction:+.2f}"))
         return out
 
     def _icp(self, T: np.ndarray, source: str, scene: np.ndarray, model: ObjectModel, obs: Observation) -> _Candidate:
