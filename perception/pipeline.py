@@ -5,20 +5,28 @@ Loaded from a model folder whose ``manifest.json`` names the files and settings:
     {"format": "sygrid-models/1",
      "objects": [{"builtin": "hex_nut"}, {"file": "cad/bracket.ply", "unit": "mm", "obj_id": 12}],
      "detector": {"onnx": "detector.onnx", "conf_threshold": 0.4},
-     "pose": {"onnx": "pose.onnx", "method": "direct"},
+     "pose": {"onnx": "pose.onnx", "method": "direct",
+              "strategies": {"hex_nut": "depth+icp", "bracket": "hybrid+search"}},
+     "verify": {"min_confidence": 0.9},
      "refine": {"enabled": true}}
 
 ``objects`` uses the scene description's object entries (paths relative to the folder). The detector gives
-classes, boxes and masks; the pose model a pose per detection of a part it knows; the refiner (point-to-plane
-ICP against the depth inside the mask) a refined pose where it can be trusted. Any stage can be overridden by
-the caller (``PipelineOverrides``), which is how the benchmark sweeps input sizes and methods.
+classes, boxes and masks. With ``pose.strategies`` (a strategy per object name, ``perception.pose_strategies``,
+written by ``sygrid models choose-pose``), each detection's pose comes from its part's strategy: the pose network
+runs only for the detections whose strategy uses it, every pose is verified against the depth and mask
+(``perception.verify``, accepted from ``verify.min_confidence``), and the refused ones are kept apart
+(``PerceptionResult.refused``). Without it, the pose model gives a pose per detection of a part it knows and the
+refiner (point-to-plane ICP against the depth inside the mask) a refined pose where it can be trusted. Any stage
+can be overridden by the caller (``PipelineOverrides``; a pose method or refinement override runs the network and
+refiner path), which is how the benchmark sweeps input sizes and methods.
 
 A cell knows where parts can be (the bin), so the pipeline can be given that region as 3D points in the camera
 frame; the detector then looks only at their image box (``region_of_interest``), at the scale it would see the
 whole frame at: same parts found, at the region's share of the cost. It can also be given the plane of the bin's
-floor: the refinement then ignores depth pixels on the floor. A detection mask at this scale is a filled blob, so
-a nut's mask takes in the floor seen through its hole (a third of its depth points, 10.8 mm below its top face),
-which pulled ICP towards a nut standing on edge; no part surface lies on the floor plane itself.
+floor: the refinement then ignores depth pixels on the floor (the strategies' mask clean-up takes it as the
+support, else finds the surface around each part, ``perception.mask_cleanup``). A detection mask at this scale is
+a filled blob, so a nut's mask takes in the floor seen through its hole, which pulled ICP towards a nut standing on
+edge; no part surface lies on the floor plane itself.
 """
 
 from __future__ import annotations

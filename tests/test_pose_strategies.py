@@ -159,3 +159,43 @@ def test_the_manifest_choice_round_trip(tmp_path: Path):
     (folder / "manifest.json").write_text(json.dumps(data))
     with pytest.raises(ConfigError, match=rf"manifest.json: pose.strategies: no strategy for {names[0]}"):
         PerceptionPipeline.from_folder(folder)
+
+
+class _FixedDetector:
+    """Returns the given detections for any frame."""
+
+    conf_threshold = 0.5
+
+    def __init__(self, detections) -> None:
+        self.detections = detections
+
+    def detect(self, rgb, roi=None):
+        return list(self.detections)
+
+
+def test_the_pipeline_follows_the_strategies_and_keeps_refused_poses_apart(scene):
+    from perception.camera import Frame
+
+    good = [detection(NUT, blob(scene.masks[0])), detection(WASHER, blob(scene.masks[1]))]
+    wrong = detection(NUT, scene.masks[2], obj_id=NUT.obj_id)  # the bracket's mask called a nut
+    models = {NUT.obj_id: NUT, WASHER.obj_id: WASHER}
+    strategies = {NUT.obj_id: "depth+icp", WASHER.obj_id: "depth+icp"}  # no network: pose=None is never asked
+    frame = Frame(np.zeros((CAMERA.height, CAMERA.width, 3), np.uint8), scene.depth, CAMERA, 0.0)
+    pipeline = PerceptionPipeline(_FixedDetector([*good, wrong]), None, models, strategies=strategies)  # type: ignore[arg-type]
+    result = pipeline.run(frame)
+    assert sorted(p.obj_id for p in result.poses) == [NUT.obj_id, WASHER.obj_id]
+    assert all(p.verified and p.method == "depth+icp" for p in result.poses)
+    for p in result.poses:
+        k = 0 if p.obj_id == NUT.obj_id else 1
+        assert pose_errors(p.T_camera_object, scene.poses[k], models[p.obj_id]).correct()
+    assert [p.detection for p in result.refused] == [wrong] and result.refused[0].verified is False
+    assert set(result.timings_ms) == {"detect", "pose", "refine", "total"} and result.timings_ms["pose"] < 1.0
+    # max_refined: the nearest part is fitted, the other waits for refine_more
+    limited = PerceptionPipeline(_FixedDetector(good), None, models, max_refined=1, strategies=strategies)  # type: ignore[arg-type]
+    first = limited.run(frame)
+    assert sorted(p.details["icp"]["status"] for p in first.poses) == ["refined", "skipped"]
+    more = limited.refine_more(first.poses, frame)
+    assert more is not None and all(p.verified for p in more) and len(more) == 2
+    assert limited.refine_more(more, frame) is None
+    with pytest.raises(ConfigError, match="strategies must name every model"):
+        PerceptionPipeline(None, None, models, strategies={NUT.obj_id: "depth+icp"})  # type: ignore[arg-type]
