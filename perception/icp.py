@@ -1,12 +1,14 @@
-"""Point-to-plane ICP of a part's model against its depth points, in numpy with a k-d tree cached per model.
+"""Point-to-plane ICP of a part's model against its depth points, in numpy with a closest-point map per model.
 
-The depth points are moved into the object frame at the current pose and matched to their nearest model surface
-sample (``scipy.spatial.cKDTree`` over the model's samples, built once per model: the model never moves in its own
-frame, so no tree is built per iteration or per hypothesis). A match whose model normal faces away from the camera
-(the hidden back of the part) or lies farther than the stage's distance is dropped. Each iteration solves the
-linearised point-to-plane problem for a small twist about the object origin (6x6 normal equations, with a small
-ridge term so that a turn about a symmetry axis, which the data cannot fix, stays put) and composes it onto the
-pose. Stages of shrinking match distance (fractions of the diameter) run until the update is negligible.
+The depth points are moved into the object frame at the current pose and matched to the model surface sample
+nearest to their cell of a grid around the model (``ClosestPointMap``, built once per model with a k-d tree: the
+model never moves in its own frame, so nothing is built per iteration or per hypothesis). Only samples the camera
+sees at the current pose are matched: facing it and, with ``occlusion``, not hidden behind the part's own surface
+(ray cast, at the start and before the last stage), so that a point on a pipe's near wall does not match its far
+wall's inside. A match farther than the stage's distance is dropped. Each iteration solves the linearised
+point-to-plane problem for a small twist about the object origin (6x6 normal equations, with a small ridge term so
+that a turn about a symmetry axis, which the data cannot fix, stays put) and composes it onto the pose. Stages of
+shrinking match distance (fractions of the diameter) run until the update is negligible.
 
 The result's ``fitness`` is the fraction of depth points matched within the last stage's distance, ``rmse_m`` their
 point-to-plane RMS residual.

@@ -6,15 +6,18 @@ pulls the pose off, and the principal axes of the cloud with them. The clean-up 
 part's surface:
 
 1. pixels without depth go;
-2. with a known floor plane (the cell knows its bin), pixels less than ``floor_margin_m`` above it go (no part
-   surface lies on the floor itself);
-3. the mask is cut along depth discontinuities (neighbouring pixels whose depths differ by more than ``jump_m``,
-   more than a part's own surface steps between neighbouring pixels) into connected pieces;
-4. the largest piece is the part; a smaller piece that lies behind it (its median depth more than ``jump_m``
-   farther) is what is seen past the part's edge or through its hole, and goes, as do pieces of fewer than
-   ``min_piece_px`` pixels. Pieces level with or in front of the largest stay (the part's other faces).
+2. the floor: with a known floor plane (the cell knows its bin), pixels less than ``floor_margin_m`` above it go;
+   without one, the plane the part lies on is found in the depth just around the mask (``support_plane``) and
+   pixels within ``floor_margin_m`` of it go (a plane above most of the mask is a taller neighbour, not a support,
+   and is not used). No part surface lies on its support itself. The plane used is the observation's ``support``,
+   which the verification holds the model above;
+3. the mask is cut along depth discontinuities (4-neighbours whose depths differ by more than ``jump_m``, more
+   than a part's own surface steps between neighbouring pixels) into connected pieces;
+4. a piece that lies behind the pieces it touches is what is seen past the part's edge or through its hole when it
+   is enclosed by the mask (a hole), a rim (an erosion by ``rim_px`` removes it) or tiny: those go. A larger piece
+   behind its neighbours that reaches the mask's edge stays (a bracket's far leg seen past its near one).
 
-Returns the cleaned mask and what was removed, per reason (``details``), for the pose's diagnostics.
+Returns the cleaned observation and what was removed, per reason (``details``), for the pose's diagnostics.
 """
 
 from __future__ import annotations

@@ -1,23 +1,27 @@
 """Pose hypothesis verification: the model rendered at a pose must agree with the observed depth and mask.
 
 The model's depth is ray-cast (open3d ``RaycastingScene``, one scene per model, cached) through the pixels of a
-window around the detection's mask and the model's projected box. Every rendered pixel with a depth measurement is
-one of:
+window around the detection's mask and the model's projected box (``perception.observation``'s crop). Every rendered
+pixel with a depth measurement is one of:
 
-- an inlier: the observed depth lies within ``tolerance`` of the rendered depth;
+- an inlier: the observed depth lies within the tolerance of the rendered depth;
 - a violation of free space: the observed surface lies behind the model (the model would hide it, so it cannot be
-  there), or, inside the mask, the observed part surface lies in front of the model (the model sits too deep);
+  there), or, inside the mask, the observed part surface lies in front of the model (the model sits too deep), or
+  the model reaches below the surface the part lies on (the observation's ``support``);
 - occluded: outside the mask, something lies in front of the model (another part): no evidence either way.
 
 ``fit`` is the inlier fraction of the rendered pixels that are not occluded (does the model's visible surface lie
 where depth says a surface is), ``coverage`` the fraction of the mask's depth pixels that rendered inliers explain
 (does the model account for what was segmented: a smaller part's model fitted into a larger part's mask covers only
-some of it), ``iou`` the silhouette IoU of the unoccluded rendering and the mask. The pose's confidence is
-``sqrt(fit * coverage)`` in [0, 1]; it is accepted when the confidence reaches ``min_confidence``.
+some of it); mask pixels the model leaves open whose depth lies behind the model's surface next to them are
+background seen past the part (through its hole, around its edge) and do not count. ``iou`` is the silhouette IoU
+of the unoccluded rendering and the mask. The pose's confidence is ``sqrt(fit * coverage)`` in [0, 1]; it is
+accepted when the confidence reaches ``min_confidence``.
 
-The tolerance is ``max(tolerance_min_m, tolerance_fraction x diameter)`` plus three standard deviations of the
+The tolerance is ``max(tolerance_min_m, tolerance_fraction x diameter)``, plus three standard deviations of the
 camera's depth noise at the pixel's depth (``depth_noise_m`` at 1 m, growing with the square of the depth, the
-stereo error model).
+stereo error model), plus a pixel's worth of the surface's slope (``z / f x tan`` of the angle between the ray and
+the surface normal): where a face recedes steeply, a sub-pixel shift of an edge changes the depth by millimetres.
 """
 
 from __future__ import annotations
