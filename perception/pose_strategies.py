@@ -33,7 +33,7 @@ import numpy as np
 from perception.icp import IcpConfig, icp
 from perception.mask_cleanup import MaskCleanupConfig, clean_mask
 from perception.observation import Observation
-from perception.refine import model_surface, visible_model_points
+from perception.refine import model_surface, principal_axes, visible_model_points
 from perception.results import Detection, ObjectPose
 from perception.verify import PoseVerifier, Verification, raycaster
 from sygrid.camera import CameraIntrinsics
@@ -54,14 +54,13 @@ class StrategyConfig:
     """Attributes:
     icp_hypotheses: hypotheses refined by ICP (the best by the coarse score), for the ``+icp`` strategies.
     coarse_tolerance_fraction: the verification's tolerance (x diameter) when ranking unrefined hypotheses.
-    align_steps: depth alignments of each hypothesis (``_align``).
+    align_steps: depth alignments of each hypothesis (``_aligned``).
     escape_rounds: while the best ICP fit is short of ``good_confidence``, try it turned about its own axes
         (``_turns``), at most this many times (each from the best so far, while it improves).
     escape_quick: rank the turns by their verification after a short ICP (not the coarse score).
     good_confidence: a fit this confident ends the search (no further hypothesis is refined).
     polish_steps: step sizes (x diameter) of the slide search on a fit short of ``good_confidence`` (``_polish``).
     slide_fractions: the turns (``_turns``) also take the fit slid by these (x diameter) along its longest axis.
-    mask_erosion_px: mask pixels peeled off the cleaned mask's border before fitting (edge depth mixes surfaces).
     min_points: fewer depth points than this in the cleaned mask: the network's pose (or none) with confidence 0.
     """
 
@@ -73,14 +72,13 @@ class StrategyConfig:
     good_confidence: float = 0.95
     polish_steps: tuple[float, ...] = (0.08, 0.04, 0.02)
     slide_fractions: tuple[float, ...] = (0.25, 0.5)
-    mask_erosion_px: int = 0
     min_points: int = 10
 
     def __post_init__(self) -> None:
-        if self.icp_hypotheses < 1 or self.mask_erosion_px < 0 or self.min_points < 3:
+        if self.icp_hypotheses < 1 or self.escape_rounds < 0 or self.min_points < 3 or self.align_steps < 0:
             raise ValueError(
-                "StrategyConfig: need icp_hypotheses >= 1, mask_erosion_px >= 0 and min_points >= 3, got "
-                f"{self.icp_hypotheses}, {self.mask_erosion_px}, {self.min_points}"
+                "StrategyConfig: need icp_hypotheses >= 1, escape_rounds >= 0, min_points >= 3 and align_steps >= 0,"
+                f" got {self.icp_hypotheses}, {self.escape_rounds}, {self.min_points}, {self.align_steps}"
             )
 
 
@@ -102,14 +100,6 @@ def _proper_axis_maps() -> np.ndarray:
             if np.linalg.det(Q) > 0:
                 out.append(Q)
     return np.stack(out)
-
-
-def principal_axes(points: np.ndarray) -> np.ndarray:
-    """(3, 3) right-handed frame whose columns are the point set's principal directions, least variance first."""
-    _, vectors = np.linalg.eigh(np.cov(np.asarray(points, dtype=np.float64).T))
-    if np.linalg.det(vectors) < 0:
-        vectors[:, 2] *= -1.0
-    return vectors
 
 
 @lru_cache(maxsize=64)
