@@ -19,7 +19,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("sim.server", "serve a simulated UR5e cell that ur_rtde clients can drive"),
     "generate": ("launch.generate", "generate (or resume) a dataset from a recipe: BOP, YOLO and COCO labels"),
     "train": ("launch.train", "train the detector or the pose model on a generated dataset, export ONNX"),
-    "models": ("launch.models", "pack trained runs into a model folder with model cards and test-set metrics"),
+    "models": ("launch.models", "pack trained runs into a model folder; choose its pose strategy per part"),
     "eval": ("launch.eval", "evaluate the perception models on a generated dataset (mAP, ADD(-S), errors)"),
     "pick": ("launch.pick", "run the pick cycle on a cell file (simulated or hardware) and write its report"),
     "calibrate": ("launch.calibrate", "calibrate a cell's gripper (empty open/close) and write its calibration file"),

@@ -1,5 +1,6 @@
 """``sygrid models pack``: turn a detector run and a pose run into a model folder the pipeline loads, with a model
-card per model (data, command, seed, training time, size, metrics on a held-out test set).
+card per model (data, command, seed, training time, size, metrics on a held-out test set). ``sygrid models
+choose-pose`` (``launch.choose_pose``) measures the pose strategies per part and writes the choice into the folder.
 
     sygrid models pack --detector runs/detector --pose runs/pose --out models/builtin --test-data datasets/test
 
@@ -46,10 +47,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     fails.add_argument("--max-images", type=int, default=None, help="evaluate on the first N test images")
     fails.add_argument("--region", choices=["full", "bin"], default="full", help="where the detector looks")
 
+    choose = sub.add_parser(
+        "choose-pose", help="measure every pose strategy per part on a test set, write the choice into the manifest"
+    )
+    from launch import choose_pose
+
+    choose_pose.add_arguments(choose)
+
 
 def run(args: argparse.Namespace) -> int:
     if args.action == "breakdown":
         return run_breakdown(args)
+    if args.action == "choose-pose":
+        from launch import choose_pose
+
+        return choose_pose.run(args)
+    return pack(args)
+
+
+def pack(args: argparse.Namespace) -> int:
     det_log = _train_log(args.detector, "detector.onnx")
     pose_log = _train_log(args.pose, "pose.onnx")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -119,6 +119,7 @@ def evaluate(
     if not items:
         raise ConfigError(f"{root / split}: no images")
     images, detections, records, timings, depth_rows, sensor_ms = [], [], [], [], [], []
+    verdicts, per_object = [], []
     dataset_bin = DatasetBin(data_dir) if s.region == "bin" else None
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
@@ -142,6 +143,9 @@ def evaluate(
         for inst, pose in match_poses(ann, result.poses, s.min_visib_fract, s.match_iou):
             model = pipeline.models[inst.obj_id]
             records.append(_errors(pose, inst.T_camera_obj, model))
+        verdicts += _verdicts(ann, result.poses + result.refused, pipeline.models, s.match_iou)
+        per_object += [(p.details["time_ms"], p.details["cpu_ms"]) for p in result.poses + result.refused
+                       if "cpu_ms" in p.details]  # fmt: skip
     det = detection_metrics(images, detections, min_visib_fract=s.min_visib_fract)
     names = {obj_id: m.name for obj_id, m in pipeline.models.items()}
     n_objects = [len(r) for r in detections]
@@ -160,6 +164,10 @@ def evaluate(
         "sensor_ms_median": float(np.median(sensor_ms)),
         "depth": asdict(mean_depth_metrics(m for *_, m in depth_rows)),
         "depth_per_image": [{"scene_id": sc, "image_id": im, **asdict(m)} for sc, im, m in depth_rows],
+        "strategies": None if pipeline.strategies is None else {names[k]: v for k, v in pipeline.strategies.items()},
+        "verification": _verification_summary(verdicts) if pipeline.strategies is not None else None,
+        "pose_ms_per_object_median": _median_of([t for t, _ in per_object]),
+        "pose_cpu_ms_per_object_median": _median_of([c for _, c in per_object]),
     }
 
 
@@ -190,6 +198,45 @@ def _metal_mask(ann: ImageAnnotation, models: dict[int, ObjectModel]) -> np.ndar
     return metal_mask([i.mask_visib for i in ann.instances], materials, METALS)
 
 
+def _verdicts(
+    ann: ImageAnnotation, poses: list[ObjectPose], models: dict[int, ObjectModel], min_iou: float
+) -> list[tuple[bool, bool]]:
+    """(accepted, correct) per verified pose: correct when its mask overlaps a ground-truth instance of its part
+    (any visibility, IoU >= ``min_iou``, the best overlap) and its pose is within ADD(-S) < 0.1 d of it."""
+    out = []
+    for pose in poses:
+        if pose.verified is None or pose.detection.mask is None:
+            continue
+        best, best_iou = None, min_iou
+        for inst in ann.instances:
+            if inst.obj_id != pose.obj_id:
+                continue
+            union = np.count_nonzero(pose.detection.mask | inst.mask_visib)
+            iou = np.count_nonzero(pose.detection.mask & inst.mask_visib) / union if union else 0.0
+            if iou >= best_iou:
+                best, best_iou = inst, iou
+        correct = best is not None and _errors(pose, best.T_camera_obj, models[pose.obj_id]).correct()
+        out.append((bool(pose.verified), correct))
+    return out
+
+
+def _verification_summary(verdicts: list[tuple[bool, bool]]) -> dict:
+    """Accepted and refused counts; false accepts (wrong among the accepted) and false refusals (refused among the
+    correct) as fractions."""
+    n_acc = sum(a for a, _ in verdicts)
+    n_correct = sum(c for _, c in verdicts)
+    return {
+        "accepted": n_acc,
+        "refused": len(verdicts) - n_acc,
+        "false_accept": sum(a and not c for a, c in verdicts) / n_acc if n_acc else math.nan,
+        "false_refuse": sum(c and not a for a, c in verdicts) / n_correct if n_correct else math.nan,
+    }
+
+
+def _median_of(values: list[float]) -> float:
+    return float(np.median(values)) if values else math.nan
+
+
 def _errors(pose: ObjectPose | None, T_gt: np.ndarray, model: ObjectModel) -> PoseErrors:
     return pose_errors(None if pose is None else pose.T_camera_object, T_gt, model)
 
@@ -204,9 +251,11 @@ def _named(table: dict, names: dict[int, str]) -> dict:
 def format_table(report: dict) -> str:
     """The report as a plain-text table (one row per part)."""
     det = report["detection"]
+    how = f"pose method {report['pose_method']}{' + ICP' if report['refine'] else ''}"
+    if report.get("strategies"):
+        how = "pose strategies " + ", ".join(f"{k} {v}" for k, v in report["strategies"].items())
     lines = [
-        f"{report['n_images']} images ({report['split']}), pose method {report['pose_method']}"
-        f"{' + ICP' if report['refine'] else ''}",
+        f"{report['n_images']} images ({report['split']}), {how}",
         f"box mAP50 {det['box_map50']:.3f}  box mAP50-95 {det['box_map50_95']:.3f}  "
         f"mask mAP50 {det['mask_map50']:.3f}  mask mAP50-95 {det['mask_map50_95']:.3f}",
         f"{'part':<16}{'metric':>8}{'n':>6}{'ADD(-S)<0.1d':>14}{'re med deg':>12}{'te med mm':>11}",
@@ -224,6 +273,14 @@ def format_table(report: dict) -> str:
     )
     t = {**report["timings_ms_median"], "sensor": report["sensor_ms_median"]}
     lines.append("median ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()))
+    if report.get("verification"):
+        v = report["verification"]
+        lines.append(
+            f"verification: {v['accepted']} accepted, {v['refused']} refused; false accepts {_pct(v['false_accept'])}"
+            f" of the accepted, false refusals {_pct(v['false_refuse'])} of the correct; pose + verification + "
+            f"refinement per object median {report['pose_ms_per_object_median']:.1f} ms "
+            f"({report['pose_cpu_ms_per_object_median']:.1f} ms CPU)"
+        )
     return "\n".join(lines)
 
 

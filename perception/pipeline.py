@@ -5,24 +5,33 @@ Loaded from a model folder whose ``manifest.json`` names the files and settings:
     {"format": "sygrid-models/1",
      "objects": [{"builtin": "hex_nut"}, {"file": "cad/bracket.ply", "unit": "mm", "obj_id": 12}],
      "detector": {"onnx": "detector.onnx", "conf_threshold": 0.4},
-     "pose": {"onnx": "pose.onnx", "method": "direct"},
+     "pose": {"onnx": "pose.onnx", "method": "direct",
+              "strategies": {"hex_nut": "depth+icp", "bracket": "hybrid+search"}},
+     "verify": {"min_confidence": 0.9},
      "refine": {"enabled": true}}
 
 ``objects`` uses the scene description's object entries (paths relative to the folder). The detector gives
-classes, boxes and masks; the pose model a pose per detection of a part it knows; the refiner (point-to-plane
-ICP against the depth inside the mask) a refined pose where it can be trusted. Any stage can be overridden by
-the caller (``PipelineOverrides``), which is how the benchmark sweeps input sizes and methods.
+classes, boxes and masks. With ``pose.strategies`` (a strategy per object name, ``perception.pose_strategies``,
+written by ``sygrid models choose-pose``), each detection's pose comes from its part's strategy: the pose network
+runs only for the detections whose strategy uses it, every pose is verified against the depth and mask
+(``perception.verify``, accepted from ``verify.min_confidence``), and the refused ones are kept apart
+(``PerceptionResult.refused``). Without it, the pose model gives a pose per detection of a part it knows and the
+refiner (point-to-plane ICP against the depth inside the mask) a refined pose where it can be trusted. Any stage
+can be overridden by the caller (``PipelineOverrides``; a pose method or refinement override runs the network and
+refiner path), which is how the benchmark sweeps input sizes and methods.
 
 A cell knows where parts can be (the bin), so the pipeline can be given that region as 3D points in the camera
 frame; the detector then looks only at their image box (``region_of_interest``), at the scale it would see the
 whole frame at: same parts found, at the region's share of the cost. It can also be given the plane of the bin's
-floor: the refinement then ignores depth pixels on the floor. A detection mask at this scale is a filled blob, so
-a nut's mask takes in the floor seen through its hole (a third of its depth points, 10.8 mm below its top face),
-which pulled ICP towards a nut standing on edge; no part surface lies on the floor plane itself.
+floor: the refinement then ignores depth pixels on the floor (the strategies' mask clean-up takes it as the
+support, else finds the surface around each part, ``perception.mask_cleanup``). A detection mask at this scale is
+a filled blob, so a nut's mask takes in the floor seen through its hole, which pulled ICP towards a nut standing on
+edge; no part surface lies on the floor plane itself.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,14 +39,16 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from perception.camera import Frame
 from perception.detector import YoloSegDetector
 from perception.pose import PoseEstimator
+from perception.pose_strategies import NETWORK_STRATEGIES, STRATEGIES, StrategyRunner
 from perception.refine import DepthRefiner, RefineConfig
 from perception.results import Detection, ObjectPose
 from perception.tiling import DEFAULT_TILE_OVERLAP, ViewSettings
+from perception.verify import PoseVerifier, VerifyConfig
 from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.drop import resolve_object
 from sygrid.errors import ConfigError
@@ -76,6 +87,23 @@ class DetectorEntry(_Strict):
 class PoseEntry(_Strict):
     onnx: str
     method: Literal["direct", "pnp"] = "direct"
+    # part name -> pose strategy (perception.pose_strategies.STRATEGIES); None: the network + the refiner
+    strategies: dict[str, str] | None = None
+
+    @field_validator("strategies")
+    @classmethod
+    def _known_strategies(cls, value: dict[str, str] | None) -> dict[str, str] | None:
+        for name, strategy in (value or {}).items():
+            if strategy not in STRATEGIES:
+                raise ValueError(f"{name}: unknown pose strategy {strategy!r} (known: {', '.join(STRATEGIES)})")
+        return value
+
+
+class VerifyEntry(_Strict):
+    """The verification of the strategies' poses (perception.verify.VerifyConfig)."""
+
+    min_confidence: float = Field(default=VerifyConfig().min_confidence, ge=0, le=1)
+    depth_noise_m: float = Field(default=0.0, ge=0, lt=0.1)
 
 
 class RefineEntry(_Strict):
@@ -89,6 +117,7 @@ class Manifest(_Strict):
     detector: DetectorEntry
     pose: PoseEntry
     refine: RefineEntry = RefineEntry()
+    verify: VerifyEntry = VerifyEntry()
     min_mask_px: int = Field(default=30, ge=0)
 
 
@@ -110,11 +139,16 @@ class PipelineOverrides:
 
 @dataclass
 class PerceptionResult:
-    """Poses of the parts found in one frame, best score first, with the detections and stage timings (ms)."""
+    """Poses of the parts found in one frame, best score first, with the detections and stage timings (ms).
+
+    ``refused``: the poses the verification refused (the model at the fitted pose disagrees with the depth and
+    mask: a wrong pose or a wrong class), kept out of ``poses`` so that nothing picks them; empty without pose
+    strategies (no verification)."""
 
     poses: list[ObjectPose]
     detections: list[Detection]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    refused: list[ObjectPose] = field(default_factory=list)
 
 
 class PerceptionPipeline:
@@ -132,8 +166,13 @@ class PerceptionPipeline:
         region_camera_m: np.ndarray | None = None,
         floor_plane_camera: np.ndarray | None = None,
         floor_margin_m: float = FLOOR_MARGIN_M,
+        strategies: dict[int, str] | None = None,
+        runner: StrategyRunner | None = None,
     ) -> None:
-        """``max_refined``: stop refining once this many poses are refined, nearest parts (top of the pile) first;
+        """``strategies``: obj_id -> pose strategy (``perception.pose_strategies``), run by ``runner``; the network
+        runs only for the detections whose strategy uses it, and every pose is verified. None: the network's pose
+        refined by ``refiner`` (no verification).
+        ``max_refined``: stop refining once this many poses are refined, nearest parts (top of the pile) first;
         the rest keep their RGB estimate with ``details["icp"]["status"] == "skipped"``. None refines every pose.
         ``region_camera_m``: (n, 3) points in the camera frame (metres) that bound where parts can be, e.g. a bin's
         inner corners at its floor and rim; the detector looks only inside their image box. None: the whole frame.
@@ -167,6 +206,13 @@ class PerceptionPipeline:
         if not 0.0 <= floor_margin_m < 0.05:
             raise ConfigError(f"PerceptionPipeline: floor_margin_m must be in [0, 0.05) m, got {floor_margin_m}")
         self.floor_margin_m = float(floor_margin_m)
+        if strategies is not None and set(strategies) != set(models):
+            raise ConfigError(
+                f"PerceptionPipeline: strategies must name every model's obj_id {sorted(models)}, got "
+                f"{sorted(strategies)}"
+            )
+        self.strategies = strategies
+        self.runner = runner if runner is not None or strategies is None else StrategyRunner()
 
     @classmethod
     def from_folder(
@@ -194,6 +240,13 @@ class PerceptionPipeline:
         )
         pose = PoseEstimator(folder / manifest.pose.onnx, models=models, num_threads=o.num_threads)
         refine = manifest.refine.enabled if o.refine is None else o.refine
+        strategies, runner = None, None
+        if manifest.pose.strategies is not None and o.pose_method is None and o.refine is None:
+            strategies = _strategy_ids(manifest.pose.strategies, models, folder / MANIFEST_NAME)
+            verify = VerifyConfig(
+                min_confidence=manifest.verify.min_confidence, depth_noise_m=manifest.verify.depth_noise_m
+            )
+            runner = StrategyRunner(verifier=PoseVerifier(verify))
         return cls(
             detector,
             pose,
@@ -205,6 +258,8 @@ class PerceptionPipeline:
             region_camera_m=region_camera_m,
             floor_plane_camera=floor_plane_camera,
             floor_margin_m=FLOOR_MARGIN_M if floor_margin_m is None else floor_margin_m,
+            strategies=strategies,
+            runner=runner,
         )
 
     def poseable(self, detections: list[Detection]) -> list[Detection]:
@@ -229,6 +284,8 @@ class PerceptionPipeline:
         detections = self.detector.detect(frame.rgb, roi)
         timings["detect"] = 1e3 * (time.perf_counter() - t)
         usable = self.poseable(detections)
+        if self.strategies is not None:
+            return self._run_strategies(frame, detections, usable, timings)
         t = time.perf_counter()
         poses = self.pose.estimate(frame.rgb, usable, frame.intrinsics, method=self.pose_method)
         timings["pose"] = 1e3 * (time.perf_counter() - t)
@@ -242,11 +299,57 @@ class PerceptionPipeline:
 
     def refine_more(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose] | None:
         """``poses`` with the next ``max_refined`` of those ``run`` skipped refined (nearest first), for a caller
-        that found nothing to do with the refined ones; None when none was skipped."""
-        if self.refiner is None or not any(_icp_status(p) == "skipped" for p in poses):
+        that found nothing to do with the refined ones; None when none was skipped. With pose strategies, the
+        skipped parts are fitted, and those the verification refuses are left out."""
+        if not any(_icp_status(p) == "skipped" for p in poses):
+            return None
+        if self.strategies is not None:
+            skipped = [p for p in poses if _icp_status(p) == "skipped"]
+            kept = [p for p in poses if _icp_status(p) != "skipped"]
+            fitted = self._fit(frame, [p.detection for p in skipped], {})
+            return sorted(kept + [p for p in fitted if p.verified is not False], key=lambda p: -p.score)
+        if self.refiner is None:
             return None
         refined = self._refine(poses, frame, todo=lambda p: _icp_status(p) == "skipped")
         return sorted(refined, key=lambda p: -p.score)
+
+    def _run_strategies(
+        self, frame: Frame, detections: list[Detection], usable: list[Detection], timings: dict[str, float]
+    ) -> PerceptionResult:
+        """``run`` with pose strategies: the network for the detections whose strategy uses it, then every
+        detection's strategy (nearest first, ``max_refined``), the refused poses apart."""
+        assert self.strategies is not None
+        t = time.perf_counter()
+        need = [d for d in usable if self.strategies[d.obj_id] in NETWORK_STRATEGIES]
+        network = {id(p.detection): p for p in self.pose.estimate(frame.rgb, need, frame.intrinsics)} if need else {}
+        timings["pose"] = 1e3 * (time.perf_counter() - t)
+        t = time.perf_counter()
+        poses = self._fit(frame, usable, network)
+        timings["refine"] = 1e3 * (time.perf_counter() - t)
+        timings["total"] = sum(timings.values())
+        accepted = sorted((p for p in poses if p.verified is not False), key=lambda p: -p.score)
+        refused = sorted((p for p in poses if p.verified is False), key=lambda p: -p.score)
+        return PerceptionResult(accepted, detections, timings, refused)
+
+    def _fit(self, frame: Frame, detections: list[Detection], network: dict[int, ObjectPose]) -> list[ObjectPose]:
+        """Each detection's strategy, nearest first; past ``max_refined`` accepted fits, the rest are ``skipped``
+        (a placeholder at the mask's depth, for ``refine_more``). A detection whose strategy finds nothing to fit
+        (no mask, too few depth points) gives no pose."""
+        assert self.strategies is not None and self.runner is not None
+        out: list[ObjectPose] = []
+        n_fitted = 0
+        for det in sorted(detections, key=lambda d: _mask_depth(d, frame.depth_m, math.inf)):
+            if self.max_refined is not None and n_fitted >= self.max_refined:
+                out.append(_skipped(det, frame, self.strategies[det.obj_id], self.max_refined))
+                continue
+            pose = self.runner.estimate(
+                self.strategies[det.obj_id], det, frame.depth_m, frame.intrinsics, self.models[det.obj_id],
+                network.get(id(det)), self.floor_plane_camera,
+            )  # fmt: skip
+            if pose is not None:
+                out.append(pose)
+                n_fitted += bool(pose.verified)
+        return out
 
     def _refine(
         self, poses: list[ObjectPose], frame: Frame, todo: Callable[[ObjectPose], bool] = lambda p: True
@@ -311,6 +414,24 @@ def without_floor(
     return np.where(on_floor, 0, depth_m).astype(np.asarray(depth_m).dtype)
 
 
+def _strategy_ids(by_name: dict[str, str], models: dict[int, ObjectModel], path: Path) -> dict[int, str]:
+    """The manifest's ``pose.strategies`` (part name -> strategy) by obj_id; every object needs one."""
+    ids = {m.name: obj_id for obj_id, m in models.items()}
+    unknown = sorted(set(by_name) - set(ids))
+    missing = sorted(set(ids) - set(by_name))
+    if unknown or missing:
+        raise ConfigError(
+            f"{path}: pose.strategies: "
+            + (
+                f"no object named {', '.join(unknown)} in objects"
+                if unknown
+                else f"no strategy for {', '.join(missing)}"
+            )
+            + f" (the objects: {', '.join(sorted(ids))})"
+        )
+    return {ids[name]: strategy for name, strategy in by_name.items()}
+
+
 def _refine_config(overrides: PipelineOverrides) -> RefineConfig:
     """``RefineConfig``'s defaults with the overrides' refinement settings that are given."""
     given = {"min_fitness": overrides.min_fitness, "mask_erosion_px": overrides.mask_erosion_px}
@@ -323,13 +444,31 @@ def _icp_status(pose: ObjectPose) -> str | None:
 
 def _median_depth(pose: ObjectPose, depth_m: np.ndarray) -> float:
     """The median measured depth (m) inside the pose's mask; the estimate's own depth where the mask has none."""
-    mask = pose.detection.mask
+    return _mask_depth(pose.detection, depth_m, float(pose.T_camera_object[2, 3]))
+
+
+def _mask_depth(detection: Detection, depth_m: np.ndarray, default: float) -> float:
+    """The median measured depth (m) inside the detection's mask; ``default`` where the mask has none."""
+    mask = detection.mask
     if mask is not None and mask.shape == depth_m.shape:
         z = depth_m[mask]
         z = z[np.isfinite(z) & (z > 0)]
         if len(z):
             return float(np.median(z))
-    return float(pose.T_camera_object[2, 3])
+    return default
+
+
+def _skipped(detection: Detection, frame: Frame, strategy: str, max_refined: int) -> ObjectPose:
+    """A placeholder for a detection not fitted (``max_refined``): no rotation, at the mask's median depth along
+    the ray through its box centre; ``details["icp"]["status"] == "skipped"``, so the grasp planner takes it
+    for unrefined."""
+    z = _mask_depth(detection, frame.depth_m, 0.0)
+    x0, y0, x1, y1 = np.asarray(detection.bbox_xyxy, dtype=float)
+    K = frame.intrinsics
+    T = np.eye(4)
+    T[:3, 3] = ((0.5 * (x0 + x1) - K.cx) * z / K.fx, (0.5 * (y0 + y1) - K.cy) * z / K.fy, z)
+    icp = {"status": "skipped", "reason": f"{max_refined} nearer parts were fitted (max_refined)"}
+    return ObjectPose(detection, T, 0.0, strategy, {"strategy": strategy, "icp": icp})
 
 
 def load_manifest(folder: Path) -> Manifest:

@@ -181,7 +181,7 @@ def _rotation_step_deg(R_a: np.ndarray, R_b: np.ndarray, R_frame_object: np.ndar
     return float(np.degrees(np.arccos(cos)).max())
 
 
-def _principal_axes(points: np.ndarray) -> np.ndarray:
+def principal_axes(points: np.ndarray) -> np.ndarray:
     """(3, 3) right-handed frame whose columns are the point set's principal directions, least variance first."""
     _, vectors = np.linalg.eigh(np.cov(np.asarray(points, dtype=np.float64).T))
     if np.linalg.det(vectors) < 0:
@@ -192,7 +192,7 @@ def _principal_axes(points: np.ndarray) -> np.ndarray:
 def pca_rotations(model_points: np.ndarray, scene_points: np.ndarray) -> list[np.ndarray]:
     """The four rotations (object -> camera) that map the model's principal axes onto the depth cloud's, one per
     choice of signs. The cloud is one visible side, so its axes are only a start for ICP, not a pose."""
-    E_model, E_scene = _principal_axes(model_points), _principal_axes(scene_points)
+    E_model, E_scene = principal_axes(model_points), principal_axes(scene_points)
     signs = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))
     return [E_scene @ np.diag(s) @ E_model.T for s in signs]
 

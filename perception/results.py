@@ -38,9 +38,13 @@ class Detection:
 class ObjectPose:
     """A detection with its estimated 6D pose.
 
-    T_camera_object: (4, 4) pose in metres. score: pose confidence in [0, 1] (the estimator's own measure, e.g. the
-    predicted mask agreement or the ICP fitness). method: how the pose was obtained, e.g. ``"direct"``, ``"pnp"``,
-    ``"direct+icp"``. details: per-method diagnostics (inlier counts, ICP rmse, timings) for logs and reports.
+    T_camera_object: (4, 4) pose in metres. score: pose confidence in [0, 1], what consumers (the grasp planner)
+    rank and filter by: the verification's confidence where the pose was verified against depth
+    (``perception.verify``), else the estimator's own measure (e.g. the predicted mask agreement). method: how the
+    pose was obtained, e.g. ``"direct"``, ``"pnp"``, ``"direct+icp"``, a strategy name (``"depth+icp"``). details:
+    per-method diagnostics (inlier counts, ICP rmse, the verification's figures, timings) for logs and reports.
+    verified: the verification's verdict: True accepted, False refused (the model at this pose disagrees with the
+    depth and mask: a wrong pose or a wrong class), None not verified.
     """
 
     detection: Detection
@@ -48,6 +52,7 @@ class ObjectPose:
     score: float
     method: str
     details: dict = field(default_factory=dict)
+    verified: bool | None = None
 
     def __post_init__(self) -> None:
         if np.shape(self.T_camera_object) != (4, 4):

@@ -1,0 +1,139 @@
+"""``sygrid models choose-pose``: measure every pose strategy per part on a test set and write the choice into the
+model folder.
+
+    sygrid models choose-pose --models models/builtin --data datasets/builtin_test [--max-images N] [--bar 0.9]
+
+With ground-truth masks (the pose stage alone, ``perception.strategy_eval``), every strategy of
+``perception.pose_strategies`` runs on every instance seen at least 10 %; the table gives per part and strategy the
+ADD(-S) recall, the recall of the accepted estimates, median re and te, median wall and CPU milliseconds per object,
+and the verification's false accepts, false refusals and accepted wrong-class fits. The choice per part is the
+cheapest strategy whose recall of accepted estimates reaches ``--bar`` (refused poses are dropped by the pipeline),
+else the most accurate; the verification threshold is the lowest that keeps the chosen strategies' false accepts
+within ``--max-false-accept`` (the two chosen in turn until they agree). Writes ``MODELS/pose_strategies.json``
+(every figure, the command and the data) and the choice into ``MODELS/manifest.json`` (``pose.strategies`` and
+``verify.min_confidence``), both atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from sygrid.errors import ConfigError
+from sygrid.fileio import read_json, write_json_atomic
+
+if TYPE_CHECKING:
+    from perception.strategy_eval import StrategyRecord
+
+RESULTS_NAME = "pose_strategies.json"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--models", type=Path, required=True, help="model folder with manifest.json")
+    parser.add_argument("--data", type=Path, required=True, help="test dataset made by 'sygrid generate'")
+    parser.add_argument("--split", default=None, help="BOP split (default: test, else val_pbr)")
+    parser.add_argument("--max-images", type=int, default=None, help="the first N images")
+    parser.add_argument("--bar", type=float, default=0.9, help="ADD(-S) recall a strategy must reach (0..1)")
+    parser.add_argument("--max-false-accept", type=float, default=0.01, help="of the accepted estimates (0..1)")
+    parser.add_argument("--strategies", default=None, help="comma-separated subset of the strategies (default: all)")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    parser.add_argument("--dry-run", action="store_true", help="print the table, write nothing")
+
+
+def run(args: argparse.Namespace) -> int:
+    from perception.evaluation import EvalSettings
+    from perception.pipeline import load_manifest
+    from perception.pose import PoseEstimator
+    from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
+    from perception.strategy_eval import choose_all, evaluate_strategies, summarize
+    from perception.verify import PoseVerifier, VerifyConfig
+    from sygrid.drop import resolve_object
+
+    strategies = STRATEGIES if args.strategies is None else tuple(s.strip() for s in args.strategies.split(","))
+    try:
+        for s in strategies:
+            check_strategy(s, "--strategies")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    if not 0 < args.bar <= 1 or not 0 <= args.max_false_accept < 1:
+        raise ConfigError(f"--bar must be in (0, 1] and --max-false-accept in [0, 1), got {args.bar}, "
+                          f"{args.max_false_accept}")  # fmt: skip
+    manifest = load_manifest(args.models)
+    models = {m.obj_id: m for m in (resolve_object(spec, args.models) for spec in manifest.objects)}
+    network = PoseEstimator(args.models / manifest.pose.onnx, models=models, num_threads=args.threads)
+    verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m)
+    runner = StrategyRunner(verifier=PoseVerifier(verify))
+    settings = EvalSettings(split=args.split, max_images=args.max_images)
+    records = evaluate_strategies(runner, network, models, args.data, strategies, settings)
+    choice, threshold = choose_all(records, args.bar, args.max_false_accept)
+    chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
+    names = {obj_id: m.name for obj_id, m in models.items()}
+    print(format_choice(records, choice, threshold, names))
+    report = {
+        "command": "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "sygrid models choose-pose",
+        "data": str(args.data),
+        "max_images": args.max_images,
+        "bar": args.bar,
+        "max_false_accept": args.max_false_accept,
+        "min_confidence": threshold,
+        "choice": {names[k]: v for k, v in choice.items()},
+        "rows": [
+            {"part": names[obj_id], "strategy": s, **summarize(recs, threshold)}
+            for (obj_id, s), recs in sorted(records.items())
+        ],
+        "chosen": summarize(chosen, threshold),
+    }
+    if args.dry_run:
+        return 0
+    write_json_atomic(args.models / RESULTS_NAME, report)
+    write_choice(args.models, report["choice"], threshold)
+    print(f"wrote {args.models / RESULTS_NAME} and the choice into {args.models / 'manifest.json'}")
+    return 0
+
+
+def write_choice(folder: Path, choice: dict[str, str], min_confidence: float) -> None:
+    """Writes ``pose.strategies`` and ``verify.min_confidence`` into the folder's manifest (atomically), keeping
+    everything else in it; the result must load."""
+    from perception.pipeline import MANIFEST_NAME, load_manifest
+
+    path = folder / MANIFEST_NAME
+    data = read_json(path, "model manifest")
+    data["pose"] = {**data["pose"], "strategies": dict(choice)}
+    data["verify"] = {**data.get("verify", {}), "min_confidence": min_confidence}
+    write_json_atomic(path, data)
+    load_manifest(folder)
+
+
+def format_choice(
+    records: dict[tuple[int, str], list[StrategyRecord]], choice: dict[int, str], threshold: float, names: dict
+) -> str:
+    """The table: one row per part and strategy (the chosen one marked), then the chosen strategies together."""
+    from perception.strategy_eval import summarize
+
+    head = (
+        f"{'part':<11}{'strategy':<12}{'n':>5}{'ADD(-S)':>9}{'accepted':>10}{'re deg':>8}{'te mm':>8}{'ms':>7}"
+        f"{'CPU ms':>8}{'false acc':>10}{'false ref':>10}{'wrong cls':>10}"
+    )
+    lines = [f"verification threshold {threshold:.2f} (fractions of the accepted / correct / wrong-class trials)", head]
+    for (obj_id, s), recs in sorted(records.items()):
+        mark = " *" if choice.get(obj_id) == s else ""
+        lines.append(_row(names[obj_id], s + mark, summarize(recs, threshold)))
+    chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
+    lines.append(_row("chosen", "", summarize(chosen, threshold)))
+    return "\n".join(lines)
+
+
+def _row(part: str, strategy: str, r: dict) -> str:
+    return (
+        f"{part:<11}{strategy:<12}{r['n']:>5}{_pct(r['add_recall']):>9}{_pct(r['accepted_recall']):>10}"
+        f"{r['median_re_deg']:>8.2f}{r['median_te_mm']:>8.2f}{r['median_ms']:>7.1f}{r['median_cpu_ms']:>8.1f}"
+        f"{_pct(r['false_accept']):>10}{_pct(r['false_refuse']):>10}{_pct(r['wrong_class_accept']):>10}"
+    )
+
+
+def _pct(x: float) -> str:
+    return "n/a" if math.isnan(x) else f"{100 * x:.1f}%"

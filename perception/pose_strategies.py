@@ -1,0 +1,390 @@
+"""Pose strategies: how a part's pose is found from a detection, the frame's depth and (where used) the pose network.
+
+A strategy is a source of hypotheses, optionally refined by ICP (``perception.icp``), and the verification
+(``perception.verify``) chooses among them and gives the result its confidence:
+
+- ``rgb``: the network's pose as it is (no depth in the fit);
+- ``rgbd``: the network's rotation, the translation from depth (the visible model surface moved onto the centroid
+  of the mask's depth points);
+- ``depth``: no network: rotations that put the model's principal axes on the depth cloud's, every assignment of
+  axes and signs that the part's symmetry does not make equivalent (``axis_rotations``), each translated as above;
+- ``hybrid``: the ``depth`` hypotheses and the ``rgbd`` one (the network's rotation where the shape leaves the
+  principal axes ambiguous);
+- ``+icp`` on any of the depth-based ones: each hypothesis is moved along its viewing ray onto the observed surface
+  and scored coarsely, the ``icp_hypotheses`` best are refined by ICP (the first to reach ``good_confidence`` ends
+  it); short of that, the best fit turned about its own axes is tried (``_turns``), then slid along them
+  (``_polish``);
+- ``+search``: as ``+icp``, but every hypothesis is ranked by its verification after a short ICP (dearer, for
+  parts whose coarse scores mislead, such as a bolt seen end-on or a bracket's legs).
+
+The mask is cleaned with depth first (``perception.mask_cleanup``). Every estimate carries the verification of the
+chosen hypothesis in ``details["verify"]``, its confidence as the pose's ``score`` and the verdict as ``verified``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from perception.icp import IcpConfig, icp
+from perception.mask_cleanup import MaskCleanupConfig, clean_mask
+from perception.observation import Observation
+from perception.refine import model_surface, principal_axes, visible_model_points
+from perception.results import Detection, ObjectPose
+from perception.verify import PoseVerifier, Verification, raycaster
+from sygrid.camera import CameraIntrinsics
+from sygrid.metrics import symmetric_pose_errors
+from sygrid.objects.model import ObjectModel
+from sygrid.transforms import make_T
+
+STRATEGIES = (
+    "rgb", "rgbd", "rgbd+icp", "depth", "depth+icp", "depth+search", "hybrid", "hybrid+icp", "hybrid+search",
+)  # fmt: skip
+NETWORK_STRATEGIES = frozenset(s for s in STRATEGIES if s.split("+")[0] in ("rgb", "rgbd", "hybrid"))
+CENTRE_POINTS = 300  # model surface samples that place a hypothesis on the depth points' centroid
+EQUIVALENT_DEG = 10.0  # two axis assignments closer than this (modulo the part's symmetries) are one hypothesis
+
+
+@dataclass(frozen=True)
+class StrategyConfig:
+    """Attributes:
+    icp_hypotheses: hypotheses refined by ICP (the best by the coarse score), for the ``+icp`` strategies.
+    coarse_tolerance_fraction: the verification's tolerance (x diameter) when ranking unrefined hypotheses.
+    align_steps: depth alignments of each hypothesis (``_aligned``).
+    escape_rounds: while the best ICP fit is short of ``good_confidence``, try it turned about its own axes
+        (``_turns``), at most this many times (each from the best so far, while it improves).
+    escape_quick: rank the turns by their verification after a short ICP (not the coarse score).
+    good_confidence: a fit this confident ends the search (no further hypothesis is refined).
+    polish_steps: step sizes (x diameter) of the slide search on a fit short of ``good_confidence`` (``_polish``).
+    slide_fractions: the turns (``_turns``) also take the fit slid by these (x diameter) along its longest axis.
+    min_points: fewer depth points than this in the cleaned mask: the network's pose (or none) with confidence 0.
+    """
+
+    icp_hypotheses: int = 3
+    coarse_tolerance_fraction: float = 0.15
+    align_steps: int = 1
+    escape_rounds: int = 2
+    escape_quick: bool = True
+    good_confidence: float = 0.95
+    polish_steps: tuple[float, ...] = (0.08, 0.04, 0.02)
+    slide_fractions: tuple[float, ...] = (0.25, 0.5)
+    min_points: int = 10
+
+    def __post_init__(self) -> None:
+        if self.icp_hypotheses < 1 or self.escape_rounds < 0 or self.min_points < 3 or self.align_steps < 0:
+            raise ValueError(
+                "StrategyConfig: need icp_hypotheses >= 1, escape_rounds >= 0, min_points >= 3 and align_steps >= 0,"
+                f" got {self.icp_hypotheses}, {self.escape_rounds}, {self.min_points}, {self.align_steps}"
+            )
+
+
+def check_strategy(name: str, where: str) -> str:
+    """``name`` if it is a known strategy; ValueError naming ``where`` (file and field) otherwise."""
+    if name not in STRATEGIES:
+        raise ValueError(f"{where}: unknown pose strategy {name!r} (known: {', '.join(STRATEGIES)})")
+    return name
+
+
+# ------------------------------------------------------------------------------------------------ hypotheses
+def _proper_axis_maps() -> np.ndarray:
+    """(24, 3, 3) the rotations that permute the coordinate axes with signs (the cube's rotation group)."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            Q = np.zeros((3, 3))
+            Q[np.arange(3), perm] = signs
+            if np.linalg.det(Q) > 0:
+                out.append(Q)
+    return np.stack(out)
+
+
+@lru_cache(maxsize=64)
+def _distinct_axis_maps(model: ObjectModel) -> tuple[np.ndarray, np.ndarray]:
+    """The model's principal frame E (3, 3) and the axis maps Q (k, 3, 3) that stay distinct modulo the model's
+    symmetries: two maps give object rotations ``E_s Q E^T`` that differ by ``E Q1^T Q2 E^T`` in the object frame,
+    whatever the scene's frame, so one map of each symmetry class is kept."""
+    points, _ = model_surface(model, 3000, 0)
+    E = principal_axes(points)
+    symmetries = model.symmetry_transforms(36)
+    kept: list[np.ndarray] = []
+    for Q in _proper_axis_maps():
+        if not any(
+            symmetric_pose_errors(make_T(E @ K.T @ Q @ E.T), np.eye(4), symmetries)[0] < EQUIVALENT_DEG for K in kept
+        ):
+            kept.append(Q)
+    return E, np.stack(kept)
+
+
+def axis_rotations(model: ObjectModel, scene_points: np.ndarray) -> list[np.ndarray]:
+    """Rotations (object -> camera) that map the model's principal axes onto the depth cloud's, one per assignment
+    of axes and signs that the model's symmetries do not make equivalent. The cloud is one visible side, so which
+    model axis lies along which of its axes is open: every distinct assignment is a hypothesis."""
+    E_model, maps = _distinct_axis_maps(model)
+    E_scene = principal_axes(scene_points)
+    return [E_scene @ Q @ E_model.T for Q in maps]
+
+
+def centred_pose(R: np.ndarray, t_hint: np.ndarray, scene: np.ndarray, model: ObjectModel) -> np.ndarray | None:
+    """The pose with rotation ``R`` whose camera-facing model surface has the depth points' centroid (the depth
+    says where the part is far better than an RGB estimate of its distance); None when no surface faces the
+    camera. ``t_hint``: where the visibility is judged from (the part's rough position)."""
+    points, normals = model_surface(model, CENTRE_POINTS, 0)
+    T = make_T(R, t_hint)
+    p_cam, _ = visible_model_points(T, points, normals)
+    if len(p_cam) < 3:
+        return None
+    # the same shift once more with the self-occluded points out (the visibility depends on the position a little)
+    T[:3, 3] += scene.mean(axis=0) - p_cam.mean(axis=0)
+    seen = raycaster(model).visible(T, points)
+    if seen.sum() >= 3:
+        T[:3, 3] += scene.mean(axis=0) - (points[seen] @ T[:3, :3].T + T[:3, 3]).mean(axis=0)
+    return T
+
+
+# ---------------------------------------------------------------------------------------------------- runner
+@dataclass(frozen=True)
+class _Candidate:
+    T: np.ndarray
+    source: str
+    verification: Verification
+    icp: dict | None = None
+
+
+class StrategyRunner:
+    """Runs a named strategy for one detection: cleans the mask, builds and refines hypotheses, verifies them.
+
+    Args:
+        icp_config: the ICP settings (``perception.icp``).
+        verifier: scores hypotheses; its ``min_confidence`` decides acceptance.
+        cleanup: the mask clean-up settings.
+        config: the strategy settings.
+    """
+
+    def __init__(
+        self,
+        icp_config: IcpConfig | None = None,
+        verifier: PoseVerifier | None = None,
+        cleanup: MaskCleanupConfig | None = None,
+        config: StrategyConfig | None = None,
+    ) -> None:
+        self.icp_config = icp_config or IcpConfig()
+        self.quick_icp = IcpConfig(
+            **{
+                **self.icp_config.__dict__,
+                "distance_fractions": self.icp_config.distance_fractions[:1],
+                "max_iterations": 4,
+            }
+        )
+        self.verifier = verifier or PoseVerifier()
+        self.cleanup = cleanup or MaskCleanupConfig()
+        self.config = config or StrategyConfig()
+
+    def estimate(
+        self,
+        strategy: str,
+        detection: Detection,
+        depth_m: np.ndarray,
+        intrinsics: CameraIntrinsics,
+        model: ObjectModel,
+        network_pose: ObjectPose | None = None,
+        floor_plane_camera: np.ndarray | None = None,
+    ) -> ObjectPose | None:
+        """The pose of ``detection`` by ``strategy``; None when there is nothing to fit (no mask, too few depth
+        points) and no network pose to fall back to.
+
+        Raises:
+            ValueError: unknown strategy, a network strategy without ``network_pose``, or a model of another part.
+        """
+        t0, c0 = time.perf_counter(), time.process_time()
+        check_strategy(strategy, "strategy")
+        if model.obj_id != detection.obj_id:
+            raise ValueError(f"model: obj_id {model.obj_id} is not the detection's obj_id {detection.obj_id}")
+        base, _, refine = strategy.partition("+")
+        if strategy in NETWORK_STRATEGIES and network_pose is None:
+            raise ValueError(f"strategy {strategy!r} needs the pose network's estimate (network_pose)")
+        if detection.mask is None:
+            return self._unverified(network_pose, strategy, "the detection has no mask", t0)
+        obs, cleanup = clean_mask(Observation.of_detection(depth_m, detection, intrinsics), self.cleanup,
+                                  floor_plane_camera)  # fmt: skip
+        scene = obs.points
+        if len(scene) < self.config.min_points:
+            reason = f"{len(scene)} depth points in the cleaned mask, fewer than {self.config.min_points}"
+            return self._unverified(network_pose, strategy, reason, t0, cleanup)
+        # the part's rough position (for the visibility of its surface): the network's, else the depth's
+        t_hint = network_pose.T_camera_object[:3, 3] if network_pose is not None else np.median(scene, axis=0)
+        hypotheses: list[tuple[np.ndarray, str]] = []
+        if base == "rgb":
+            hypotheses.append((np.asarray(network_pose.T_camera_object, dtype=float), "network"))
+        if base in ("rgbd", "hybrid"):
+            T = centred_pose(network_pose.T_camera_object[:3, :3], t_hint, scene, model)
+            if T is not None:
+                hypotheses.append((T, "network_rotation"))
+        if base in ("depth", "hybrid"):
+            for k, R in enumerate(axis_rotations(model, scene)):
+                T = centred_pose(R, t_hint, scene, model)
+                if T is not None:
+                    hypotheses.append((T, f"axes_{k}"))
+        if not hypotheses:
+            return self._unverified(network_pose, strategy, "no hypothesis shows any surface to the camera", t0)
+        if base == "rgb":  # the network's pose as it is: depth only verifies it
+            candidates = [
+                _Candidate(hypotheses[0][0], hypotheses[0][1], self.verifier.verify(hypotheses[0][0], model, obs))
+            ]
+        elif refine:
+            candidates = self._search(hypotheses, scene, model, obs, quick=refine == "search")
+        else:
+            candidates = []
+            for T, src in hypotheses:
+                T_aligned, _ = self._aligned(T, model, obs)
+                candidates.append(_Candidate(T_aligned, src, self.verifier.verify(T_aligned, model, obs)))
+        best = max(candidates, key=lambda c: c.verification.confidence)
+        details = {
+            **(network_pose.details if network_pose is not None else {}),
+            "strategy": strategy,
+            "hypothesis": best.source,
+            "hypotheses": len(hypotheses),
+            "cleanup": cleanup,
+            "verify": best.verification.as_dict(),
+            "time_ms": (time.perf_counter() - t0) * 1e3,
+            "cpu_ms": (time.process_time() - c0) * 1e3,
+        }
+        if best.icp is not None:
+            details["icp"] = best.icp
+        if network_pose is not None:
+            details["network_score"] = network_pose.score
+        v = best.verification
+        return ObjectPose(detection, best.T, v.confidence, strategy, details, verified=v.accepted)
+
+    def _search(
+        self,
+        hypotheses: list[tuple[np.ndarray, str]],
+        scene: np.ndarray,
+        model: ObjectModel,
+        obs: Observation,
+        quick: bool = False,
+    ) -> list[_Candidate]:
+        """ICP from the best hypotheses (``quick``: ranked after a short ICP each); short of ``good_confidence``, from
+        the best fit's turns (``_turns``), then the slide search (``_polish``). Every fit comes back verified."""
+        cfg = self.config
+        candidates = self._refine_ranked(hypotheses, scene, model, obs, quick)
+        best = max(candidates, key=lambda c: c.verification.confidence)
+        for _ in range(cfg.escape_rounds):
+            if best.verification.confidence >= cfg.good_confidence:
+                break
+            turned = self._refine_ranked(self._turns(best, scene, model), scene, model, obs, cfg.escape_quick)
+            candidates += turned
+            better = max(turned, key=lambda c: c.verification.confidence, default=best)
+            if better.verification.confidence <= best.verification.confidence:
+                break
+            best = better
+        if cfg.polish_steps and best.verification.confidence < cfg.good_confidence:
+            candidates.append(self._polish(best, scene, model, obs))
+        return candidates
+
+    def _aligned(self, T: np.ndarray, model: ObjectModel, obs: Observation) -> tuple[np.ndarray, Verification]:
+        """A hypothesis moved along its viewing ray onto the observed surface (``align_steps`` times: the centroid
+        of the visible model surface is a biased guess where the hypothesis shows other faces than the camera
+        sees) and its coarse score (``coarse_tolerance_fraction``)."""
+        v = None
+        for _ in range(max(self.config.align_steps, 1)):
+            T, v = self.verifier.align(
+                T, model, obs, self.config.coarse_tolerance_fraction, move=self.config.align_steps > 0
+            )
+        return T, v
+
+    def _refine_ranked(
+        self,
+        hypotheses: list[tuple[np.ndarray, str]],
+        scene: np.ndarray,
+        model: ObjectModel,
+        obs: Observation,
+        quick: bool = False,
+    ) -> list[_Candidate]:
+        """ICP from the ``icp_hypotheses`` best hypotheses by the coarse score (``quick``: by the verification after
+        a short ICP, ``quick_icp``), best first, stopping at the first fit whose confidence reaches
+        ``good_confidence``."""
+        cfg = self.config
+        if not hypotheses:
+            return []
+        aligned = [(*self._aligned(T, model, obs), src) for T, src in hypotheses]
+        if quick:
+            short = [icp(T, scene, model, self.quick_icp).T_camera_object for T, _, _ in aligned]
+            aligned = [
+                (T, self.verifier.verify(T, model, obs), src) for T, (_, _, src) in zip(short, aligned, strict=True)
+            ]
+        out = []
+        for i in np.argsort([-v.confidence for _, v, _ in aligned], kind="stable")[: cfg.icp_hypotheses]:
+            out.append(self._icp(aligned[i][0], aligned[i][2], scene, model, obs))
+            if out[-1].verification.confidence >= cfg.good_confidence:
+                break
+        return out
+
+    def _polish(self, c: _Candidate, scene: np.ndarray, model: ObjectModel, obs: Observation) -> _Candidate:
+        """A fit slid along the part's own axes while the verification improves, then ICP again: point-to-plane ICP
+        leaves a part free to slide where its visible faces are parallel to one direction (a bracket's legs along
+        their common edge, a bolt's shank along its axis), and there only the silhouette and the free space around
+        the part tell where it ends."""
+        cfg = self.config
+        E, _ = _distinct_axis_maps(model)
+        T, v = c.T, c.verification
+        for fraction in cfg.polish_steps:
+            step = fraction * float(model.diameter_m)
+            moved = True
+            while moved:
+                moved = False
+                for axis in (T[:3, :3] @ E).T:
+                    for sign in (1.0, -1.0):
+                        T_try = T.copy()
+                        T_try[:3, 3] += sign * step * axis
+                        v_try = self.verifier.verify(T_try, model, obs)
+                        if v_try.confidence > v.confidence + 1e-3:
+                            T, v, moved = T_try, v_try, True
+        if T is c.T:
+            return c
+        refined = self._icp(T, f"{c.source}+polish", scene, model, obs)
+        return (
+            refined
+            if refined.verification.confidence >= v.confidence
+            else _Candidate(T, f"{c.source}+polish", v, c.icp)
+        )
+
+    def _turns(self, best: _Candidate, scene: np.ndarray, model: ObjectModel) -> list[tuple[np.ndarray, str]]:
+        """Hypotheses around a fit short of ``good_confidence``: its pose turned by every axis map that the part's
+        symmetry does not make equivalent (90 and 180 degree turns about its own principal axes: a bolt's head on
+        the wrong end, a bracket's legs swapped), re-centred."""
+        E, maps = _distinct_axis_maps(model)
+        out = []
+        for k, Q in enumerate(maps[1:], start=1):
+            T = centred_pose(best.T[:3, :3] @ E @ Q @ E.T, best.T[:3, 3], scene, model)
+            if T is not None:
+                out.append((T, f"{best.source}+turn_{k}"))
+        # slid along its longest axis: the visible surface may be one end of the part (a bolt's head, the shank
+        # hidden under a neighbour), which the centroid placed at the middle
+        longest = best.T[:3, :3] @ E[:, 2]
+        for fraction in self.config.slide_fractions:
+            for sign in (1.0, -1.0):
+                T = best.T.copy()
+                T[:3, 3] += sign * fraction * float(model.diameter_m) * longest
+                out.append((T, f"{best.source}+slide_{sign * fraction:+.2f}"))
+        return out
+
+    def _icp(self, T: np.ndarray, source: str, scene: np.ndarray, model: ObjectModel, obs: Observation) -> _Candidate:
+        """ICP from a hypothesis, verified."""
+        result = icp(T, scene, model, self.icp_config)
+        if not np.isfinite(result.T_camera_object).all():
+            return _Candidate(T, source, self.verifier.verify(T, model, obs))
+        v = self.verifier.verify(result.T_camera_object, model, obs)
+        return _Candidate(result.T_camera_object, f"{source}+icp", v, {**result.as_dict(), "status": "refined"})
+
+    def _unverified(
+        self, network_pose: ObjectPose | None, strategy: str, reason: str, t0: float, cleanup: dict | None = None
+    ) -> ObjectPose | None:
+        if network_pose is None:
+            return None
+        details = {**network_pose.details, "strategy": strategy, "reason": reason, "cleanup": cleanup,
+                   "time_ms": (time.perf_counter() - t0) * 1e3}  # fmt: skip
+        return ObjectPose(network_pose.detection, network_pose.T_camera_object, 0.0, strategy, details, verified=False)

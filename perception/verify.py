@@ -1,0 +1,330 @@
+"""Pose hypothesis verification: the model rendered at a pose must agree with the observed depth and mask.
+
+The model's depth is ray-cast (open3d ``RaycastingScene``, one scene per model, cached) through the pixels of a
+window around the detection's mask and the model's projected box (``perception.observation``'s crop). Every rendered
+pixel with a depth measurement is one of:
+
+- an inlier: the observed depth lies within the tolerance of the rendered depth;
+- a violation of free space: the observed surface lies behind the model (the model would hide it, so it cannot be
+  there), or, inside the mask, the observed part surface lies in front of the model (the model sits too deep), or
+  the model reaches below the surface the part lies on (the observation's ``support``);
+- occluded: outside the mask, something lies in front of the model (another part): no evidence either way.
+
+``fit`` is the inlier fraction of the rendered pixels that are not occluded (does the model's visible surface lie
+where depth says a surface is), ``coverage`` the fraction of the mask's depth pixels that rendered inliers explain
+(does the model account for what was segmented: a smaller part's model fitted into a larger part's mask covers only
+some of it); mask pixels the model leaves open whose depth lies behind the model's surface next to them are
+background seen past the part (through its hole, around its edge) and do not count. ``iou`` is the silhouette IoU
+of the unoccluded rendering and the mask. The pose's confidence is ``sqrt(fit * coverage)`` in [0, 1]; it is
+accepted when the confidence reaches ``min_confidence``.
+
+The tolerance is ``max(tolerance_min_m, tolerance_fraction x diameter)``, plus three standard deviations of the
+camera's depth noise at the pixel's depth (``depth_noise_m`` at 1 m, growing with the square of the depth, the
+stereo error model), plus a pixel's worth of the surface's slope (``z / f x tan`` of the angle between the ray and
+the surface normal): where a face recedes steeply, a sub-pixel shift of an edge changes the depth by millimetres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from perception.observation import Observation
+from sygrid.camera import project_points
+from sygrid.objects.model import ObjectModel
+
+
+@dataclass(frozen=True)
+class VerifyConfig:
+    """Settings of the verification; lengths in metres unless named ``_fraction`` (x the object diameter).
+
+    Attributes:
+        tolerance_fraction: depth agreement tolerance, x the object diameter ...
+        tolerance_min_m: ... and at least this.
+        depth_noise_m: the camera's depth noise (one standard deviation) at 1 m; 0 for exact depth.
+        min_confidence: a pose whose confidence is below this is refused.
+        max_rays: rays cast at most per verification (a large window is sampled with a pixel stride).
+        coarse_rays: rays cast at most for a coarse score (``align``, ranking unrefined hypotheses).
+        window_margin_px: pixels added around the window (mask box united with the model's projected box).
+        background_reach_fraction: a mask pixel the model leaves open counts as background seen past the part when
+            its depth lies behind the model's farthest surface within this x diameter around it.
+        threads: ray-casting threads (0: open3d's choice).
+    """
+
+    tolerance_fraction: float = 0.04
+    tolerance_min_m: float = 0.001
+    depth_noise_m: float = 0.0
+    min_confidence: float = 0.7
+    max_rays: int = 1500
+    coarse_rays: int = 500
+    window_margin_px: int = 4
+    background_reach_fraction: float = 0.3
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        if self.tolerance_fraction < 0 or self.tolerance_min_m <= 0 or self.depth_noise_m < 0:
+            raise ValueError(
+                "VerifyConfig: need tolerance_fraction >= 0, tolerance_min_m > 0 and depth_noise_m >= 0, got "
+                f"{self.tolerance_fraction}, {self.tolerance_min_m}, {self.depth_noise_m}"
+            )
+        if (
+            not 0.0 <= self.min_confidence <= 1.0
+            or min(self.max_rays, self.coarse_rays) < 16
+            or self.window_margin_px < 0
+        ):
+            raise ValueError(
+                "VerifyConfig: need min_confidence in [0, 1], max_rays and coarse_rays >= 16 and window_margin_px >= 0,"
+                f" got {self.min_confidence}, {self.max_rays}, {self.coarse_rays}, {self.window_margin_px}"
+            )
+
+
+@dataclass(frozen=True)
+class Verification:
+    """How well a pose agrees with the observation. Fractions in [0, 1]; counts in (strided) pixels.
+
+    ``confidence``: ``sqrt(fit * coverage)``; ``accepted``: ``confidence >= min_confidence``. ``rmse_m``: the RMS
+    depth residual of the inliers (the visible-surface discrepancy), NaN without inliers.
+    """
+
+    confidence: float
+    accepted: bool
+    fit: float
+    coverage: float
+    iou: float
+    inliers: int
+    violations: int
+    occluded: int
+    rendered: int
+    mask_pixels: int
+    rmse_m: float
+
+    def as_dict(self) -> dict:
+        return {k: (float(v) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+
+
+MAX_SLOPE = 5.0  # the slope term of the tolerance stops growing beyond this tangent (about 79 degrees)
+VISIBLE_EPS_M = 3e-4  # a surface point is seen when the ray from the camera first hits within this of it
+
+
+class ModelRaycaster:
+    """Ray casting of one model in its own frame (rays are moved into the object frame, the scene never changes)."""
+
+    def __init__(self, model: ObjectModel) -> None:
+        self.model = model
+        self._scene = o3d.t.geometry.RaycastingScene()
+        vertices = o3d.core.Tensor(np.asarray(model.mesh.vertices, dtype=np.float32))
+        faces = o3d.core.Tensor(np.asarray(model.mesh.faces, dtype=np.uint32))
+        self._scene.add_triangles(vertices, faces)
+        self.hull_vertices = np.asarray(model.mesh.convex_hull.vertices, dtype=np.float64)
+        self.face_normals = np.asarray(model.mesh.face_normals, dtype=np.float64)
+
+    def depth(
+        self, T_camera_object: np.ndarray, rays_camera: np.ndarray, threads: int = 0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """z-depth [m] where each camera-frame ray (n, 3), direction with z = 1 from the camera centre, first hits
+        the model at the pose (0 where it misses), and the tangent of the angle between the ray and the surface
+        normal there (how steeply the surface recedes: depth changes by z / f x tan per pixel), at most
+        ``MAX_SLOPE``."""
+        R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
+        rays = np.empty((len(rays_camera), 6), dtype=np.float32)
+        rays[:, :3] = -(R.T @ t)
+        rays[:, 3:] = rays_camera @ R  # R^T d for every row
+        hit = self._scene.cast_rays(o3d.core.Tensor(rays), nthreads=threads)
+        t_hit = hit["t_hit"].numpy()
+        found = np.isfinite(t_hit)
+        slope = np.zeros(len(t_hit))
+        if found.any():
+            d = rays[found, 3:].astype(np.float64)
+            n = self.face_normals[hit["primitive_ids"].numpy()[found]]
+            cos = np.abs((d * n).sum(axis=1)) / np.linalg.norm(d, axis=1)
+            slope[found] = np.minimum(np.sqrt(np.maximum(1.0 - cos**2, 0.0)) / np.maximum(cos, 1e-6), MAX_SLOPE)
+        return np.where(found, t_hit, 0.0), slope  # |d| has z = 1 in the camera frame: t is the z-depth
+
+    def visible(self, T_camera_object: np.ndarray, points: np.ndarray, threads: int = 0) -> np.ndarray:
+        """(n,) bool: which object-frame surface ``points`` the camera sees at the pose (the first hit along the ray
+        from the camera centre to the point is the point itself, within ``VISIBLE_EPS_M``)."""
+        R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
+        eye = -(R.T @ t)
+        to_point = np.asarray(points, dtype=np.float64) - eye
+        distance = np.linalg.norm(to_point, axis=1)
+        rays = np.empty((len(points), 6), dtype=np.float32)
+        rays[:, :3] = eye
+        rays[:, 3:] = to_point / distance[:, None]
+        t_hit = self._scene.cast_rays(o3d.core.Tensor(rays), nthreads=threads)["t_hit"].numpy()
+        return t_hit >= distance - VISIBLE_EPS_M
+
+
+@lru_cache(maxsize=64)
+def raycaster(model: ObjectModel) -> ModelRaycaster:
+    """The cached ray-casting scene of ``model``."""
+    return ModelRaycaster(model)
+
+
+def _window(obs: Observation, T: np.ndarray, caster: ModelRaycaster, margin: int) -> tuple[int, int, int, int] | None:
+    """The pixel window ``[x0, y0, x1, y1)`` in crop pixels: the mask's box united with the model's projected box,
+    widened by ``margin`` and clipped to the crop; None when empty."""
+    h, w = obs.mask.shape
+    rows, cols = np.flatnonzero(obs.mask.any(axis=1)), np.flatnonzero(obs.mask.any(axis=0))
+    x0, y0, x1, y1 = (cols[0], rows[0], cols[-1] + 1, rows[-1] + 1) if len(rows) else (w, h, 0, 0)
+    p = caster.hull_vertices @ T[:3, :3].T + T[:3, 3]
+    if (p[:, 2] > 1e-3).all():
+        uv = project_points(obs.intrinsics.K, p) - (obs.x0, obs.y0)
+        x0, y0 = min(x0, int(np.floor(uv[:, 0].min()))), min(y0, int(np.floor(uv[:, 1].min())))
+        x1, y1 = max(x1, int(np.ceil(uv[:, 0].max())) + 1), max(y1, int(np.ceil(uv[:, 1].max())) + 1)
+    x0, y0, x1, y1 = max(x0 - margin, 0), max(y0 - margin, 0), min(x1 + margin, w), min(y1 + margin, h)
+    return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
+
+
+class PoseVerifier:
+    """Scores poses against a depth image and a mask (``verify``); stateless per call, models' scenes cached."""
+
+    def __init__(self, config: VerifyConfig | None = None) -> None:
+        self.config = config if config is not None else VerifyConfig()
+
+    def tolerance_m(
+        self, model: ObjectModel, depth_m: np.ndarray | float, fraction: float | None = None
+    ) -> np.ndarray | float:
+        """The depth agreement tolerance [m] for ``model`` at the given depth(s); ``fraction`` overrides
+        ``tolerance_fraction``."""
+        cfg = self.config
+        fraction = cfg.tolerance_fraction if fraction is None else fraction
+        base = max(cfg.tolerance_min_m, fraction * float(model.diameter_m))
+        return base + 3.0 * cfg.depth_noise_m * np.square(depth_m)
+
+    def _render(
+        self, T: np.ndarray, caster: ModelRaycaster, obs: Observation, window: tuple[int, int, int, int], rays: int
+    ) -> _Rendering:
+        """The model's depth ray-cast through ``window`` (crop pixels, strided to at most ``rays``) with the
+        observation at the same pixels."""
+        cfg = self.config
+        x0, y0, x1, y1 = window
+        stride = max(1, math.ceil(math.sqrt((x1 - x0) * (y1 - y0) / rays)))
+        u = np.arange(x0, x1, stride) + obs.x0
+        v = np.arange(y0, y1, stride) + obs.y0
+        K = obs.intrinsics.K
+        dirs = np.empty((len(v), len(u), 3))
+        dirs[..., 0] = ((u - K[0, 2]) / K[0, 0])[None, :]
+        dirs[..., 1] = ((v - K[1, 2]) / K[1, 1])[:, None]
+        dirs[..., 2] = 1.0
+        rendered, slope = caster.depth(T, dirs.reshape(-1, 3), cfg.threads)
+        shape = (len(v), len(u))
+        height = None
+        if obs.support is not None:  # the height of the model's surface above the support
+            height = rendered.reshape(shape) * (dirs @ obs.support[:3]) + float(obs.support[3])
+        return _Rendering(
+            rendered.reshape(shape),
+            slope.reshape(shape),
+            obs.depth_m[y0:y1:stride, x0:x1:stride],
+            obs.mask[y0:y1:stride, x0:x1:stride],
+            height,
+            stride,
+        )
+
+    def verify(
+        self,
+        T_camera_object: np.ndarray,
+        model: ObjectModel,
+        obs: Observation,
+        tolerance_fraction: float | None = None,
+    ) -> Verification:
+        """The agreement of ``model`` at ``T_camera_object`` with the observation; a pose that renders nothing in
+        the crop gets confidence 0. ``tolerance_fraction`` overrides the configured one (a coarse score for
+        ranking unrefined hypotheses)."""
+        return self.align(T_camera_object, model, obs, tolerance_fraction, move=False)[1]
+
+    def align(
+        self,
+        T_camera_object: np.ndarray,
+        model: ObjectModel,
+        obs: Observation,
+        tolerance_fraction: float | None = None,
+        move: bool = True,
+    ) -> tuple[np.ndarray, Verification]:
+        """The pose moved along its viewing ray so that the rendered model meets the observed surface (the median
+        of observed minus rendered depth over the mask's pixels where both exist), and its verification, from one
+        rendering (the moved pose's depths are the rendered ones scaled by the move, its silhouette taken as
+        unchanged), at most ``coarse_rays``. ``move`` False: the pose as given and its exact verification."""
+        cfg = self.config
+        T = np.array(T_camera_object, dtype=np.float64)
+        caster = raycaster(model)
+        window = _window(obs, T, caster, cfg.window_margin_px) if np.isfinite(T).all() and T[2, 3] > 0 else None
+        if window is None:
+            return T, _empty(int(obs.mask.sum()))
+        r = self._render(T, caster, obs, window, cfg.coarse_rays if move else cfg.max_rays)
+        if move:
+            both = r.in_mask & (r.rendered > 0) & (r.observed > 0)
+            if both.any():
+                scale = 1.0 + float(np.median(r.observed[both] - r.rendered[both])) / T[2, 3]
+                T[:3, 3] *= scale
+                r = _Rendering(r.rendered * scale, r.slope, r.observed, r.in_mask, None, r.stride)
+        return T, self._score(T, model, obs, r, tolerance_fraction)
+
+    def _score(
+        self, T: np.ndarray, model: ObjectModel, obs: Observation, r: _Rendering, tolerance_fraction: float | None
+    ) -> Verification:
+        """The verification figures from a rendering and the observation at the same (strided) pixels."""
+        cfg = self.config
+        rendered, slope, observed, in_mask, stride = r.rendered, r.slope, r.observed, r.in_mask, r.stride
+        hit = rendered > 0
+        valid = observed > 0
+        residual = observed - rendered
+        tol = self.tolerance_m(model, rendered, tolerance_fraction) + slope * rendered / obs.intrinsics.fx
+        both = hit & valid
+        inlier = both & (np.abs(residual) <= tol)
+        behind = both & (residual > tol)  # the observed surface is behind the model: free space violated
+        in_front = both & (residual < -tol)
+        violation = behind | (in_front & in_mask)
+        if r.height is not None:  # the part cannot reach through what it lies on
+            violation |= hit & (r.height < -self.tolerance_m(model, rendered))
+        occluded = in_front & ~in_mask & ~violation
+        n_inlier, n_violation = int(inlier.sum()), int(violation.sum())
+        # Mask pixels the model leaves open whose depth lies behind the model's surface next to them are background
+        # seen past the part (through its hole, around its edge in a loose mask): no part surface left unexplained.
+        reach = cfg.background_reach_fraction * model.diameter_m * obs.intrinsics.fx / T[2, 3] / stride
+        reach = max(2, math.ceil(reach))
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
+        nearby = cv2.dilate(rendered.astype(np.float32), kernel)
+        background = in_mask & valid & ~hit & (nearby > 0) & (observed > nearby + self.tolerance_m(model, nearby))
+        n_mask = int((in_mask & valid & ~background).sum())
+        fit = n_inlier / (n_inlier + n_violation) if n_inlier + n_violation else 0.0
+        coverage = int((inlier & in_mask).sum()) / n_mask if n_mask else 0.0
+        seen = hit & ~occluded
+        union = int((seen | in_mask).sum())
+        iou = int((seen & in_mask).sum()) / union if union else 0.0
+        confidence = math.sqrt(fit * coverage)
+        rmse = float(np.sqrt(np.mean(np.square(residual[inlier])))) if n_inlier else math.nan
+        return Verification(
+            confidence=confidence,
+            accepted=confidence >= cfg.min_confidence,
+            fit=fit,
+            coverage=coverage,
+            iou=iou,
+            inliers=n_inlier,
+            violations=n_violation,
+            occluded=int(occluded.sum()),
+            rendered=int(hit.sum()),
+            mask_pixels=n_mask,
+            rmse_m=rmse,
+        )
+
+
+@dataclass(frozen=True)
+class _Rendering:
+    """The model's z-depth and slope at (strided) crop pixels, the observed depth and mask there, the rendered
+    surface's height above the observation's support (None without one) and the pixel stride."""
+
+    rendered: np.ndarray
+    slope: np.ndarray
+    observed: np.ndarray
+    in_mask: np.ndarray
+    height: np.ndarray | None
+    stride: int
+
+
+def _empty(mask_pixels: int) -> Verification:
+    return Verification(0.0, False, 0.0, 0.0, 0.0, 0, 0, 0, 0, mask_pixels, math.nan)

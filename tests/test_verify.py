@@ -1,0 +1,86 @@
+"""perception.verify on ray-cast scenes: the true pose agrees with the depth and mask, wrong poses and a wrong
+part's model are refused; occluders in front of a part are no evidence against it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from perception.observation import Observation
+from perception.pose_strategies import StrategyRunner
+from perception.verify import PoseVerifier, VerifyConfig, raycaster
+from sygrid.objects.parts import builtin_part
+from sygrid.transforms import make_T, rotation_about
+from tests.raycast_scene import CAMERA, detection, on_floor, render
+
+NUT, WASHER, BRACKET = builtin_part("hex_nut"), builtin_part("washer"), builtin_part("l_bracket")
+R_SIDE = rotation_about(np.array([1.0, 0.0, 0.0]), np.pi / 2)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return render(
+        [
+            (NUT, on_floor(NUT, 0.0, 0.0, 20.0)),
+            (WASHER, on_floor(WASHER, 0.04, 0.0, 0.0)),
+            (BRACKET, on_floor(BRACKET, -0.045, 0.01, 30.0, R_SIDE)),
+        ]
+    )
+
+
+def _obs(scene, k: int, model) -> Observation:
+    return Observation.of_detection(scene.depth, detection(model, scene.masks[k]), CAMERA)
+
+
+@pytest.mark.parametrize(("k", "model"), [(0, NUT), (1, WASHER), (2, BRACKET)])
+def test_the_true_pose_is_accepted_and_wrong_poses_refused(scene, k, model):
+    verifier = PoseVerifier()
+    obs = _obs(scene, k, model)
+    T = scene.poses[k]
+    true = verifier.verify(T, model, obs)
+    assert true.accepted and true.confidence > 0.97 and true.fit > 0.97 and true.coverage > 0.97
+    assert true.violations <= 0.02 * true.rendered and true.rmse_m < 1e-4
+    shifted = T.copy()
+    shifted[:3, 3] += 0.3 * model.diameter_m * np.array([1.0, 0.0, 0.0])
+    tilted = T @ make_T(rotation_about(np.array([0.0, 1.0, 0.0]), np.radians(60.0)))
+    for wrong in (shifted, tilted):
+        v = verifier.verify(wrong, model, obs)
+        assert not v.accepted and v.confidence < true.confidence - 0.2, v
+
+
+def test_a_wrong_class_fit_is_refused(scene):
+    """The washer's model fitted (the full depth strategy) into the nut's mask, and the nut's into the washer's:
+    the best each can do still disagrees with the depth, and the verification refuses it; the right model passes."""
+    runner = StrategyRunner()
+    for k, model, wrong in ((0, NUT, WASHER), (1, WASHER, NUT)):
+        det = detection(model, scene.masks[k], obj_id=wrong.obj_id)
+        fitted = runner.estimate("depth+icp", det, scene.depth, CAMERA, wrong)
+        assert fitted is not None and fitted.verified is False, fitted.details["verify"]
+        right = runner.estimate("depth+icp", detection(model, scene.masks[k]), scene.depth, CAMERA, model)
+        assert right.verified and right.score > fitted.score + 0.2
+
+
+def test_an_occluder_in_front_is_no_evidence_against_the_pose():
+    T_nut = on_floor(NUT, 0.0, 0.0, 20.0)
+    # a washer floating 6 mm above the nut's top, half over it: it hides part of the nut from the camera
+    T_washer = T_nut @ make_T(t=[0.008, 0.0, 0.0114])
+    scene = render([(NUT, T_nut), (WASHER, T_washer)])
+    visible_share = scene.masks[0].sum() / render([(NUT, T_nut)]).masks[0].sum()
+    assert 0.2 < visible_share < 0.8  # the washer does hide part of it
+    v = PoseVerifier().verify(T_nut, NUT, _obs(scene, 0, NUT))
+    assert v.accepted and v.confidence > 0.97 and v.occluded > 0
+
+
+def test_tolerance_grows_with_depth_noise_and_the_visibility_test_sees_the_front():
+    quiet, noisy = PoseVerifier(), PoseVerifier(VerifyConfig(depth_noise_m=0.002))
+    assert quiet.tolerance_m(NUT, 1.0) == pytest.approx(max(0.001, 0.04 * NUT.diameter_m))
+    assert noisy.tolerance_m(NUT, 1.0) == pytest.approx(quiet.tolerance_m(NUT, 1.0) + 0.006)
+    T = make_T(t=[0.0, 0.0, 0.3])  # the nut's z axis along the view: its top face (z max) faces away
+    top_bottom = np.array([[0.0, 0.0, NUT.bounds_m[0, 2]], [0.0, 0.0, NUT.bounds_m[1, 2]]])
+    # points on the axis lie in the hole, which the ray crosses: both visible; a point on the far face behind
+    # the near face is not
+    far = np.array([[0.007, 0.0, NUT.bounds_m[1, 2]], [0.007, 0.0, NUT.bounds_m[0, 2]]])
+    assert raycaster(NUT).visible(T, top_bottom).tolist() == [True, True]
+    assert raycaster(NUT).visible(T, far).tolist() == [False, True]
+    with pytest.raises(ValueError, match="min_confidence"):
+        VerifyConfig(min_confidence=1.5)
