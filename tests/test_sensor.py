@@ -244,7 +244,7 @@ def test_a_recipe_names_its_sensor_and_the_generator_keeps_the_exact_depth(tmp_p
 class _NoPipeline:
     """What `evaluate` needs of a pipeline, finding nothing: the sensing and depth metrics are under test."""
 
-    pose_method, refiner = "direct", None
+    pose_method, refiner, strategies = "direct", None, None
 
     def __init__(self, models: dict) -> None:
         from types import SimpleNamespace
