@@ -51,11 +51,16 @@ def gt_as_json(inst: InstanceAnnotation) -> dict:
 
 def T_from_gt_json(entry: dict, where: str) -> np.ndarray:
     """(4, 4) metres from a ``scene_gt.json`` entry; ``where`` names the file and key for errors."""
+    return _T_from_R_t_mm(entry, "cam_R_m2c", "cam_t_m2c", where)
+
+
+def _T_from_R_t_mm(entry: dict, r_key: str, t_key: str, where: str) -> np.ndarray:
+    """(4, 4) metres from a BOP entry's rotation ``r_key`` (9 numbers, row-major) and translation ``t_key`` (mm)."""
     try:
-        R = np.asarray(entry["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
-        t = np.asarray(entry["cam_t_m2c"], dtype=np.float64).reshape(3) / MM_PER_M
+        R = np.asarray(entry[r_key], dtype=np.float64).reshape(3, 3)
+        t = np.asarray(entry[t_key], dtype=np.float64).reshape(3) / MM_PER_M
     except (KeyError, ValueError, TypeError) as err:
-        raise ConfigError(f"{where}: expected cam_R_m2c (9 numbers) and cam_t_m2c (3 numbers, mm): {err}") from err
+        raise ConfigError(f"{where}: expected {r_key} (9 numbers) and {t_key} (3 numbers, mm): {err}") from err
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     return T
@@ -91,14 +96,7 @@ def T_camera_world_from_json(entry: dict, where: str) -> np.ndarray | None:
     (datasets written before the pose was recorded). ``where`` names the file and key for errors."""
     if "cam_R_w2c" not in entry and "cam_t_w2c" not in entry:
         return None
-    try:
-        R = np.asarray(entry["cam_R_w2c"], dtype=np.float64).reshape(3, 3)
-        t = np.asarray(entry["cam_t_w2c"], dtype=np.float64).reshape(3) / MM_PER_M
-    except (KeyError, ValueError, TypeError) as err:
-        raise ConfigError(f"{where}: expected cam_R_w2c (9 numbers) and cam_t_w2c (3 numbers, mm): {err}") from err
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
+    return _T_from_R_t_mm(entry, "cam_R_w2c", "cam_t_w2c", where)
 
 
 def depth_to_png_units(depth_m: np.ndarray, depth_scale_mm: float) -> np.ndarray:
