@@ -139,7 +139,7 @@ def _time(detector: YoloSegDetector, root: Path, split: str, items: list, region
 def chart(results: dict):
     fig, (ax_map, ax_rec) = plt.subplots(1, 2, figsize=(13, 5))
     for k, row in enumerate(results["variants"]):
-        colour = f"C{k % 10}"
+        colour = plt.cm.tab20(k % 20)
         ax_map.scatter(row["ms_median"], row["box_map50"], marker="o", color=colour, label=row["name"])
         ax_map.scatter(row["ms_median"], row["mask_map50_95"], marker="s", color=colour)
         ax_rec.scatter(row["ms_median"], row["recall"], marker="o", color=colour, label=row["name"])
@@ -149,7 +149,7 @@ def chart(results: dict):
     ax_rec.set(xlabel="detector ms per frame, median", ylim=(0, 1),
                ylabel=f"recall (o), recall of parts < {SIZE_BINS[0][2]:g} px (v)",
                title=f"recall at confidence {results['operating_threshold']}")  # fmt: skip
-    ax_map.legend(fontsize=7, loc="lower right")
+    ax_map.legend(fontsize=7, loc="center right")
     fig.tight_layout()
     return fig
 

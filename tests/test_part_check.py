@@ -33,8 +33,8 @@ def test_recipe_and_cell_warnings_name_the_small_parts(tmp_path):
     scene = load_scene(scene_path)
     folder = _models(tmp_path, 20.0)
     warnings = scene_warnings(scene, scene_path.parent, folder)
-    # at 0.95 m, fx 579 px and the detector's 0.75 scale: the nut (22.5 mm) spans 10.3 px, the flange (96 mm) 43.9 px
-    assert any(w.startswith("hex_nut spans 10.3 network px") for w in warnings)
+    # at 0.95 m, fx 579 px and the manifest's scale 1.0: the nut (22.5 mm) spans 13.7 px, the flange (96 mm) 58.5 px
+    assert any(w.startswith("hex_nut spans 13.7 network px") for w in warnings)
     assert not any(w.startswith("flange") for w in warnings)
     assert all("bring the camera within" in w and "scale >=" in w and "fx >=" in w for w in warnings)
     assert scene_warnings(scene, scene_path.parent, _models(tmp_path / "none", None)) == []
