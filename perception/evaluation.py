@@ -143,7 +143,7 @@ def evaluate(
         for inst, pose in match_poses(ann, result.poses, s.min_visib_fract, s.match_iou):
             model = pipeline.models[inst.obj_id]
             records.append(_errors(pose, inst.T_camera_obj, model))
-        verdicts += _verdicts(ann, result.poses + result.refused, pipeline.models, s.match_iou)
+        verdicts += _verdicts(ann, result.poses + result.refused, pipeline.models)
         per_object += [(p.details["time_ms"], p.details["cpu_ms"]) for p in result.poses + result.refused
                        if "cpu_ms" in p.details]  # fmt: skip
     det = detection_metrics(images, detections, min_visib_fract=s.min_visib_fract)
@@ -198,24 +198,19 @@ def _metal_mask(ann: ImageAnnotation, models: dict[int, ObjectModel]) -> np.ndar
     return metal_mask([i.mask_visib for i in ann.instances], materials, METALS)
 
 
-def _verdicts(
-    ann: ImageAnnotation, poses: list[ObjectPose], models: dict[int, ObjectModel], min_iou: float
-) -> list[tuple[bool, bool]]:
-    """(accepted, correct) per verified pose: correct when its mask overlaps a ground-truth instance of its part
-    (any visibility, IoU >= ``min_iou``, the best overlap) and its pose is within ADD(-S) < 0.1 d of it."""
+def _verdicts(ann: ImageAnnotation, poses: list[ObjectPose], models: dict[int, ObjectModel]) -> list[tuple[bool, bool]]:
+    """(accepted, correct) per verified pose: correct when it is within ADD(-S) < 0.1 d of a ground-truth instance of
+    its part that its mask overlaps (any visibility, any overlap: a partial mask with a right pose is right)."""
     out = []
     for pose in poses:
         if pose.verified is None or pose.detection.mask is None:
             continue
-        best, best_iou = None, min_iou
-        for inst in ann.instances:
-            if inst.obj_id != pose.obj_id:
-                continue
-            union = np.count_nonzero(pose.detection.mask | inst.mask_visib)
-            iou = np.count_nonzero(pose.detection.mask & inst.mask_visib) / union if union else 0.0
-            if iou >= best_iou:
-                best, best_iou = inst, iou
-        correct = best is not None and _errors(pose, best.T_camera_obj, models[pose.obj_id]).correct()
+        model = models[pose.obj_id]
+        correct = any(
+            _errors(pose, inst.T_camera_obj, model).correct()
+            for inst in ann.instances
+            if inst.obj_id == pose.obj_id and np.any(pose.detection.mask & inst.mask_visib)
+        )
         out.append((bool(pose.verified), correct))
     return out
 

@@ -56,7 +56,7 @@ class VerifyConfig:
         threads: ray-casting threads (0: open3d's choice).
     """
 
-    tolerance_fraction: float = 0.04
+    tolerance_fraction: float = 0.015
     tolerance_min_m: float = 0.001
     depth_noise_m: float = 0.0
     min_confidence: float = 0.7

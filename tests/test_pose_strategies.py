@@ -199,3 +199,31 @@ def test_the_pipeline_follows_the_strategies_and_keeps_refused_poses_apart(scene
     assert limited.refine_more(more, frame) is None
     with pytest.raises(ConfigError, match="strategies must name every model"):
         PerceptionPipeline(None, None, models, strategies={NUT.obj_id: "depth+icp"})  # type: ignore[arg-type]
+
+
+def test_the_verification_verdicts_of_an_evaluation(scene):
+    """A right pose on a partial mask is right; a pose of the wrong part or far off is wrong; unverified poses do
+    not count."""
+    from perception.evaluation import _verdicts, _verification_summary
+    from sygrid.annotations import ImageAnnotation, InstanceAnnotation
+
+    instances = tuple(
+        InstanceAnnotation(m.obj_id, k, scene.poses[k], scene.masks[k], None, (-1,) * 4, (-1,) * 4, 1, 1, 1.0)
+        for k, m in enumerate((NUT, WASHER, BRACKET, BOLT))
+    )
+    ann = ImageAnnotation(0, CAMERA, instances)
+    partial = scene.masks[0].copy()
+    partial[: np.nonzero(partial)[0].mean().astype(int)] = False  # the lower half of the nut's mask
+    far = scene.poses[1].copy()
+    far[:3, 3] += 0.01
+    poses = [
+        ObjectPose(detection(NUT, partial), scene.poses[0], 0.99, "depth+icp", verified=True),  # right
+        ObjectPose(detection(WASHER, scene.masks[1]), far, 0.95, "depth+icp", verified=True),  # accepted, wrong
+        ObjectPose(detection(BRACKET, scene.masks[2]), scene.poses[2], 0.5, "depth+icp", verified=False),  # refused
+        ObjectPose(detection(NUT, scene.masks[3], obj_id=NUT.obj_id), scene.poses[0], 0.2, "rgb", verified=False),
+        ObjectPose(detection(BOLT, scene.masks[3]), scene.poses[3], 0.9, "direct"),  # not verified
+    ]
+    models = {m.obj_id: m for m in (NUT, WASHER, BRACKET, BOLT)}
+    verdicts = _verdicts(ann, poses, models)
+    assert verdicts == [(True, True), (True, False), (False, True), (False, False)]
+    assert _verification_summary(verdicts) == {"accepted": 2, "refused": 2, "false_accept": 0.5, "false_refuse": 0.5}

@@ -73,7 +73,7 @@ def test_an_occluder_in_front_is_no_evidence_against_the_pose():
 
 def test_tolerance_grows_with_depth_noise_and_the_visibility_test_sees_the_front():
     quiet, noisy = PoseVerifier(), PoseVerifier(VerifyConfig(depth_noise_m=0.002))
-    assert quiet.tolerance_m(NUT, 1.0) == pytest.approx(max(0.001, 0.04 * NUT.diameter_m))
+    assert quiet.tolerance_m(NUT, 1.0) == pytest.approx(max(0.001, VerifyConfig().tolerance_fraction * NUT.diameter_m))
     assert noisy.tolerance_m(NUT, 1.0) == pytest.approx(quiet.tolerance_m(NUT, 1.0) + 0.006)
     T = make_T(t=[0.0, 0.0, 0.3])  # the nut's z axis along the view: its top face (z max) faces away
     top_bottom = np.array([[0.0, 0.0, NUT.bounds_m[0, 2]], [0.0, 0.0, NUT.bounds_m[1, 2]]])
