@@ -15,6 +15,7 @@ BENCHMARKS = {
     "cell": "launch.bench_cell",
     "cell-detector": "launch.bench_cell_detector",
     "detection": "perception.bench_detection",
+    "training": "sygrid.bench.training",
 }
 
 

@@ -19,6 +19,8 @@ torch = pytest.importorskip("torch")
 
 from pycocotools import mask as mask_utils  # noqa: E402
 
+from sygrid.bench.training import run_curve  # noqa: E402
+from sygrid.errors import ConfigError  # noqa: E402
 from sygrid.letterbox import Letterbox  # noqa: E402
 from sygrid.train.detector.assigner import TaskAlignedAssigner  # noqa: E402
 from sygrid.train.detector.augment import (  # noqa: E402
@@ -398,6 +400,13 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     log = json.loads((out / "train_log.json").read_text())
     assert [e["epoch"] for e in log["epochs"]] == [1, 2]
 
+    # Its learning curve (sygrid bench training): one point per validated epoch, images seen = iterations x batch.
+    curve = run_curve(out)
+    assert [p["epoch"] for p in curve["points"]] == [1, 2]
+    assert [p["images_seen"] for p in curve["points"]] == [4, 8]
+    assert 0.0 < curve["points"][0]["hours"] < curve["points"][1]["hours"]
+    assert curve["width"] == "p" and curve["train_images"] == log["dataset"]["train_images"]
+
     # A different network cannot resume from this checkpoint.
     with pytest.raises(TrainError, match="differs from this run"):
         train(TrainConfig(**{**common, "size": "n"}, epochs=3, max_iters=1, progress=False, resume=True, export=False))
@@ -411,6 +420,14 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     assert tuned.epoch == 0
     with pytest.raises(TrainError, match=r"--init\): the checkpoint's network"):
         _Trainer(TrainConfig(**{**tuned_cfg, "size": "f"}, epochs=1, progress=False))
+
+
+def test_learning_curve_of_a_folder_without_a_log_is_a_clear_error(tmp_path):
+    with pytest.raises(ConfigError, match="no training log"):
+        run_curve(tmp_path)
+    (tmp_path / "train_log.json").write_text('{"epochs": []}')
+    with pytest.raises(ConfigError, match="not a detector training log"):
+        run_curve(tmp_path)
 
 
 def test_resume_without_checkpoint_is_a_clear_error(tiny_dataset, tmp_path):
