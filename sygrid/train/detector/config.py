@@ -22,7 +22,7 @@ class AugmentConfig:
     instead of the image centre)."""
 
     hsv_h: float = 0.015
-    hsv_s: float = 0.5
+    hsv_s: float = 0.7
     hsv_v: float = 0.4
     brightness: float = 0.1
     contrast: float = 0.2
@@ -30,13 +30,13 @@ class AugmentConfig:
     blur_sigma_px: float = 1.2
     noise_p: float = 0.25
     noise_sigma: float = 6.0
-    scale: float = 0.25
+    scale: float = 0.5
     translate: float = 0.1
     degrees: float = 10.0
     rot90_p: float = 0.5
     flip_lr: float = 0.5
     flip_ud: float = 0.5
-    mosaic: float = 0.5
+    mosaic: float = 1.0
     focus: float = 0.8
 
     def __post_init__(self) -> None:
@@ -57,9 +57,10 @@ class AugmentConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run. The defaults are the measured CPU trade-off (see the module docstring of ``trainer``):
-    the pico network (a 640x480 frame at 480 runs in about 27 ms on one core with onnxruntime), trained on 320 px
-    crops at the scale of a 480 input (about 1.0 s per batch of 8 on one core).
+    """One training run. The defaults are the shipped recipe (docs/perception.md gives its measurements): the pico
+    network trained on 320 px crops at the frame's own scale (``imgsz`` 640 for 640 px frames, so that the
+    runtime's crop and tile views, which run at scale 1, see parts at the trained size), with ultralytics' default
+    colour, zoom (+-50 %) and mosaic augmentation and EMA time constant.
 
     Args:
         data: dataset folder (``sygrid generate`` output, or a YOLO folder / ``data.yaml``).
@@ -99,8 +100,8 @@ class TrainConfig:
 
     data: str
     out: str
-    epochs: int = 35
-    imgsz: int = 480
+    epochs: int = 40
+    imgsz: int = 640
     train_size: int | None = 320
     batch: int = 8
     size: str = "p"
@@ -116,7 +117,7 @@ class TrainConfig:
     warmup_epochs: float = 1.0
     warmup_min_iters: int = 20
     ema_decay: float = 0.999
-    ema_tau: float = 200.0
+    ema_tau: float = 2000.0
     close_mosaic: int | None = None
     labels: str = "auto"
     obj_ids: tuple[int, ...] | None = None
