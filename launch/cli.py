@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "pick": ("launch.pick", "run the pick cycle on a cell file (simulated or hardware) and write its report"),
     "calibrate": ("launch.calibrate", "calibrate a cell's gripper (empty open/close) and write its calibration file"),
     "show": ("launch.show", "draw the labels of a few dataset items over their images (PNG)"),
+    "convert": ("launch.convert", "convert SyGRID label pickles or YOLO-seg folders to BOP, COCO and YOLO"),
 }
 
 

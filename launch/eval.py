@@ -3,7 +3,8 @@
 Prints box/mask mAP and per-part ADD(-S) recall, median rotation and translation errors, and writes them as JSON.
 ``--sensor ideal,oak-d`` runs the same images through each named sensor model (``sygrid.sensor`` presets, seeded
 per image from ``--sensor-seed``): one report per sensor, with the sensed depth's AbsRel and delta1 against the
-exact depth, and a table of the sensors side by side.
+exact depth, and a table of the sensors side by side. Models that do not know the dataset's parts are refused
+before anything runs; a dataset without depth gets detection metrics only.
 """
 
 from __future__ import annotations
@@ -11,8 +12,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from launch.eval_detector import add_detector_arguments, detector_breakdown, detector_overrides, warn_part_pixels
-from perception.evaluation import EvalSettings, evaluate, format_comparison, format_table
+from launch.eval_detector import (
+    add_detector_arguments,
+    default_region,
+    detector_breakdown,
+    detector_overrides,
+    warn_part_pixels,
+)
+from perception.evaluation import EvalSettings, check_model_classes, evaluate, format_comparison, format_table
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from sygrid.errors import ConfigError
 from sygrid.fileio import write_json_atomic
@@ -51,11 +58,13 @@ def run(args: argparse.Namespace) -> int:
     overrides = PipelineOverrides(pose_method=args.pose_method, refine=args.refine, num_threads=args.threads,
                                   **detector_overrides(args))  # fmt: skip
     pipeline = PerceptionPipeline.from_folder(args.models, overrides)
+    check_model_classes(args.data, {obj_id: m.name for obj_id, m in pipeline.models.items()}, args.split)
     warn_part_pixels(args)
+    region = default_region(args)
     reports = []
     for name in sensors:
         settings = EvalSettings(split=args.split, max_images=args.max_images, sensor=name, sensor_seed=args.sensor_seed,
-                                region=args.region)  # fmt: skip
+                                region=region)  # fmt: skip
         report = evaluate(pipeline, args.data, settings)
         print(format_table(report))
         if name == "ideal":  # the detector alone on the stored frames: AP and recall per part, size and visibility

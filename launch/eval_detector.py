@@ -18,9 +18,9 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--region",
         choices=REGIONS,
-        default="bin",
+        default=None,
         help="where the detector looks: the bin's box (from the dataset's bin pose; what a cell does with "
-        "detect_in_bin) or the whole frame (%(default)s)",
+        "detect_in_bin) or the whole frame (default: bin for a dataset made by 'sygrid generate', else full)",
     )
     parser.add_argument(
         "--scale",
@@ -38,6 +38,16 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-breakdown", action="store_true", help="skip the detector-alone pass at 0.001 (AP, recall per size)"
     )
+
+
+def default_region(args: argparse.Namespace) -> str:
+    """``--region``, or by default ``bin`` where the dataset knows its bin (a ledger of 'sygrid generate'), else
+    ``full`` (a converted dataset: no bin pose)."""
+    from sygrid.dataset import LEDGER_NAME
+
+    if args.region is not None:
+        return args.region
+    return "bin" if (args.data / LEDGER_NAME).is_file() else "full"
 
 
 def detector_overrides(args: argparse.Namespace) -> dict:

@@ -1,9 +1,10 @@
-"""``sygrid show DIR [--items N] [--split train_pbr] [--out PNG] [--seed S]``: a picture of a dataset's labels.
+"""``sygrid show DIR [--items N] [--split SPLIT] [--out PNG] [--seed S]``: a picture of a dataset's labels.
 
 Reads the BOP part of a generated dataset (``DIR/bop``: ``models/models_info.json`` for the 3D boxes, the items
 through ``sygrid.writers.load_bop_item``) and draws, for each chosen item, the visible-mask outlines, the visible 2D
 boxes, the 3D boxes and axes from the poses, and beside it the depth as a colour map; all items in one PNG grid.
-Without ``--seed`` the first N items of the split are shown, with it N items drawn at random.
+Without ``--seed`` the first N items of the split are shown, with it N items drawn at random. Without ``--split``
+the dataset's only split is shown, else ``train_pbr``.
 """
 
 from __future__ import annotations
@@ -28,7 +29,11 @@ MIN_TILE_HEIGHT_PX = 240
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dir", type=Path, help="dataset folder written by 'sygrid generate' (or a BOP root's parent)")
     parser.add_argument("--items", type=int, default=4, help="number of items to draw")
-    parser.add_argument("--split", default="train_pbr", help="BOP split folder: train_pbr, val_pbr or test")
+    parser.add_argument(
+        "--split",
+        default=None,
+        help="BOP split folder, e.g. train_pbr, val_pbr, test (default: the only one, else train_pbr)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="PNG to write (default: DIR/show_<split>.png)")
     parser.add_argument("--seed", type=int, default=None, help="draw the items at random with this seed")
 
@@ -50,6 +55,19 @@ def load_model_bounds(bop_root: Path) -> dict[int, np.ndarray]:
             f"{path}: expected obj_id -> {{min_x, min_y, min_z, size_x, size_y, size_z}} (mm): {err!r}"
         ) from err
     return bounds
+
+
+def choose_split(bop_root: Path, split: str | None) -> str:
+    """``split``, or where it is None the BOP root's only split folder, else ``train_pbr``; several splits without
+    ``train_pbr`` raise ConfigError listing them."""
+    if split is not None:
+        return split
+    have = sorted(p.name for p in bop_root.iterdir() if p.is_dir() and p.name != "models") if bop_root.is_dir() else []
+    if len(have) == 1:
+        return have[0]
+    if "train_pbr" in have or not have:
+        return "train_pbr"
+    raise ConfigError(f"{bop_root}: splits {have}; choose one with --split")
 
 
 def list_items(bop_root: Path, split: str) -> list[tuple[int, int]]:
@@ -111,22 +129,23 @@ def run(args: argparse.Namespace) -> int:
     # DIR is a generated dataset (DIR/bop/...) or a BOP root itself (DIR/models/...).
     bop_root = args.dir if (args.dir / "models").is_dir() and not (args.dir / "bop").is_dir() else args.dir / "bop"
     bounds = load_model_bounds(bop_root)
-    items = list_items(bop_root, args.split)
+    split = choose_split(bop_root, args.split)
+    items = list_items(bop_root, split)
     if args.seed is None:
         chosen = items[: args.items]
     else:
         picks = np.random.default_rng(args.seed).choice(len(items), size=min(args.items, len(items)), replace=False)
         chosen = [items[i] for i in sorted(picks)]
-    pictures = [item_picture(bop_root, args.split, s, i, bounds) for s, i in chosen]
+    pictures = [item_picture(bop_root, split, s, i, bounds) for s, i in chosen]
     sizes = {p.shape for p in pictures}
     if len(sizes) > 1:  # items of different sizes: scale all to the first one's size
         h, w = pictures[0].shape[:2]
         pictures = [cv2.resize(p, (w, h), interpolation=cv2.INTER_AREA) for p in pictures]
     grid = compose_grid(pictures, GRID_COLS)
-    out = args.out if args.out is not None else args.dir / f"show_{args.split}.png"
+    out = args.out if args.out is not None else args.dir / f"show_{split}.png"
     ok, png = cv2.imencode(".png", grid[..., ::-1])
     if not ok:
         raise OSError(f"{out}: PNG encoding failed")
     write_bytes_atomic(out, png.tobytes())
-    print(f"wrote {out} ({len(chosen)} of {len(items)} items of {args.split}, {grid.shape[1]}x{grid.shape[0]} px)")
+    print(f"wrote {out} ({len(chosen)} of {len(items)} items of {split}, {grid.shape[1]}x{grid.shape[0]} px)")
     return 0

@@ -9,6 +9,9 @@ Sensing: each image's RGB and exact depth (``depth_true/`` when the dataset was 
 ``depth/``) go through ``EvalSettings.sensor`` (a ``sygrid.sensor`` preset), seeded from ``sensor_seed`` and the
 image's ids, before the pipeline sees them; "ideal" keeps the stored frame. The sensed depth's AbsRel, delta1 and
 fill rate against the exact depth are reported per image and overall.
+
+A dataset without depth (photos converted by ``sygrid convert``) is evaluated for detection only, and a dataset
+whose parts the models do not know is refused up front (``check_model_classes``), naming both lists.
 """
 
 from __future__ import annotations
@@ -25,11 +28,12 @@ from tqdm import tqdm
 from perception.camera import Frame
 from perception.detector import YoloSegDetector
 from perception.detector_eval import bin_region_camera, detector_report, run_detector
-from perception.pipeline import PerceptionPipeline
+from perception.pipeline import PerceptionPipeline, region_of_interest
 from perception.results import ObjectPose
 from sygrid.annotations import ImageAnnotation
 from sygrid.dataset import DatasetBin
 from sygrid.errors import ConfigError
+from sygrid.fileio import read_json
 from sygrid.metrics import (
     PoseErrors,
     depth_metrics,
@@ -41,7 +45,10 @@ from sygrid.metrics import (
 from sygrid.objects.model import ObjectModel
 from sygrid.scene import METALS
 from sygrid.sensor import metal_mask, sensor_preset, sensor_rng
+from sygrid.train.detector.data import parse_data_yaml
 from sygrid.writers import load_bop_item, load_bop_true_depth
+
+NO_DEPTH = "the dataset has no depth maps: detection metrics only, no pose estimation"
 
 
 @dataclass(frozen=True)
@@ -69,10 +76,14 @@ def bop_items(root: Path, split: str) -> list[tuple[int, int]]:
 
 
 def default_split(root: Path) -> str:
+    """``test``, else ``val_pbr``, else ``train_pbr``, else the BOP root's only split folder (a converted set's)."""
     for split in ("test", "val_pbr", "train_pbr"):
         if (root / split).is_dir():
             return split
-    raise ConfigError(f"{root}: no BOP split folder (test, val_pbr or train_pbr)")
+    have = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name != "models")
+    if len(have) == 1:
+        return have[0]
+    raise ConfigError(f"{root}: no test, val_pbr or train_pbr split folder; splits here: {have}; choose with --split")
 
 
 def eval_items(data_dir: str | Path, settings: EvalSettings) -> tuple[Path, str, list[tuple[int, int]]]:
@@ -112,19 +123,40 @@ def evaluate(
     settings: EvalSettings | None = None,
     progress: bool = True,
 ) -> dict:
-    """Runs ``pipeline`` on the split's images; returns detection metrics, the pose table and median timings."""
+    """Runs ``pipeline`` on the split's images; returns detection metrics, the pose table and median timings.
+
+    A dataset without depth maps (its first image has none; a converted set of photos) gets the detector alone:
+    detection metrics, ``"pose": None`` and the reason in ``"pose_skipped"``.
+
+    Raises:
+        ConfigError: no images, the models lack some of the dataset's parts (``check_model_classes``), an image
+            without depth in a dataset with depth, or a simulated sensor on a dataset without depth.
+    """
     s = settings or EvalSettings()
     sensor = sensor_preset(s.sensor, "EvalSettings.sensor")
     root, split, items = eval_items(data_dir, s)
     if not items:
         raise ConfigError(f"{root / split}: no images")
+    names = {obj_id: m.name for obj_id, m in pipeline.models.items()}
+    check_model_classes(data_dir, names, split)
     images, detections, records, timings, depth_rows, sensor_ms = [], [], [], [], [], []
     verdicts, per_object = [], []
+    with_depth: bool | None = None  # decided by the first image
     dataset_bin = DatasetBin(data_dir) if s.region == "bin" else None
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
         if dataset_bin is not None:  # the bin moves with each generated view
             pipeline.region_camera_m = bin_region_camera(dataset_bin, ann)
+        if with_depth is None:
+            with_depth = depth is not None
+            if not with_depth and not sensor.is_ideal:
+                raise ConfigError(f"{root / split}: no depth maps, so the sensor {s.sensor!r} cannot be simulated")
+        images.append(ann)
+        if not with_depth:
+            t0 = time.perf_counter()
+            detections.append(pipeline.detector.detect(rgb, _region_box(pipeline, ann)))
+            timings.append({"detect": 1000.0 * (time.perf_counter() - t0)})
+            continue
         if depth is None:
             raise ConfigError(f"{root / split / f'{scene_id:06d}'}: image {image_id} has no depth map")
         depth_true = load_bop_true_depth(root, ann, split)
@@ -137,7 +169,6 @@ def evaluate(
         sensor_ms.append(1000.0 * (time.perf_counter() - t0))
         depth_rows.append((scene_id, image_id, depth_metrics(depth, depth_true)))
         result = pipeline.run(Frame(rgb, depth, ann.intrinsics, timestamp_s=0.0))
-        images.append(ann)
         detections.append(result.detections)
         timings.append(result.timings_ms)
         for inst, pose in match_poses(ann, result.poses, s.min_visib_fract, s.match_iou):
@@ -147,13 +178,13 @@ def evaluate(
         per_object += [(p.details["time_ms"], p.details["cpu_ms"]) for p in result.poses + result.refused
                        if "cpu_ms" in p.details]  # fmt: skip
     det = detection_metrics(images, detections, min_visib_fract=s.min_visib_fract)
-    names = {obj_id: m.name for obj_id, m in pipeline.models.items()}
     n_objects = [len(r) for r in detections]
     return {
         "split": split,
         "n_images": len(items),
         "detection": det.as_dict(),
-        "pose": _named(pose_metrics_table(records), names),
+        "pose": _named(pose_metrics_table(records), names) if with_depth else None,
+        "pose_skipped": None if with_depth else NO_DEPTH,
         "pose_method": pipeline.pose_method,
         "refine": pipeline.refiner is not None,
         "conf_threshold": pipeline.detector.conf_threshold,
@@ -161,14 +192,63 @@ def evaluate(
         "detections_per_image_median": float(np.median(n_objects)),
         "sensor": sensor.name,
         "sensor_seed": s.sensor_seed,
-        "sensor_ms_median": float(np.median(sensor_ms)),
-        "depth": asdict(mean_depth_metrics(m for *_, m in depth_rows)),
+        "sensor_ms_median": _median_of(sensor_ms) if with_depth else None,
+        "depth": asdict(mean_depth_metrics(m for *_, m in depth_rows)) if with_depth else None,
         "depth_per_image": [{"scene_id": sc, "image_id": im, **asdict(m)} for sc, im, m in depth_rows],
         "strategies": None if pipeline.strategies is None else {names[k]: v for k, v in pipeline.strategies.items()},
-        "verification": _verification_summary(verdicts) if pipeline.strategies is not None else None,
+        "verification": _verification_summary(verdicts) if pipeline.strategies is not None and with_depth else None,
         "pose_ms_per_object_median": _median_of([t for t, _ in per_object]),
         "pose_cpu_ms_per_object_median": _median_of([c for _, c in per_object]),
     }
+
+
+def _region_box(pipeline: PerceptionPipeline, ann: ImageAnnotation) -> tuple[int, ...] | None:
+    """The detector's region of interest in ``ann``'s image, as ``PerceptionPipeline.run`` sets it."""
+    if pipeline.region_camera_m is None:
+        return None
+    roi = region_of_interest(pipeline.region_camera_m, ann.intrinsics)
+    if roi is None:
+        raise ConfigError(f"image {ann.name}: the region of interest (the bin) lies outside the image")
+    return roi
+
+
+def dataset_classes(data_dir: str | Path, split: str) -> dict[int, str]:
+    """obj_id -> name of a dataset's parts: the ids of ``bop/models/models_info.json`` (else those in the split's
+    ground truth), the names of ``yolo/data.yaml`` where it names as many classes (class index = position in the
+    sorted ids, as the writers number them), else ``"?"``."""
+    root = Path(data_dir) / "bop"
+    info = root / "models" / "models_info.json"
+    if info.is_file():
+        ids = sorted(int(k) for k in read_json(info, "BOP models info"))
+    else:
+        ids = sorted({int(g["obj_id"]) for scene in sorted((root / split).glob("*/scene_gt.json"))
+                      for entries in read_json(scene, "BOP scene_gt").values() for g in entries})  # fmt: skip
+    names = ["?"] * len(ids)
+    yaml_path = Path(data_dir) / "yolo" / "data.yaml"
+    if yaml_path.is_file():
+        yolo_names = parse_data_yaml(yaml_path.read_text(), yaml_path).get("names", [])
+        names = yolo_names if len(yolo_names) == len(ids) else names
+    return dict(zip(ids, names, strict=True))
+
+
+def check_model_classes(data_dir: str | Path, model_classes: dict[int, str], split: str | None = None) -> None:
+    """Raises ConfigError, naming both lists, when the dataset has parts (obj_ids) the models do not know; models
+    that know more parts than the dataset has are fine. ``model_classes``: obj_id -> name of the models' parts."""
+    root = Path(data_dir) / "bop"
+    if not root.is_dir():
+        raise ConfigError(f"{data_dir}: not a generated dataset (no bop/ folder)")
+    dataset = dataset_classes(data_dir, split or default_split(root))
+    missing = sorted(set(dataset) - set(model_classes))
+    if missing:
+        raise ConfigError(
+            f"{data_dir}: the models do not know the dataset's parts {missing}. Dataset: {_listing(dataset)}; "
+            f"models: {_listing(model_classes)}. Evaluate models trained for this dataset's parts, or convert the "
+            "dataset with an --id-map onto the models' obj_ids"
+        )
+
+
+def _listing(classes: dict[int, str]) -> str:
+    return "[" + ", ".join(f"{i} {n}" for i, n in sorted(classes.items())) + "]"
 
 
 def evaluate_detector(
@@ -183,6 +263,7 @@ def evaluate_detector(
     visibility breakdown at the detector's threshold and at ``operating_threshold`` (``perception.detector_eval``)."""
     s = settings or EvalSettings()
     root, split, items = eval_items(data_dir, s)
+    check_model_classes(data_dir, dict(zip(detector.class_obj_ids, detector.class_names, strict=True)), split)
     region = "bin" if s.region == "bin" else "full"
     dataset_bin = DatasetBin(data_dir) if region == "bin" else None
     images, detections, ms = run_detector(detector, root, split, items, region, dataset_bin, progress)
@@ -249,24 +330,29 @@ def format_table(report: dict) -> str:
     how = f"pose method {report['pose_method']}{' + ICP' if report['refine'] else ''}"
     if report.get("strategies"):
         how = "pose strategies " + ", ".join(f"{k} {v}" for k, v in report["strategies"].items())
+    if report["pose"] is None:
+        how = f"pose skipped: {report['pose_skipped']}"
     lines = [
         f"{report['n_images']} images ({report['split']}), {how}",
         f"box mAP50 {det['box_map50']:.3f}  box mAP50-95 {det['box_map50_95']:.3f}  "
         f"mask mAP50 {det['mask_map50']:.3f}  mask mAP50-95 {det['mask_map50_95']:.3f}",
-        f"{'part':<16}{'metric':>8}{'n':>6}{'ADD(-S)<0.1d':>14}{'re med deg':>12}{'te med mm':>11}",
     ]
-    rows = {**report["pose"]["per_object"], "all": report["pose"]["all"]}
-    for name, row in rows.items():
+    if report["pose"] is not None:
+        lines.append(f"{'part':<16}{'metric':>8}{'n':>6}{'ADD(-S)<0.1d':>14}{'re med deg':>12}{'te med mm':>11}")
+        rows = {**report["pose"]["per_object"], "all": report["pose"]["all"]}
+        for name, row in rows.items():
+            lines.append(
+                f"{name:<16}{row['metric']:>8}{row['n']:>6}{_pct(row['add_recall']):>14}"
+                f"{row['median_re_deg']:>12.2f}{row['median_te_mm']:>11.2f}"
+            )
+        d = report["depth"]
         lines.append(
-            f"{name:<16}{row['metric']:>8}{row['n']:>6}{_pct(row['add_recall']):>14}"
-            f"{row['median_re_deg']:>12.2f}{row['median_te_mm']:>11.2f}"
+            f"sensor {report['sensor']} (seed {report['sensor_seed']}): depth AbsRel {d['abs_rel']:.4f}  "
+            f"delta1 {_pct(d['delta1'])}  fill {_pct(d['fill_rate'])} against the exact depth"
         )
-    d = report["depth"]
-    lines.append(
-        f"sensor {report['sensor']} (seed {report['sensor_seed']}): depth AbsRel {d['abs_rel']:.4f}  "
-        f"delta1 {_pct(d['delta1'])}  fill {_pct(d['fill_rate'])} against the exact depth"
-    )
-    t = {**report["timings_ms_median"], "sensor": report["sensor_ms_median"]}
+    t = dict(report["timings_ms_median"])
+    if report["sensor_ms_median"] is not None:
+        t["sensor"] = report["sensor_ms_median"]
     lines.append("median ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()))
     if report.get("verification"):
         v = report["verification"]
@@ -280,7 +366,8 @@ def format_table(report: dict) -> str:
 
 
 def format_comparison(reports: list[dict]) -> str:
-    """One row per report (the same images through different sensors): detection, pose and depth side by side."""
+    """One row per report (the same images through different sensors, with depth): detection, pose and depth side
+    by side."""
     lines = [
         f"{'sensor':<11}{'box mAP50':>11}{'mask mAP50-95':>15}{'ADD(-S)<0.1d':>14}{'re med deg':>12}{'te med mm':>11}"
         f"{'AbsRel':>9}{'delta1':>8}{'fill':>8}{'sensor ms':>11}"

@@ -163,15 +163,12 @@ def _projected_bbox(K: np.ndarray, corners_m: np.ndarray, width: int, height: in
     return (int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1))
 
 
-def load_sygrid_pickle(path: str | Path, width: int, height: int) -> dict[Any, ImageAnnotation]:
-    """Reads ``gt.pickle``: ``{image key: ImageAnnotation}`` (key as in the file, list index for a list).
-
-    ``width`` / ``height``: the image size in pixels (the labels do not store it). Image ids are the keys when
-    they are integers or numeric file names (``"000042.png"``), else the position in the file.
+def pickle_entries(path: str | Path) -> list[tuple[Any, int, dict, str]]:
+    """The images of ``gt.pickle`` in file order: ``(key, image_id, entry, where)`` with the key as in the file
+    (list index for a list), the image id (the key when it is an integer or a numeric file name such as
+    ``"000042.png"``, else the position in the file), the image's dict and ``where`` (the file and key, for errors).
     """
     path = Path(path)
-    if width <= 0 or height <= 0:
-        raise ValueError(f"width, height: expected positive pixel counts, got {width} x {height}")
     data = safe_load_pickle(path)
     if isinstance(data, dict):
         items = list(data.items())
@@ -179,8 +176,17 @@ def load_sygrid_pickle(path: str | Path, width: int, height: int) -> dict[Any, I
         items = list(enumerate(data))
     else:
         raise ConfigError(f"{path}: expected a dict or list of per-image dicts, got {type(data).__name__}")
-    out = {}
-    for index, (key, entry) in enumerate(items):
-        out[key] = image_from_entry(entry, _image_id(key, index), width, height, f"{path}[{key!r}]")
+    return [(key, _image_id(key, index), entry, f"{path}[{key!r}]") for index, (key, entry) in enumerate(items)]
+
+
+def load_sygrid_pickle(path: str | Path, width: int, height: int) -> dict[Any, ImageAnnotation]:
+    """Reads ``gt.pickle``: ``{image key: ImageAnnotation}`` (key as in the file, list index for a list).
+
+    ``width`` / ``height``: the image size in pixels (the labels do not store it). Image ids as ``pickle_entries``.
+    """
+    if width <= 0 or height <= 0:
+        raise ValueError(f"width, height: expected positive pixel counts, got {width} x {height}")
+    out = {key: image_from_entry(entry, image_id, width, height, where)
+           for key, image_id, entry, where in pickle_entries(path)}  # fmt: skip
     log.info("read %d images from %s", len(out), path)
     return out

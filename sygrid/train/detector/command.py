@@ -67,6 +67,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--labels", default=DEFAULTS["labels"], choices=("auto", "coco", "yolo"), help="where masks come from"
     )
     parser.add_argument(
+        "--id-map",
+        default=None,
+        help="JSON file: class name or index -> obj_id, for classes that are not built-in "
+        "parts when the dataset has no bop/ folder or COCO categories naming them",
+    )
+    parser.add_argument(
         "--val-every", type=int, default=DEFAULTS["val_every"], help="validate every N epochs (and after the last)"
     )
     parser.add_argument(
@@ -79,6 +85,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from sygrid.id_map import load_id_map
     from sygrid.train.detector.trainer import TrainConfig, TrainError, train  # torch from here on
 
     try:
@@ -103,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads,
             max_iters=args.max_iters,
             labels=args.labels,
+            id_map=load_id_map(args.id_map) if args.id_map else None,
             val_every=args.val_every,
             augment=augment,
             resume=args.resume,

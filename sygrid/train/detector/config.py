@@ -86,6 +86,7 @@ class TrainConfig:
         close_mosaic: no mosaic in the last this many epochs (None: 15% of the epochs).
         labels: ``"auto"``, ``"coco"`` or ``"yolo"`` (see ``data.open_dataset``).
         obj_ids: BOP obj_id per class (None: from the dataset).
+        id_map: class name or index -> obj_id, for a dataset whose classes nothing else maps (``sygrid.id_map``).
         val_every: validate every this many epochs (and always after the last).
         channels_last: NHWC tensors (oneDNN's preferred CPU layout).
         augment: overrides of ``AugmentConfig`` fields.
@@ -121,6 +122,7 @@ class TrainConfig:
     close_mosaic: int | None = None
     labels: str = "auto"
     obj_ids: tuple[int, ...] | None = None
+    id_map: dict[str, int] | None = None
     val_every: int = 1
     channels_last: bool = True
     augment: dict = field(default_factory=dict)

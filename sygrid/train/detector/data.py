@@ -15,7 +15,7 @@ from __future__ import annotations
 import ast
 import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,7 +24,8 @@ import numpy as np
 from pycocotools import mask as mask_utils
 
 from sygrid.annotations import polygon_to_mask
-from sygrid.errors import SygridError
+from sygrid.errors import ConfigError, SygridError
+from sygrid.id_map import class_obj_ids
 
 log = logging.getLogger(__name__)
 
@@ -122,14 +123,17 @@ def open_dataset(
     labels: str = "auto",
     obj_ids: Sequence[int] | None = None,
     splits: Sequence[str] = ("train", "val"),
+    id_map: Mapping[str, int] | None = None,
 ) -> DetectionDataset:
     """Opens the dataset at ``data_dir`` (a ``sygrid generate`` folder with ``yolo/data.yaml``, a YOLO folder with
     ``data.yaml``, or the ``data.yaml`` itself) and reads every label of ``splits``.
 
     Args:
         labels: ``"coco"`` (masks from ``DIR/coco``), ``"yolo"`` (polygons) or ``"auto"`` (coco where present).
-        obj_ids: BOP obj_id of each class; None reads them from ``DIR/bop/models/models_info.json`` (class index =
-            position in the sorted ids, as ``sygrid generate`` numbers classes), else from the built-in part names.
+        obj_ids: BOP obj_id of each class; None: ``id_map`` where given, else ``DIR/bop/models/models_info.json``
+            (class index = position in the sorted ids, as ``sygrid generate`` numbers classes), else by class name
+            from the COCO categories (``DIR/coco``), else from the built-in part names (``sygrid.id_map``).
+        id_map: class name or index -> obj_id (``sygrid.id_map.load_id_map``), for classes no other source names.
 
     Raises:
         DetectorDataError: a missing file or folder, a malformed ``data.yaml`` or label, or classes that cannot be
@@ -144,7 +148,7 @@ def open_dataset(
     names = spec["names"]
     root = yaml_path.parent / spec["path"] if spec.get("path") else yaml_path.parent
     dataset_dir = yaml_path.parent.parent if yaml_path.parent.name == "yolo" else None
-    ids = _class_obj_ids(names, obj_ids, dataset_dir, yaml_path)
+    ids = _class_obj_ids(names, obj_ids, id_map, dataset_dir, yaml_path, splits)
     images: dict[str, list[Path]] = {}
     for split in splits:
         if split not in spec:
@@ -187,26 +191,40 @@ def _find_data_yaml(path: Path) -> Path:
 
 
 def _class_obj_ids(
-    names: list[str], obj_ids: Sequence[int] | None, dataset_dir: Path | None, yaml_path: Path
+    names: list[str],
+    obj_ids: Sequence[int] | None,
+    id_map: Mapping[str, int] | None,
+    dataset_dir: Path | None,
+    yaml_path: Path,
+    splits: Sequence[str],
 ) -> list[int]:
     if obj_ids is not None:
         if len(obj_ids) != len(names):
             raise DetectorDataError(f"obj_ids: {len(obj_ids)} ids given for the {len(names)} classes of {yaml_path}")
         return [int(i) for i in obj_ids]
     info = dataset_dir / "bop" / "models" / "models_info.json" if dataset_dir else None
-    if info is not None and info.is_file():
+    if id_map is None and info is not None and info.is_file():
         ids = sorted(int(k) for k in json.loads(info.read_text()))
         if len(ids) != len(names):
             raise DetectorDataError(f"{info}: {len(ids)} models for the {len(names)} classes of {yaml_path}")
         return ids
-    from sygrid.objects.parts import BUILTIN_PARTS, builtin_part  # builds meshes: only when needed
+    try:
+        return class_obj_ids(names, str(yaml_path), id_map, known=_coco_category_ids(dataset_dir, splits))
+    except ConfigError as err:
+        raise DetectorDataError(str(err)) from err
 
-    if all(n in BUILTIN_PARTS for n in names):
-        return [builtin_part(n).obj_id for n in names]
-    raise DetectorDataError(
-        f"{yaml_path}: cannot tell the obj_id of classes {names} (no bop/models/models_info.json beside the yolo "
-        "folder, and not all are built-in parts); pass the obj_ids"
-    )
+
+def _coco_category_ids(dataset_dir: Path | None, splits: Sequence[str]) -> dict[str, int]:
+    """name -> id of the COCO categories beside the yolo folder (the first split's file that exists), or {}."""
+    paths = [dataset_dir / "coco" / "annotations" / f"instances_{s}.json" for s in splits] if dataset_dir else []
+    path = next((p for p in paths if p.is_file()), None)
+    if path is None:
+        return {}
+    try:
+        categories = json.loads(path.read_text()).get("categories", [])
+        return {str(c["name"]): int(c["id"]) for c in categories}
+    except (OSError, json.JSONDecodeError, AttributeError, KeyError, TypeError, ValueError) as err:
+        raise DetectorDataError(f"{path}: categories: expected a list of {{id, name}} ({err!r})") from err
 
 
 def label_path(image_path: Path) -> Path:

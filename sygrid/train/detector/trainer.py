@@ -167,7 +167,9 @@ class _Trainer:
             self.device = resolve_device(cfg.device)
         except ValueError as err:
             raise TrainError(f"--device: {err}") from err
-        self.dataset: DetectionDataset = open_dataset(cfg.data, labels=cfg.labels, obj_ids=cfg.obj_ids)
+        self.dataset: DetectionDataset = open_dataset(
+            cfg.data, labels=cfg.labels, obj_ids=cfg.obj_ids, id_map=cfg.id_map
+        )
         self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz,
                                      p2=cfg.p2, proto_stride=cfg.proto_stride)  # fmt: skip
         torch.manual_seed(cfg.seed)
