@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sygrid.catalogue import Catalogue, load_catalogue
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 from sygrid.objects import ContinuousSymmetry, ObjectModel, builtin_part, load_cad
@@ -30,8 +31,13 @@ POSES_FORMAT = "sygrid-poses/1"
 POSES_FRAME = "world: origin at the centre of the bin's inner floor, z up; metres"
 
 
-def resolve_object(spec: ObjectSpec, base_dir: Path) -> ObjectModel:
-    """The ObjectModel a scene entry names: a built-in part, or a CAD file relative to the scene file."""
+def resolve_object(spec: ObjectSpec, base_dir: Path, catalogue: Catalogue | None = None) -> ObjectModel:
+    """The ObjectModel a scene entry names: a built-in part, a CAD file relative to the scene file, or a part of
+    ``catalogue`` (ConfigError without one)."""
+    if spec.catalogue_part is not None:
+        if catalogue is None:
+            raise ConfigError(f"catalogue_part {spec.catalogue_part!r}: no catalogue to take it from")
+        return catalogue.model(spec.catalogue_part)
     if spec.builtin is not None:
         model = builtin_part(spec.builtin)
         if spec.obj_id is None and spec.material is None and spec.name is None:
@@ -53,7 +59,24 @@ def resolve_object(spec: ObjectSpec, base_dir: Path) -> ObjectModel:
 
 
 def resolve_objects(scene: SceneSpec, base_dir: Path) -> list[ObjectModel]:
-    return [resolve_object(spec, base_dir) for spec in scene.objects]
+    """The scene's models, one per entry: the one place a scene's parts (and its catalogue, relative to
+    ``base_dir``, the scene file's folder) are resolved. Raises ConfigError for an unknown catalogue part or two
+    different parts with one obj_id."""
+    catalogue = load_catalogue(Path(base_dir) / scene.catalogue) if scene.catalogue is not None else None
+    models = []
+    for k, spec in enumerate(scene.objects):
+        try:
+            models.append(resolve_object(spec, Path(base_dir), catalogue))
+        except ConfigError as exc:
+            raise ConfigError(f"scene {scene.name!r}: objects[{k}]: {exc}") from None
+    seen: dict[int, str] = {}
+    for k, model in enumerate(models):
+        if seen.setdefault(model.obj_id, model.name) != model.name:
+            raise ConfigError(
+                f"scene {scene.name!r}: objects[{k}] ({model.name}) has obj_id {model.obj_id}, already taken by "
+                f"{seen[model.obj_id]!r}: every part needs its own obj_id"
+            )
+    return models
 
 
 def collision_models(models: list[ObjectModel], tier: str) -> list[CollisionModel]:

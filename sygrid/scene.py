@@ -78,11 +78,22 @@ Material = Literal["steel", "zinc", "brass", "aluminium", "painted", "plastic"]
 METALS: frozenset[str] = frozenset({"steel", "zinc", "brass", "aluminium"})
 
 
+def check_sixteen_numbers(syms: tuple[tuple[float, ...], ...]) -> tuple[tuple[float, ...], ...]:
+    """``symmetries_discrete``' shape check, shared by the scene and the catalogue: each entry 16 numbers."""
+    for i, T in enumerate(syms):
+        if len(T) != 16:
+            raise ValueError(f"[{i}] must be a 4x4 transform as 16 numbers (row-major), got {len(T)}")
+    return syms
+
+
 class ObjectSpec(_Strict):
-    """One kind of part: a built-in part by name, or a CAD file (path relative to the scene file) with its unit."""
+    """One kind of part: a built-in part by name, a CAD file (path relative to the scene file) with its unit, or a
+    part of the scene's catalogue by name (``catalogue_part``: its id, name, file, material and symmetries all
+    come from the catalogue; only ``count`` is given here)."""
 
     builtin: str | None = None
     file: str | None = None
+    catalogue_part: str | None = None
     unit: Literal["mm", "m"] | None = None
     obj_id: int | None = Field(default=None, ge=1)
     name: str | None = None
@@ -101,15 +112,23 @@ class ObjectSpec(_Strict):
     @field_validator("symmetries_discrete")
     @classmethod
     def _sixteen_numbers(cls, syms: tuple[tuple[float, ...], ...]) -> tuple[tuple[float, ...], ...]:
-        for i, T in enumerate(syms):
-            if len(T) != 16:
-                raise ValueError(f"[{i}] must be a 4x4 transform as 16 numbers (row-major), got {len(T)}")
-        return syms
+        return check_sixteen_numbers(syms)
 
     @model_validator(mode="after")
     def _one_source(self) -> ObjectSpec:
-        if (self.builtin is None) == (self.file is None):
-            raise ValueError("give exactly one of 'builtin' (a built-in part name) or 'file' (a CAD path)")
+        if sum(v is not None for v in (self.builtin, self.file, self.catalogue_part)) != 1:
+            raise ValueError(
+                "give exactly one of 'builtin' (a built-in part name), 'file' (a CAD path) or 'catalogue_part' "
+                "(a part of the scene's catalogue)"
+            )
+        if self.catalogue_part is not None:
+            given = [k for k in ("unit", "obj_id", "name", "material") if getattr(self, k) is not None]
+            if given or self.symmetries_discrete or self.symmetries_continuous:
+                raise ValueError(
+                    f"a 'catalogue_part' takes only 'count': its {', '.join(given) or 'symmetries'} come(s) from "
+                    "the catalogue"
+                )
+            return self
         if self.file is not None:
             if self.unit is None:
                 raise ValueError("'unit' is required with 'file': 'mm' or 'm'")
@@ -121,7 +140,7 @@ class ObjectSpec(_Strict):
 
     @property
     def label(self) -> str:
-        return self.name or self.builtin or Path(self.file or "").stem
+        return self.name or self.builtin or self.catalogue_part or Path(self.file or "").stem
 
 
 class ContainerSpec(_Strict):
@@ -244,6 +263,7 @@ class PhysicsSpec(_Strict):
 
 class SceneSpec(_Strict):
     name: str = "scene"
+    catalogue: str | None = None  # an object catalogue file (sygrid.catalogue), relative to the scene file
     objects: tuple[ObjectSpec, ...]
     container: ContainerSpec = ContainerSpec()
     camera: CameraSpec = CameraSpec()
@@ -264,6 +284,9 @@ class SceneSpec(_Strict):
         dupes = sorted({i for i in ids if ids.count(i) > 1})
         if dupes:
             raise ValueError(f"obj_id values must be unique, repeated: {dupes}")
+        named = [f"objects[{k}]" for k, o in enumerate(self.objects) if o.catalogue_part is not None]
+        if named and self.catalogue is None:
+            raise ValueError(f"{', '.join(named)} name(s) a 'catalogue_part': give the scene's 'catalogue' file")
         return self
 
 
@@ -289,7 +312,16 @@ def load_scene(path: str | Path) -> SceneSpec:
 
 
 def scene_to_json(scene: SceneSpec) -> dict:
-    return scene.model_dump(mode="json")
+    """The scene as plain data. The catalogue keys are left out where unused, so a scene that uses no catalogue
+    keeps the content hash (``sygrid.drop.scene_sha256``, the dataset ledger's recipe hash) it had before they
+    existed."""
+    data = scene.model_dump(mode="json")
+    if data["catalogue"] is None:
+        del data["catalogue"]
+    for obj in data["objects"]:
+        if obj["catalogue_part"] is None:
+            del obj["catalogue_part"]
+    return data
 
 
 def default_scene(parts: tuple[str, ...] = ("hex_nut", "washer", "l_bracket", "pipe"), per_part: int = 5) -> SceneSpec:

@@ -9,7 +9,7 @@ BOP writer converts to millimetres at the file boundary (``models_info_entry``).
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -85,6 +85,25 @@ class ObjectModel:
         return self.volume_m3 * self.density_kg_m3
 
     @property
+    def mass_source(self) -> str:
+        """Where ``mass_kg`` comes from: ``"declared"`` (``with_mass``), ``"density x solid volume"``, or
+        ``"density x convex hull volume"`` (an open mesh has no inside: its hull stands in, overstating the mass)."""
+        if "mass_declared_kg" in self.metadata:
+            return "declared"
+        return "density x solid volume" if self.mesh.is_volume else "density x convex hull volume"
+
+    def with_mass(self, mass_kg: float) -> ObjectModel:
+        """This model with a declared mass [kg] (> 0): its density becomes ``mass_kg / volume_m3``, so the mass,
+        and the inertia computed from density and volume, match the declaration."""
+        if not (np.isfinite(mass_kg) and mass_kg > 0.0):
+            raise ValueError(f"mass_kg must be a finite number > 0, got {mass_kg}")
+        return replace(
+            self,
+            density_kg_m3=float(mass_kg) / self.volume_m3,
+            metadata={**self.metadata, "mass_declared_kg": float(mass_kg)},
+        )
+
+    @property
     def is_symmetric(self) -> bool:
         return bool(self.symmetries_discrete or self.symmetries_continuous)
 
@@ -131,3 +150,33 @@ def _T_to_bop_mm(T: np.ndarray) -> list[float]:
     T_mm = np.array(T, dtype=float)
     T_mm[:3, 3] *= 1000.0
     return [float(v) for v in T_mm.reshape(-1)]
+
+
+def symmetries_from_models_info(
+    entry: dict, where: str
+) -> tuple[tuple[np.ndarray, ...], tuple[ContinuousSymmetry, ...]]:
+    """The symmetries of a BOP ``models_info.json`` entry (millimetres) in metres: the inverse of
+    ``ObjectModel.models_info_entry``. ``where`` names the file and entry in errors.
+
+    Raises:
+        ValueError: a discrete symmetry is not 16 numbers, or a continuous one lacks a 3-number axis/offset.
+    """
+    discrete = []
+    for i, values in enumerate(entry.get("symmetries_discrete", [])):
+        T = np.asarray(values, dtype=np.float64)
+        if T.size != 16:
+            raise ValueError(f"{where}.symmetries_discrete[{i}]: expected 16 numbers (a 4x4 row-major, mm)")
+        T = T.reshape(4, 4).copy()
+        T[:3, 3] /= 1000.0
+        discrete.append(T)
+    continuous = []
+    for i, sym in enumerate(entry.get("symmetries_continuous", [])):
+        try:
+            axis = tuple(float(v) for v in sym["axis"])
+            offset = tuple(float(v) / 1000.0 for v in sym.get("offset", (0.0, 0.0, 0.0)))
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise ValueError(f"{where}.symmetries_continuous[{i}]: expected 'axis' and 'offset' (mm): {exc}") from None
+        if len(axis) != 3 or len(offset) != 3:
+            raise ValueError(f"{where}.symmetries_continuous[{i}]: 'axis' and 'offset' must be 3 numbers each")
+        continuous.append(ContinuousSymmetry(axis, offset))  # type: ignore[arg-type]
+    return tuple(discrete), tuple(continuous)

@@ -53,10 +53,10 @@ def symmetry_error_m(mesh: trimesh.Trimesh, T_obj_obj: np.ndarray, n_samples: in
     if T.shape != (4, 4):
         raise ValueError(f"T_obj_obj must be a 4x4 transform, got shape {T.shape}")
     points = sample_surface(mesh, n_samples, np.random.default_rng(seed))
-    return float(np.max(_SurfaceDistance(mesh)(transform_points(T, points))))
+    return float(np.max(SurfaceDistance(mesh)(transform_points(T, points))))
 
 
-class _SurfaceDistance:
+class SurfaceDistance:
     """Exact point-to-surface distances for one mesh, built once and queried for many point sets.
 
     Candidate faces per point come from an r-tree of face bounding boxes, queried with a box whose half-size is an
@@ -131,7 +131,7 @@ def check_symmetries(model: ObjectModel, tol_m: float, n_samples: int = 2000, se
     if tol_m <= 0.0:
         raise ValueError(f"tol_m must be > 0, got {tol_m}")
     problems: list[str] = []
-    distance_to_surface = _SurfaceDistance(model.mesh)
+    distance_to_surface = SurfaceDistance(model.mesh)
     points = sample_surface(model.mesh, n_samples, np.random.default_rng(seed))
     where = f"{model.name} (obj_id {model.obj_id})"
     for i, T in enumerate(model.symmetries_discrete):
