@@ -14,7 +14,7 @@ from sygrid.errors import SygridError
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("launch.demo", "the main job: the picking demo in the simulated cell (sygrid pick on its defaults)"),
     "drop": ("launch.drop", "drop the parts of a scene into its bin and write their poses"),
-    "parts": ("launch.parts", "list the built-in parts, or export one as a mesh"),
+    "parts": ("launch.parts", "inspect the built-in parts or your own CAD files / catalogue; export a part as a mesh"),
     "bench": ("launch.bench", "run a benchmark and write its JSON and chart"),
     "sim": ("sim.server", "serve a simulated UR5e cell that ur_rtde clients can drive"),
     "generate": ("launch.generate", "generate (or resume) a dataset from a recipe: BOP, YOLO and COCO labels"),

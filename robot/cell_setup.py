@@ -36,11 +36,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-import tomllib
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, ValidationError
 
 from robot.pick_config import PickerConfig

@@ -155,7 +155,7 @@ def calibrate_gripper(gripper: RobotiqSocketGripper, repeats: int = 3) -> Grippe
         hold_threshold_counts=pos_closed - min(closed_readings) + HOLD_MARGIN_COUNTS,
         open_readings=tuple(open_readings),
         closed_readings=tuple(closed_readings),
-        created=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        created=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     )
     _verify(gripper, calibration, where)
     log.info("%s calibrated: %s", where, readings)

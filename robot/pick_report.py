@@ -13,21 +13,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
-from enum import Enum
+from enum import Enum, StrEnum
 from typing import Any
 
 
-class _StrEnum(str, Enum):
-    """A string-valued enum whose members print and format as their values (``enum.StrEnum`` from Python 3.11)."""
-
-    def __str__(self) -> str:
-        return str(self.value)
-
-    def __format__(self, spec: str) -> str:
-        return format(str(self.value), spec)
-
-
-class Stage(_StrEnum):
+class Stage(StrEnum):
     """The stages a cycle's wall time is split into (``CycleRecord.stage_wall_s``); an attempt ends in one of
     ``APPROACH``, ``GRASP``, ``VERIFY``, ``PLACE``."""
 
@@ -41,7 +31,7 @@ class Stage(_StrEnum):
     NUDGE = "nudge"
 
 
-class Outcome(_StrEnum):
+class Outcome(StrEnum):
     """How one attempt (one planned grasp tried) ended: ``PICKED`` or a failure cause."""
 
     PICKED = "picked"
@@ -57,7 +47,7 @@ class Outcome(_StrEnum):
     INTERRUPTED = "interrupted"  # the run was stopped during the attempt (the gripper kept its state)
 
 
-class NudgeOutcome(_StrEnum):
+class NudgeOutcome(StrEnum):
     """How a nudge ended (``CycleRecord.nudge["outcome"]``)."""
 
     DONE = "done"
@@ -68,7 +58,7 @@ class NudgeOutcome(_StrEnum):
     NO_CONTACT = "no_contact"  # the force-limited press met nothing within its travel: the part is not there
 
 
-class StopReason(_StrEnum):
+class StopReason(StrEnum):
     """Why a run stopped (``RunReport.stop_reason``)."""
 
     BIN_EMPTY = "bin_empty"
@@ -83,7 +73,7 @@ class StopReason(_StrEnum):
     ERROR = "error"  # an unexpected error ended the run (raised on to the caller; its type and message in the detail)
 
 
-class CycleEnd(_StrEnum):
+class CycleEnd(StrEnum):
     """How one cycle ended (``CycleRecord.end``): a pick, a failed or a nudge cycle (the run goes on), one that
     ends the run (the same string as its ``StopReason``, see ``STOP_OF_END``), or one the run's end cut short
     (``INTERRUPTED``: a stop request, an error, or a stop the cell cannot release; ``CycleRecord.interrupted_in``

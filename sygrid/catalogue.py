@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -203,15 +204,6 @@ def load_catalogue(path: str | Path) -> Catalogue:
 
 
 def _read_toml(path: Path) -> Any:
-    try:
-        import tomllib  # Python >= 3.11
-    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-        try:
-            import tomli as tomllib
-        except ModuleNotFoundError:
-            raise ConfigError(
-                f"{path}: reading TOML needs Python >= 3.11 or 'tomli'; or use a .json catalogue"
-            ) from None
     try:
         return tomllib.loads(path.read_text())
     except OSError as exc:

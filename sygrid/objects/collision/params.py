@@ -7,7 +7,7 @@ from dataclasses import dataclass, fields
 from typing import Literal
 
 
-class CollisionTier(str, enum.Enum):
+class CollisionTier(enum.StrEnum):
     """How a part collides, cheapest first. The value is the name used in scene files and cache keys."""
 
     HULL = "hull"

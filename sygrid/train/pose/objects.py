@@ -17,7 +17,7 @@ import open3d as o3d
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 from sygrid.objects.cad import load_cad
-from sygrid.objects.model import ContinuousSymmetry, ObjectModel
+from sygrid.objects.model import ObjectModel, symmetries_from_models_info
 from sygrid.objects.symmetry import sample_surface
 
 log = logging.getLogger(__name__)
@@ -41,21 +41,10 @@ def load_bop_models(models_dir: str | Path, obj_ids: Sequence[int] | None = None
         raise ConfigError(f"{info_path}: no model for obj_id {missing}; the dataset has obj_ids {available}")
     models = {}
     for obj_id in wanted:
-        entry = info[str(obj_id)]
-        discrete = []
-        for i, values in enumerate(entry.get("symmetries_discrete", [])):
-            T = np.asarray(values, dtype=np.float64)
-            if T.size != 16:
-                raise ConfigError(f"{info_path}[{obj_id}].symmetries_discrete[{i}]: expected 16 numbers")
-            T = T.reshape(4, 4)
-            T[:3, 3] /= MM_PER_M
-            discrete.append(T)
-        continuous = tuple(
-            ContinuousSymmetry(
-                tuple(float(v) for v in s["axis"]), tuple(float(v) / MM_PER_M for v in s.get("offset", (0, 0, 0)))
-            )
-            for s in entry.get("symmetries_continuous", [])
-        )
+        try:
+            discrete, continuous = symmetries_from_models_info(info[str(obj_id)], f"{info_path}[{obj_id}]")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         models[obj_id] = load_cad(
             models_dir / f"obj_{obj_id:06d}.ply",
             unit="mm",
