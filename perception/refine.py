@@ -427,8 +427,8 @@ class DepthRefiner:
         Each open3d call runs ``iterations_per_call`` iterations, and a stage ends after the call whose update was
         negligible: open3d's legacy result does not report its iteration count and its own stopping rule does not
         know symmetry axes, and its tensor API, which does report the count, is slower on these small clouds. Not
-        one iteration per call: every call builds the target's k-d tree again, which costs more than an iteration
-        (``sygrid bench perception`` times both). For a part with continuous symmetry axes (``symmetry_axes``
+        one iteration per call: every call builds the target's k-d tree again, which costs more than an iteration.
+        For a part with continuous symmetry axes (``symmetry_axes``
         (k, 3), object frame; ``R_frame_object`` the model's rotation in the ICP frame) the rotation update is
         measured on the axes' directions only: about such an axis the data cannot pin the
         pose, open3d's unregularised solve wanders there (back and forth for ever on a washer), and that harmless

@@ -10,12 +10,10 @@ import numpy as np
 import pytest
 
 from launch.cli import build_parser
-from perception.bench import chart, format_results, run, run_benchmark
 from perception.camera import Frame
 from perception.evaluation import EvalSettings, bop_items, evaluate, format_table
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from perception.refine import RefineConfig
-from sygrid.bench.common import save_results
 from sygrid.errors import ConfigError
 from sygrid.writers import load_bop_item
 
@@ -75,25 +73,6 @@ def test_pack_writes_the_manifest_and_model_cards_from_the_runs(model_dir: Path,
     detector = json.loads((model_dir / "eval_detector.json").read_text())
     assert detector["conf_threshold"] == 0.001 and detector["n_images"] == 2 and "box_map50" in detector
     assert "confidence threshold 0.001" in card and "operating threshold 0.01" in card
-
-
-def test_perception_benchmark_runs_every_variant_on_the_same_images(
-    model_dir: Path, tiny_dataset: Path, tmp_path: Path
-):
-    results = run_benchmark(model_dir, tiny_dataset, sizes=(96, 128), max_images=2, progress=False)
-    assert [r["name"] for r in results["detector"]] == ["detector.onnx @ 96", "detector.onnx @ 128"]
-    assert all(r["ms_median"] > 0 for r in results["detector"])
-    assert [(r["method"], r["refine"]) for r in results["pose"]] == [
-        ("direct", ""), ("direct", "ICP"), ("direct", "ICP, 2 best starts"), ("direct", "ICP from the estimate only"),
-        ("direct", "ICP, 1 iteration per open3d call"), ("pnp", ""), ("pnp", "ICP"),
-    ]  # fmt: skip
-    assert "detector.onnx @ 128" in format_results(results)
-    chart(results)  # draws without data-dependent failures
-    # --replot redraws the chart from the saved JSON alone
-    save_results("perception", results, chart(results), tmp_path)
-    (tmp_path / "perception.png").unlink()
-    assert run(build_parser("bench").parse_args(["bench", "perception", "--replot"]), out_dir=tmp_path) == 0
-    assert (tmp_path / "perception.png").stat().st_size > 0
 
 
 def test_pipeline_turns_a_frame_into_poses(model_dir: Path, tiny_dataset: Path):
