@@ -1,9 +1,11 @@
 """``sygrid drop SCENE.json --seed S --out poses.json [--picture PNG]``: steps 1-2 of the SyGRID method from the
-command line; ``--picture`` also shows the pile in the simulated cell's bin through its overhead camera."""
+command line; ``--picture`` also shows the pile in the simulated cell's bin through its overhead camera. Exit codes:
+``EXIT_CODES``."""
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
@@ -16,8 +18,17 @@ from sygrid.physics import DropResult
 from sygrid.scene import load_scene
 from sygrid.transforms import invert, transform_points
 
+#: ``sygrid drop``'s exit codes (its ``--help`` epilog says the same).
+EXIT_CODES = (
+    "exit codes: 0 the pile is within the scene's stability bounds (every part in the bin with a finite pose, settled "
+    "within physics.max_time_s, penetration at rest at most physics.max_penetration_m); 1 it is not (the poses file "
+    "is written all the same, and one line on stderr says which bounds failed); 2 bad input (the scene file, its "
+    "parts) or a drop that could not be made."
+)
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EXIT_CODES
     parser.add_argument("scene", type=Path, help="scene description (JSON)")
     parser.add_argument("--seed", type=int, default=0, help="seed: the same seed gives the same poses")
     parser.add_argument("--out", type=Path, default=None, help="poses file (default: SCENE.poses.json beside it)")
@@ -33,7 +44,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {len(result.instances)} poses to {out}")
     if args.picture and result.report.ok:
         print(f"wrote {save_pile_picture(result, args.picture)}")
-    return 0 if result.report.ok else 1
+    if not result.report.within_bounds:
+        print(f"sygrid drop: the pile is outside its stability bounds: {'; '.join(result.report.failures)}",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    return 0
 
 
 def print_drop_summary(result: DropResult) -> None:

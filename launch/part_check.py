@@ -47,7 +47,7 @@ def scene_warnings(scene: SceneSpec, base_dir: Path, models_dir: Path) -> list[s
     """Warnings for a scene's parts and camera: the far end of its sampled distance (or its fixed camera's distance
     from the bin's floor centre)."""
     from sygrid.drop import resolve_objects
-    from sygrid.render.camera_pose import intrinsics_from_spec
+    from sygrid.scene import intrinsics_from_spec
 
     if not (models_dir / "manifest.json").is_file():
         return []

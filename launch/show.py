@@ -4,7 +4,8 @@ Reads the BOP part of a generated dataset (``DIR/bop``: ``models/models_info.jso
 through ``sygrid.writers.load_bop_item``) and draws, for each chosen item, the visible-mask outlines, the visible 2D
 boxes, the 3D boxes and axes from the poses, and beside it the depth as a colour map; all items in one PNG grid.
 Without ``--seed`` the first N items of the split are shown, with it N items drawn at random. Without ``--split``
-the dataset's only split is shown, else ``train_pbr``.
+the dataset's only split is shown, else ``train_pbr``. For a folder made by ``sygrid generate``, each shown item's
+record (``DIR/records/``: the drop's stability figures and the quality gate's redraws) is printed, one line per item.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from sygrid.dataset import load_records
+from sygrid.dataset_item import IMAGES_PER_SCENE
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_bytes_atomic
 from sygrid.visualize import compose_grid, depth_colormap, draw_annotation, put_caption
@@ -121,6 +124,20 @@ def item_picture(bop_root: Path, split: str, scene_id: int, image_id: int, bound
     return picture
 
 
+def record_line(record: dict) -> str:
+    """One line of an item's record: whether and when its pile settled, its penetration against the bound, and the
+    attempts the quality gate redrew."""
+    st = record.get("stability", {})
+    settled = f"settled in {st['sim_time_s']:.2f} s" if st.get("settled") else "NOT settled"
+    redraws = record.get("redraws", [])
+    why = "; ".join(f"attempt {r['attempt']}: {r['reason']}" for r in redraws)
+    return (
+        f"{settled}, penetration {st.get('max_penetration_m', float('nan')) * 1e3:.3f} mm (bound "
+        f"{st.get('penetration_bound_m', float('nan')) * 1e3:.2f} mm), {record.get('visible_instances', '?')}/"
+        f"{record.get('instances', '?')} visible, {len(redraws)} redraw(s)" + (f" ({why})" if why else "")
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     if args.items < 1:
         raise ConfigError(f"--items: expected >= 1, got {args.items}")
@@ -137,6 +154,11 @@ def run(args: argparse.Namespace) -> int:
         picks = np.random.default_rng(args.seed).choice(len(items), size=min(args.items, len(items)), replace=False)
         chosen = [items[i] for i in sorted(picks)]
     pictures = [item_picture(bop_root, split, s, i, bounds) for s, i in chosen]
+    records = load_records(args.dir) if bop_root == args.dir / "bop" else {}
+    for s, i in chosen:
+        record = records.get(s * IMAGES_PER_SCENE + i)
+        if record is not None:
+            print(f"{split} {s:06d}/{i:06d}: {record_line(record)}")
     sizes = {p.shape for p in pictures}
     if len(sizes) > 1:  # items of different sizes: scale all to the first one's size
         h, w = pictures[0].shape[:2]

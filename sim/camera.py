@@ -35,6 +35,7 @@ from perception.camera import Camera, Frame
 from sim.cell_model import OVERHEAD_CAMERA, WRIST_CAMERA
 from sim.world import CellWorld
 from sygrid.camera import CameraIntrinsics
+from sygrid.mjspec import model_camera_intrinsics
 from sygrid.sensor import IDEAL, SensorModel
 from sygrid.transforms import invert, make_T
 
@@ -93,8 +94,7 @@ class SimCamera(Camera):
         self._backend = backend
         self._report_pose = report_T_base_camera
         self._camera_id = names.index(camera_name)
-        fovy = float(world.model.cam_fovy[self._camera_id])
-        self._intrinsics = CameraIntrinsics.from_fov(self._width, self._height, fovy)
+        self._intrinsics = model_camera_intrinsics(world.model, self._camera_id, self._width, self._height)
         self._rect = mujoco.MjrRect(0, 0, self._width, self._height)
         self._rgb = np.empty((self._height, self._width, 3), dtype=np.uint8)
         self._depth = np.empty((self._height, self._width), dtype=np.float32)

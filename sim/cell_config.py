@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -53,8 +54,8 @@ def _default_camera_pose() -> np.ndarray:
 class CellConfig:
     """Layout and settings of the cell. Lengths in metres; poses are 4x4 in the world frame (table top, z up).
 
-    ``T_world_bin`` and ``T_world_tray`` are the centres of the inner floors. Camera intrinsics must be the kind a
-    MuJoCo camera renders: square pixels, principal point at the image centre (``CameraIntrinsics.from_fov``).
+    ``T_world_bin`` and ``T_world_tray`` are the centres of the inner floors. Camera intrinsics are any pinhole
+    (``fx != fy`` and an off-centre principal point included: ``sygrid.mjspec.add_camera``).
     """
 
     timestep_s: float = 0.002
@@ -103,7 +104,7 @@ class CellConfig:
             if min(values) <= 0:
                 raise ConfigError(f"CellConfig.{name} must be > 0, got {values}")
         for name in ("camera_intrinsics", "wrist_camera_intrinsics"):
-            _check_mujoco_intrinsics(f"CellConfig.{name}", getattr(self, name))
+            _check_intrinsics(f"CellConfig.{name}", getattr(self, name))
         if not 0.0 < self.arm_bandwidth_rad_s * self.timestep_s <= 0.5:
             raise ConfigError(
                 f"CellConfig.arm_bandwidth_rad_s * timestep_s must be in (0, 0.5] for a stable controller, got "
@@ -115,12 +116,10 @@ class CellConfig:
             )
 
 
-def _check_mujoco_intrinsics(name: str, K: CameraIntrinsics) -> None:
-    square = abs(K.fx - K.fy) <= 1e-6 * K.fx
-    centred = abs(K.cx - (K.width - 1) / 2) <= 0.01 and abs(K.cy - (K.height - 1) / 2) <= 0.01
-    if not (square and centred):
+def _check_intrinsics(name: str, K: CameraIntrinsics) -> None:
+    values = (K.fx, K.fy, K.cx, K.cy)
+    if not (all(math.isfinite(v) for v in values) and K.fx > 0 and K.fy > 0 and K.width > 0 and K.height > 0):
         raise ConfigError(
-            f"{name}: a MuJoCo camera renders square pixels with the principal point at the image centre "
-            f"(CameraIntrinsics.from_fov); got fx={K.fx}, fy={K.fy}, cx={K.cx}, cy={K.cy} for "
-            f"{K.width}x{K.height} (centre {(K.width - 1) / 2}, {(K.height - 1) / 2})"
+            f"{name}: a pinhole camera needs finite intrinsics with fx, fy > 0 and a positive image size; got "
+            f"fx={K.fx}, fy={K.fy}, cx={K.cx}, cy={K.cy} for {K.width}x{K.height}"
         )

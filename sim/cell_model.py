@@ -8,7 +8,7 @@ import numpy as np
 
 from sim import gripper_model
 from sim.cell_config import BoardPlate, CellConfig
-from sygrid.mjspec import add_open_box, quat_wxyz
+from sygrid.mjspec import add_camera, add_open_box, quat_wxyz
 from sygrid.robots import ur5e
 from sygrid.robots.kinematics import dh_transforms
 
@@ -75,26 +75,10 @@ def build_cell_spec(config: CellConfig) -> tuple[mujoco.MjSpec, gripper_model.Gr
     names = gripper_model.add_gripper(spec, flange, solref)
     if config.calibration_board is not None:
         _add_board_plate(spec, flange, config.calibration_board)
-    R_mj = config.T_world_camera[:3, :3] @ _CV_TO_MUJOCO_CAMERA
-    spec.worldbody.add_camera(
-        name=OVERHEAD_CAMERA,
-        pos=config.T_world_camera[:3, 3].tolist(),
-        quat=quat_wxyz(R_mj).tolist(),
-        fovy=config.camera_intrinsics.fov_y_deg,
-    )
+    add_camera(spec.worldbody, OVERHEAD_CAMERA, config.T_world_camera, config.camera_intrinsics)
     if config.wrist_camera:
-        T = config.T_flange_wrist_camera
-        flange.add_camera(
-            name=WRIST_CAMERA,
-            pos=T[:3, 3].tolist(),
-            quat=quat_wxyz(T[:3, :3] @ _CV_TO_MUJOCO_CAMERA).tolist(),
-            fovy=config.wrist_camera_intrinsics.fov_y_deg,
-        )
+        add_camera(flange, WRIST_CAMERA, config.T_flange_wrist_camera, config.wrist_camera_intrinsics)
     return spec, names
-
-
-# OpenCV camera axes (x right, y down, z forward) -> MuJoCo camera axes (x right, y up, looking along -z).
-_CV_TO_MUJOCO_CAMERA = np.diag([1.0, -1.0, -1.0])
 
 
 def _add_arm(spec: mujoco.MjSpec, T_world_base: np.ndarray) -> mujoco.MjsBody:

@@ -68,8 +68,13 @@ class ImageAnnotation:
 
     @property
     def name(self) -> str:
-        """``SSSSSS_IIIIII``: a file stem unique within a dataset."""
-        return f"{self.scene_id:06d}_{self.image_id:06d}"
+        """``SSSSSS_IIIIII``: a file stem unique within a dataset (``image_name``)."""
+        return image_name(self.scene_id, self.image_id)
+
+
+def image_name(scene_id: int, image_id: int) -> str:
+    """``SSSSSS_IIIIII``: the file stem of image ``scene_id/image_id`` in the YOLO and COCO layouts."""
+    return f"{scene_id:06d}_{image_id:06d}"
 
 
 # ------------------------------------------------------------------------------------------------- pure functions

@@ -1,18 +1,23 @@
 """Dataset generation: ``count`` items of a recipe, in BOP / YOLO / COCO, resumable and the same on any executor.
 
-Item ``i`` depends only on ``(seed, i)``: its random streams come from ``SeedSequence([seed, i])``, so the worker
-count, the executor and the order items finish in change nothing in the files (and the COCO ids are stable, see
-``sygrid.writers.coco``). Each item is its own drop and one camera view; ``scene_id = i // 1000``,
-``image_id = i % 1000``.
+Item ``i`` depends only on ``(seed, i)`` (``sygrid.dataset_item``: its random streams, its redraws and the quality
+gate it must pass), so the worker count, the executor and the order items finish in change nothing in the files (and
+the COCO ids are stable, see ``sygrid.writers.coco``). Each item is its own drop and one camera view;
+``scene_id = i // 1000``, ``image_id = i % 1000``.
 
 Crash safety: workers only compute; the driver writes. Every file is written atomically, an item's files first and
 its ledger entry (``DIR/dataset.json``) last, so a run killed at any moment leaves complete items and, at worst, the
 files of one unrecorded item, which the next run rewrites byte for byte. A failing item is recorded with its index
-and error and the run goes on; a write error (disk full) stops the run, naming the item, with everything before it
-intact. Rerunning the same command finishes the set; a different recipe or seed for the same folder is refused.
+and error (an item that fails the quality gate in every attempt too: never as done) and the run goes on; a write
+error (disk full) stops the run, naming the item, with everything before it intact. Rerunning the same command
+finishes the set; a different recipe or seed for the same folder is refused. A rerun does not trust the ledger
+alone: an item recorded as done whose files (images, depth, masks, labels, record; in every format written) are not
+all there is logged, with the first missing file, and made again.
 
 Layout under ``DIR``: ``dataset.json`` (recipe, seed, ledger), ``bop/`` (models, ``train_pbr``/``val_pbr`` or
-``test``), ``yolo/`` (``data.yaml``, images, labels), ``coco/`` (``annotations/instances_<split>.json``, images).
+``test``), ``yolo/`` (``data.yaml``, images, labels), ``coco/`` (``annotations/instances_<split>.json``, images),
+``records/SSSSSS.json`` (per scene, keyed by image id: each written item's record, ``Item.record``: the attempt
+written, the reasons of the attempts redrawn, the drop's stability figures, the visible instance count).
 """
 
 from __future__ import annotations
@@ -30,16 +35,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from sygrid.annotations import ImageAnnotation, annotate
-from sygrid.drop import drop_scene, resolve_objects
+from sygrid.annotations import ImageAnnotation
+from sygrid.dataset_item import IMAGES_PER_SCENE, Item, item_is_val, item_T_world_camera, make_item
+from sygrid.drop import resolve_objects
 from sygrid.errors import ConfigError, SygridError
 from sygrid.fileio import read_json, remove_stale_temporaries, write_json_atomic
 from sygrid.objects.model import ObjectModel
 from sygrid.recipe import Recipe, parse_recipe
-from sygrid.render import intrinsics_from_spec, render_item
-from sygrid.render.camera_pose import camera_T_world_camera
-from sygrid.scene import METALS, SceneSpec
-from sygrid.sensor import metal_mask, sensor_preset
+from sygrid.sensor import sensor_preset
 from sygrid.transforms import invert
 from sygrid.writers import BopWriter, CocoWriter, YoloWriter
 
@@ -47,10 +50,10 @@ log = logging.getLogger(__name__)
 
 LEDGER_NAME = "dataset.json"
 LEDGER_FORMAT = "sygrid-dataset/1"
-IMAGES_PER_SCENE = 1000
+RECORDS_DIR = "records"
 # Ledger keys of older versions: the recipe's and the scene's render depth_noise (stereo noise after rendering, now
-# the recipe's sensor).
-LEGACY_LEDGER_KEYS = {"recipe": ("depth_noise",), "render": ("depth_noise",)}
+# the recipe's sensor), the recipe's max_drop_attempts (drops redone on an escape only; now max_redraws).
+LEGACY_LEDGER_KEYS = {"recipe": ("depth_noise", "max_drop_attempts"), "render": ("depth_noise",)}
 
 
 class DatasetError(SygridError, RuntimeError):
@@ -58,106 +61,28 @@ class DatasetError(SygridError, RuntimeError):
 
 
 @dataclass
-class Item:
-    """One generated item, ready to write."""
-
-    index: int
-    annotation: ImageAnnotation
-    rgb: np.ndarray
-    depth_m: np.ndarray  # as the recipe's sensor reports it
-    is_val: bool
-    mode: str
-    timings: dict[str, float] = field(default_factory=dict)
-    depth_true_m: np.ndarray | None = None  # the exact depth, when the sensor is not the ideal one
-
-
-@dataclass
 class Summary:
+    """A run's outcome; ``redrawn``: item index -> the reasons of its redrawn attempts, for the items written in this
+    run that passed the quality gate only after one or more redraws; ``redone``: items recorded as done whose files
+    were missing (made again)."""
+
     out_dir: Path
     written: int
     skipped: int
     failed: dict[int, str]
     seconds: float
+    redrawn: dict[int, list[str]] = field(default_factory=dict)
+    redone: list[int] = field(default_factory=list)
 
     @property
     def seconds_per_item(self) -> float:
         return self.seconds / self.written if self.written else float("nan")
 
 
-# --------------------------------------------------------------------------------------------------- one item
-def make_item(recipe: Recipe, seed: int, index: int) -> Item:
-    """Drops, renders and annotates item ``index``: a pure function of ``(recipe, seed, index)``."""
-    t0 = time.perf_counter()
-    drop_ss, render_ss, split_ss = np.random.SeedSequence([seed, index]).spawn(3)
-    drop_seeds = np.random.default_rng(drop_ss).integers(0, 2**31 - 1, size=recipe.spec.max_drop_attempts)
-    for attempt, drop_seed in enumerate(drop_seeds):
-        result = drop_scene(recipe.scene, int(drop_seed), recipe.base_dir)
-        if result.report.ok:
-            break
-        log.info("item %d: drop attempt %d did not come to rest (%s), dropping again", index, attempt, result.report)
-    else:
-        raise DatasetError(f"item {index}: no stable drop in {len(drop_seeds)} attempts (last: {result.report})")
-    t_drop = time.perf_counter() - t0
-
-    rng = np.random.default_rng(render_ss)
-    scene, T_world_camera = _draw_view(recipe, rng)
-    intrinsics = intrinsics_from_spec(scene.camera)
-    rendered = render_item(
-        scene,
-        result.models,
-        result.instances,
-        result.T_world_obj,
-        T_world_camera,
-        intrinsics,
-        rng,
-        base_dir=recipe.base_dir,
-        full_masks=recipe.spec.full_masks,
-    )
-    sensor = sensor_preset(recipe.spec.sensor, "recipe sensor")
-    rgb, depth_m, depth_true_m = rendered.rgb, rendered.depth_m, None
-    t_sensor = time.perf_counter()
-    if not sensor.is_ideal:
-        materials = [result.models[inst.model_index].material for inst in result.instances]
-        metals = metal_mask([rendered.ids_visib == k + 1 for k in range(len(materials))], materials, METALS)
-        rgb, depth_m = sensor.sense(rendered.rgb, rendered.depth_m, intrinsics, rng, metal_mask=metals)
-        depth_true_m = rendered.depth_m
-    t_sensor = time.perf_counter() - t_sensor
-    T_camera_obj = invert(T_world_camera)[None] @ result.T_world_obj
-    obj_ids = [result.models[inst.model_index].obj_id for inst in result.instances]
-    masks_full = rendered.masks_full if recipe.spec.full_masks else None
-    instances = annotate(rendered.ids_visib, masks_full, T_camera_obj, obj_ids, intrinsics, depth_m)
-    annotation = ImageAnnotation(
-        image_id=index % IMAGES_PER_SCENE,
-        intrinsics=intrinsics,
-        instances=tuple(instances),
-        scene_id=index // IMAGES_PER_SCENE,
-        T_camera_world=invert(T_world_camera),
-    )
-    is_val = recipe.spec.split == "train" and np.random.default_rng(split_ss).random() < recipe.spec.val_fraction
-    timings = {"drop": t_drop, **{f"render_{k}": v for k, v in rendered.timings.items()}, "sensor": t_sensor}
-    timings["item"] = time.perf_counter() - t0
-    return Item(index, annotation, rgb, depth_m, bool(is_val), scene.render.mode, timings, depth_true_m)
-
-
-def _draw_view(recipe: Recipe, rng: np.random.Generator) -> tuple[SceneSpec, np.ndarray]:
-    """The first draws of an item's render stream: the render mode (the scene with it), then ``T_world_camera``."""
-    scene = recipe.scene
-    if rng.random() < recipe.spec.raster_fraction:
-        scene = scene.model_copy(update={"render": scene.render.model_copy(update={"mode": "raster"})})
-    return scene, camera_T_world_camera(scene.camera, rng)
-
-
-def item_T_world_camera(recipe: Recipe, seed: int, index: int) -> np.ndarray:
-    """(4, 4) the camera pose of item ``index`` (world frame = the bin's), drawn again without dropping or rendering:
-    the same stream ``make_item`` draws it from."""
-    render_ss = np.random.SeedSequence([seed, index]).spawn(3)[1]
-    return _draw_view(recipe, np.random.default_rng(render_ss))[1]
-
-
 def ledger_recipe(out_dir: str | Path) -> tuple[Recipe, int]:
     """The recipe (scene inlined) and seed a generated dataset folder was made with, from its ledger: for its camera
     and scene (the bin, the camera draws), not to regenerate it. The keys of older ledgers that no longer exist
-    (``LEGACY_LEDGER_KEYS``, none of which changes the camera draws) are left out."""
+    (``LEGACY_LEDGER_KEYS``, none of which changes the camera draws of an item's first attempt) are left out."""
     path = Path(out_dir) / LEDGER_NAME
     if not path.is_file():
         raise ConfigError(f"{out_dir}: no {LEDGER_NAME} (not a folder made by 'sygrid generate')")
@@ -308,9 +233,12 @@ class Ledger:
             raise ConfigError(f"{self.path}: not a SyGRID dataset ledger (format {LEDGER_FORMAT!r} expected)")
         for key in ("recipe_sha256", "seed"):
             if data.get(key) != self.header[key]:
+                what = f"({data.get(key)!r}, now {self.header[key]!r})"
+                if key == "recipe_sha256" and isinstance(data.get("recipe"), dict):
+                    what = f"(fields that differ: {', '.join(_differences(data['recipe'], self.recipe_json))})"
                 raise ConfigError(
                     f"{self.path}: this folder was generated with another {key.replace('_sha256', '')} "
-                    f"({data.get(key)!r}, now {self.header[key]!r}); use a new --out folder to keep both"
+                    f"{what}; use a new --out folder to keep both"
                 )
         self.done = {i for a, b in data.get("done", []) for i in range(a, b + 1)}
         self.count = max(self.count, int(data.get("count", 0)))
@@ -326,6 +254,18 @@ class Ledger:
         write_json_atomic(self.path, data, indent=1)
 
 
+def _differences(old: dict, new: dict, prefix: str = "") -> list[str]:
+    """The keys (``scene.render.spp``) whose values differ between two recipe JSONs, nested dicts followed."""
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key}" + (" (new)" if key not in old else " (gone)" if key not in new else ""))
+    return out or ["none (the recipe's hash function changed)"]
+
+
 def _ranges(sorted_ints: Iterable[int]) -> list[list[int]]:
     """[0, 1, 2, 5, 6] -> [[0, 2], [5, 6]]: a ledger of a million items stays small."""
     out: list[list[int]] = []
@@ -338,7 +278,8 @@ def _ranges(sorted_ints: Iterable[int]) -> list[list[int]]:
 
 
 class DatasetOutput:
-    """The recipe's writers under ``DIR``; BOP and COCO writers per split, made when a split first appears."""
+    """The recipe's writers under ``DIR``; BOP and COCO writers per split, made when a split first appears; the
+    per-item records (``DIR/records/``)."""
 
     def __init__(self, out_dir: Path, recipe: Recipe, models: list[ObjectModel]) -> None:
         self.out_dir, self.recipe, self.models = out_dir, recipe, models
@@ -346,21 +287,69 @@ class DatasetOutput:
         self.yolo = YoloWriter(out_dir / "yolo", models) if "yolo" in self.formats else None
         self.bop: dict[str, BopWriter] = {}
         self.coco: dict[str, CocoWriter] = {}
+        self._true_depth = not sensor_preset(recipe.spec.sensor, "recipe sensor").is_ideal
+        self._listings: dict[Path, set[str]] = {}  # resume checks: folder -> the names in it
+        self._json_keys: dict[Path, set[str]] = {}  # resume checks: scene JSON -> its image keys
+        self._instance_counts: dict[tuple[str, int], dict[int, int]] = {}
+
+    def _bop(self, split: str) -> BopWriter:
+        if split not in self.bop:
+            self.bop[split] = BopWriter(self.out_dir / "bop", self.models, split=split)
+        return self.bop[split]
+
+    def _coco(self, split: str) -> CocoWriter:
+        if split not in self.coco:
+            self.coco[split] = CocoWriter(self.out_dir / "coco", self.models, split=split)
+        return self.coco[split]
 
     def write(self, item: Item) -> None:
+        """The item in every format, then its record (the ledger entry, written by the caller, comes last)."""
         ann, rgb, depth = item.annotation, item.rgb, item.depth_m
         if "bop" in self.formats:
-            split = self.recipe.bop_split(item.is_val)
-            if split not in self.bop:
-                self.bop[split] = BopWriter(self.out_dir / "bop", self.models, split=split)
-            self.bop[split].write(ann, rgb, depth, depth_true_m=item.depth_true_m)
+            self._bop(self.recipe.bop_split(item.is_val)).write(ann, rgb, depth, depth_true_m=item.depth_true_m)
         label_split = self.recipe.label_split(item.is_val)
         if self.yolo is not None:
             self.yolo.write(ann, rgb, depth, split=label_split)
         if "coco" in self.formats:
-            if label_split not in self.coco:
-                self.coco[label_split] = CocoWriter(self.out_dir / "coco", self.models, split=label_split)
-            self.coco[label_split].write(ann, rgb, depth)
+            self._coco(label_split).write(ann, rgb, depth)
+        path = record_path(self.out_dir, ann.scene_id)
+        records = read_json(path, "item records") if path.exists() else {}
+        records[str(ann.image_id)] = item.record
+        write_json_atomic(path, dict(sorted(records.items(), key=lambda kv: int(kv[0]))), indent=1)
+
+    def missing_file(self, index: int, is_val: bool) -> str | None:
+        """The first file of item ``index`` (every format written, and its record) that is not on disk, or None
+        when the item is complete. Folder listings and scene JSONs are read once per run."""
+        scene_id, image_id = divmod(index, IMAGES_PER_SCENE)
+        paths: list[Path] = []
+        if "bop" in self.formats:
+            writer = self._bop(self.recipe.bop_split(is_val))
+            key = (writer.split, scene_id)
+            if key not in self._instance_counts:
+                self._instance_counts[key] = writer.instance_counts(scene_id)
+            n_instances = self._instance_counts[key].get(image_id)
+            if n_instances is None:
+                return f"{writer.scene_dir(scene_id) / 'scene_gt.json'} (no entry for image {image_id})"
+            paths += writer.item_files(scene_id, image_id, n_instances, self._true_depth)
+        label_split = self.recipe.label_split(is_val)
+        if self.yolo is not None:
+            paths += self.yolo.item_files(scene_id, image_id, label_split)
+        if "coco" in self.formats:
+            paths += self._coco(label_split).item_files(scene_id, image_id)
+        for path in paths:
+            if path.name not in self._listing(path.parent):
+                return str(path)
+        records = record_path(self.out_dir, scene_id)
+        if records not in self._json_keys:
+            self._json_keys[records] = set(read_json(records, "item records")) if records.exists() else set()
+        if str(image_id) not in self._json_keys[records]:
+            return f"{records} (no record of image {image_id})"
+        return None
+
+    def _listing(self, folder: Path) -> set[str]:
+        if folder not in self._listings:
+            self._listings[folder] = set(os.listdir(folder)) if folder.is_dir() else set()
+        return self._listings[folder]
 
     def finish(self) -> None:
         """Assembles the per-split files (COCO JSON, YOLO data.yaml) from everything on disk, old runs included."""
@@ -371,6 +360,22 @@ class DatasetOutput:
                 writer.finish()
         if self.yolo is not None:
             self.yolo.finish()
+
+
+def record_path(out_dir: Path, scene_id: int) -> Path:
+    """The records file of scene ``scene_id``: image id -> ``Item.record``."""
+    return Path(out_dir) / RECORDS_DIR / f"{scene_id:06d}.json"
+
+
+def load_records(out_dir: str | Path) -> dict[int, dict]:
+    """Item index -> record of every item a dataset folder records (empty for folders written before records)."""
+    out: dict[int, dict] = {}
+    for path in sorted((Path(out_dir) / RECORDS_DIR).glob("*.json")):
+        data = read_json(path, "item records")
+        if not isinstance(data, dict) or not path.stem.isdigit():
+            raise ConfigError(f"{path}: expected a JSON object keyed by image id")
+        out.update({int(path.stem) * IMAGES_PER_SCENE + int(k): v for k, v in data.items()})
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------- generate
@@ -397,12 +402,19 @@ def generate(
     if out_dir.is_dir():  # a killed run can leave a half-written file's temporary behind; the item is redone
         for path in remove_stale_temporaries(out_dir):
             log.info("removed %s, left by an interrupted run", path)
-    todo = [i for i in range(count) if i not in ledger.done]
     models = resolve_objects(recipe.scene, recipe.base_dir)
     output = DatasetOutput(out_dir, recipe, models)
+    redone = []
+    for index in sorted(i for i in ledger.done if i < count):
+        missing = output.missing_file(index, item_is_val(recipe, seed, index))
+        if missing is not None:
+            log.warning("item %d: recorded as done, but %s is missing; making the item again", index, missing)
+            redone.append(index)
+    ledger.done.difference_update(redone)
+    todo = [i for i in range(count) if i not in ledger.done]
     ledger.save()
     t0 = time.perf_counter()
-    written = 0
+    written, redrawn = 0, {}
     bar = _progress_bar(len(todo), progress)
     try:
         for index, item, error in EXECUTORS[executor](recipe, seed, todo, workers):
@@ -414,13 +426,16 @@ def generate(
                 ledger.done.add(index)
                 ledger.failed.pop(index, None)
                 written += 1
+                if item.record.get("redraws"):
+                    redrawn[index] = [r["reason"] for r in item.record["redraws"]]
             ledger.save()
             bar.update(1)
             bar.set_postfix(failed=len(ledger.failed), refresh=False)
     finally:
         bar.close()
         output.finish()
-    return Summary(out_dir, written, count - len(todo), dict(ledger.failed), time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    return Summary(out_dir, written, count - len(todo), dict(ledger.failed), seconds, redrawn, redone)
 
 
 def _write_item(output: DatasetOutput, item: Item, out_dir: Path) -> None:

@@ -1,6 +1,7 @@
 """MjSpec building blocks shared by the generator's drop and the simulated cell, so that a pile the generator
 renders and a pile the robot picks from are made of the same bodies: the open box (bin, tray) and the part body
-(free joint, true mass and inertia, collision geoms of its collision tier)."""
+(free joint, true mass and inertia, collision geoms of its collision tier); and the camera both render through, any
+pinhole intrinsics included (``add_camera``, ``model_camera_intrinsics``)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from sygrid.camera import CameraIntrinsics
 from sygrid.objects.collision.geometry import CollisionModel
 from sygrid.objects.model import ObjectModel
 
@@ -18,6 +20,10 @@ _GEOM_TYPES = {
 }
 COLLISION_GROUP = 3  # collision-only geoms: hidden in renders
 VISUAL_GROUP = 1
+# OpenCV camera axes (x right, y down, z forward) -> MuJoCo camera axes (x right, y up, looking along -z).
+CV_TO_MUJOCO_CAMERA = np.diag([1.0, -1.0, -1.0])
+# A camera given by its sensor renders in lengths on the sensor; only ratios matter, so the pixel pitch is arbitrary.
+_SENSOR_PITCH_M = 1e-5
 
 
 def quat_wxyz(R: np.ndarray) -> np.ndarray:
@@ -122,3 +128,36 @@ def add_part_body(
             pos=geom["pos"].tolist(), quat=geom["quat"].tolist(), group=COLLISION_GROUP, **contact,
         )  # fmt: skip
     return body
+
+
+def add_camera(body: mujoco.MjsBody, name: str, T_body_camera: np.ndarray, K: CameraIntrinsics) -> mujoco.MjsCamera:
+    """A camera on ``body`` at the OpenCV pose ``T_body_camera`` that renders the pinhole ``K`` at ``K.width`` x
+    ``K.height``. Square pixels with the principal point at the image centre (``CameraIntrinsics.from_fov``) give a
+    plain ``fovy`` camera; any other intrinsics (``fx != fy``, an off-centre principal point) are given to MuJoCo as
+    they are: resolution, sensor size, focal length and principal point in pixels (MuJoCo's principal point is the
+    image centre's offset from the OpenCV one, both axes)."""
+    camera = body.add_camera(
+        name=name, pos=np.asarray(T_body_camera)[:3, 3].tolist(),
+        quat=quat_wxyz(np.asarray(T_body_camera)[:3, :3] @ CV_TO_MUJOCO_CAMERA).tolist(), fovy=K.fov_y_deg,
+    )  # fmt: skip
+    square = abs(K.fx - K.fy) <= 1e-9 * K.fy
+    centred = abs(K.cx - (K.width - 1) / 2) <= 1e-9 * K.width and abs(K.cy - (K.height - 1) / 2) <= 1e-9 * K.height
+    if not (square and centred):
+        camera.resolution = [K.width, K.height]
+        camera.sensor_size = [K.width * _SENSOR_PITCH_M, K.height * _SENSOR_PITCH_M]
+        camera.focal_pixel = [K.fx, K.fy]
+        camera.principal_pixel = [K.width / 2 - (K.cx + 0.5), K.height / 2 - (K.cy + 0.5)]
+    return camera
+
+
+def model_camera_intrinsics(model: mujoco.MjModel, camera_id: int, width: int, height: int) -> CameraIntrinsics:
+    """The pinhole a compiled model's camera renders into a ``width`` x ``height`` image: its own intrinsics
+    (``add_camera``) scaled to that size, or, for a ``fovy`` camera, square pixels centred at that size."""
+    sensor = np.asarray(model.cam_sensorsize[camera_id], dtype=float)
+    if sensor[1] <= 0:
+        return CameraIntrinsics.from_fov(width, height, float(model.cam_fovy[camera_id]))
+    w, h = (int(v) for v in model.cam_resolution[camera_id])
+    fx, fy, px, py = (float(v) for v in model.cam_intrinsic[camera_id])
+    sx, sy = w / sensor[0], h / sensor[1]  # pixels per sensor length
+    K = CameraIntrinsics(fx * sx, fy * sy, w / 2 - 0.5 - px * sx, h / 2 - 0.5 - py * sy, w, h)
+    return K if (width, height) == (w, h) else K.scaled(width, height)

@@ -12,6 +12,7 @@ critically damped, set on every geom, keeps penetration at rest well under 0.5 m
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -49,7 +50,14 @@ class Instance:
 
 @dataclass
 class StabilityReport:
-    """What the drop checked about the final pile."""
+    """What the drop checked about the final pile, and the bounds it was checked against.
+
+    The bounds are the scene's ``physics``: the pile settled (speeds below ``settle_*`` for a hold time) within
+    ``max_time_s`` of simulated time (``sim_time_s`` is then the settle time), and its deepest contact at rest is at
+    most ``penetration_bound_m`` (``physics.max_penetration_m``). ``ok``: the poses are usable at all (every part
+    in the bin, every pose finite); ``within_bounds``: ``ok`` and both bounds met, what the generator's quality gate
+    and ``sygrid drop``'s exit code require; ``failures`` says, one phrase each, which bounds failed.
+    """
 
     settled: bool
     sim_time_s: float
@@ -59,10 +67,32 @@ class StabilityReport:
     non_finite: list[int] = field(default_factory=list)
     max_linear_speed_m_s: float = 0.0
     rest_drift_m: float | None = None  # largest move of any part when the pile, awake, runs on (if measured)
+    penetration_bound_m: float = math.inf
+    max_time_s: float = math.inf
 
     @property
     def ok(self) -> bool:
         return not self.escaped and not self.non_finite
+
+    @property
+    def failures(self) -> list[str]:
+        out = []
+        if self.non_finite:
+            out.append(f"non-finite poses of instances {self.non_finite}")
+        if self.escaped:
+            out.append(f"instances {self.escaped} left the bin")
+        if not self.settled:
+            out.append(f"the pile did not settle within {self.max_time_s:.2f} s of simulated time")
+        if not self.max_penetration_m <= self.penetration_bound_m:
+            out.append(
+                f"penetration at rest {self.max_penetration_m * 1e3:.2f} mm is above the bound "
+                f"{self.penetration_bound_m * 1e3:.2f} mm"
+            )
+        return out
+
+    @property
+    def within_bounds(self) -> bool:
+        return not self.failures
 
     def to_json(self) -> dict:
         return {
@@ -74,6 +104,9 @@ class StabilityReport:
             "non_finite": list(self.non_finite),
             "max_linear_speed_m_s": self.max_linear_speed_m_s,
             "rest_drift_m": self.rest_drift_m,
+            "penetration_bound_m": self.penetration_bound_m,
+            "max_time_s": self.max_time_s,
+            "within_bounds": self.within_bounds,
         }
 
 
@@ -217,16 +250,11 @@ def simulate_drop(
         non_finite=[n for n in range(len(instances)) if not np.all(np.isfinite(T_world_obj[n]))],
         max_linear_speed_m_s=lin_speed,
         rest_drift_m=rest_drift_m,
+        penetration_bound_m=physics.max_penetration_m,
+        max_time_s=physics.max_time_s,
     )
-    if not settled:
-        log.warning("the pile did not settle within %.2f s of simulated time", physics.max_time_s)
-    if report.escaped:
-        log.warning("instances %s left the bin", report.escaped)
-    if report.max_penetration_m > physics.max_penetration_m:
-        log.warning(
-            "penetration at rest %.2f mm is above the bound %.2f mm",
-            report.max_penetration_m * 1e3, physics.max_penetration_m * 1e3,
-        )  # fmt: skip
+    for failure in report.failures:
+        log.warning("%s", failure)
     return DropResult(list(models), list(collision), list(instances), T_world_obj, report)
 
 

@@ -11,6 +11,10 @@ of the simulated cell's camera. ``sensor`` names the RGB-D sensor model the item
 (``sygrid.sensor.SENSOR_PRESETS``: "ideal", the default, keeps the rendered RGB and exact depth; any other writes
 the sensed RGB and depth, and the exact depth beside it, ``depth_true/`` in BOP). Errors name the file and the
 field, as the scene's do.
+
+The quality gate (``sygrid.dataset_item``): an item is written only when its pile is within the drop's stability
+bounds (the scene's ``physics``) and at least ``min_visible_instances`` instances are visible; otherwise it is drawn
+again, at most ``max_redraws`` times, and then recorded as failed.
 """
 
 from __future__ import annotations
@@ -20,29 +24,41 @@ import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, Field, Strict, ValidationError, field_validator
 
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
-from sygrid.scene import SceneSpec, load_scene, parse_scene, scene_to_json, validation_message
+from sygrid.scene import (
+    STRICT_NUMBERS,
+    Bool,
+    Int,
+    SceneSpec,
+    load_scene,
+    parse_scene,
+    scene_to_json,
+    validation_message,
+)
 from sygrid.sensor import SENSOR_PRESETS
 
 Format = Literal["bop", "yolo", "coco"]
-Fraction = Annotated[float, Field(ge=0, le=1)]
+Fraction = Annotated[float, Strict(), Field(ge=0, le=1)]
 
 
 class RecipeSpec(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT_NUMBERS
 
     name: str
     scene: str | dict[str, Any]
     split: Literal["train", "test"] = "train"
-    val_fraction: Annotated[float, Field(ge=0, le=0.5)] = 0.1
+    val_fraction: Annotated[float, Strict(), Field(ge=0, le=0.5)] = 0.1
     formats: tuple[Format, ...] = ("bop", "yolo", "coco")
     raster_fraction: Fraction = 0.0
     sensor: str = "ideal"
-    full_masks: bool = True
-    max_drop_attempts: int = Field(default=3, ge=1, le=20)
+    full_masks: Bool = True
+    # The quality gate: an item that fails it is drawn again (a new drop, view and render) at most this many times.
+    max_redraws: Int = Field(default=5, ge=0, le=50)
+    # Fewer visible instances (at least one visible pixel each) than this fail the gate; 0 accepts empty items.
+    min_visible_instances: Int = Field(default=1, ge=0)
 
     @field_validator("formats")
     @classmethod

@@ -5,6 +5,10 @@ lit and rendered, and how the drop is simulated. Every field carries its unit in
 and every error names the file, the field path and what was expected, e.g.
 ``scene.json: objects[2].count: must be >= 0, got -1``.
 
+Numbers are strict and finite: NaN and infinities are refused (``must be a finite number``), and so are ``true`` and
+``false`` where a number is expected (``must be a number`` / ``must be an integer``). Transforms must be rigid
+(orthonormal rotation with det +1, last row 0 0 0 1, to ``RIGID_TOLERANCE``), and a fixed camera must see the bin.
+
 Frames: the scene ("world") frame has its origin at the centre of the bin's inner floor, z up.
 """
 
@@ -21,29 +25,42 @@ from pydantic import (
     ConfigDict,
     Discriminator,
     Field,
+    Strict,
     Tag,
     ValidationError,
     field_validator,
     model_validator,
 )
 
+from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
+from sygrid.transforms import invert, is_rigid, transform_points
 
-Vec3 = tuple[float, float, float]
-Positive = Annotated[float, Field(gt=0)]
-NonNegative = Annotated[float, Field(ge=0)]
+# The number types of the scene and recipe schemas: a bool is not a number (strict), and the models'
+# ``allow_inf_nan=False`` (``STRICT_NUMBERS``) refuses NaN and infinities.
+Float = Annotated[float, Strict()]
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+Vec3 = tuple[Float, Float, Float]
+Positive = Annotated[float, Strict(), Field(gt=0)]
+NonNegative = Annotated[float, Strict(), Field(ge=0)]
+#: The model config of the scene and recipe schemas: unknown keys refused, values frozen, numbers finite.
+STRICT_NUMBERS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+#: How far a transform typed into a JSON file may be from rigid (rotation entries, last row).
+RIGID_TOLERANCE = 1e-5
+DEFAULT_FOV_Y_DEG = 45.0
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT_NUMBERS
 
 
 class CountRange(_Strict):
     """An instance count drawn uniformly from [min, max] (both inclusive) for each scene."""
 
-    min: int = Field(ge=0)
-    max: int = Field(ge=0)
+    min: Int = Field(ge=0)
+    max: Int = Field(ge=0)
 
     @model_validator(mode="after")
     def _ordered(self) -> CountRange:
@@ -54,7 +71,7 @@ class CountRange(_Strict):
 
 # A count is a number or a {min, max} range; the discriminator reports only the branch the user meant.
 Count = Annotated[
-    Annotated[int, Tag("number")] | Annotated[CountRange, Tag("range")],
+    Annotated[Int, Tag("number")] | Annotated[CountRange, Tag("range")],
     Discriminator(lambda v: "range" if isinstance(v, (dict, CountRange)) else "number"),
 ]
 
@@ -79,10 +96,12 @@ METALS: frozenset[str] = frozenset({"steel", "zinc", "brass", "aluminium"})
 
 
 def check_sixteen_numbers(syms: tuple[tuple[float, ...], ...]) -> tuple[tuple[float, ...], ...]:
-    """``symmetries_discrete``' shape check, shared by the scene and the catalogue: each entry 16 numbers."""
+    """``symmetries_discrete``' check, shared by the scene and the catalogue: each entry 16 numbers of a rigid
+    transform."""
     for i, T in enumerate(syms):
         if len(T) != 16:
             raise ValueError(f"[{i}] must be a 4x4 transform as 16 numbers (row-major), got {len(T)}")
+        _check_rigid(T, f"[{i}] ")
     return syms
 
 
@@ -95,11 +114,11 @@ class ObjectSpec(_Strict):
     file: str | None = None
     catalogue_part: str | None = None
     unit: Literal["mm", "m"] | None = None
-    obj_id: int | None = Field(default=None, ge=1)
+    obj_id: Int | None = Field(default=None, ge=1)
     name: str | None = None
     material: Material | None = None
     count: Count = 1
-    symmetries_discrete: tuple[tuple[float, ...], ...] = ()
+    symmetries_discrete: tuple[tuple[Float, ...], ...] = ()
     symmetries_continuous: tuple[ContinuousSymmetrySpec, ...] = ()
 
     @field_validator("count")
@@ -158,6 +177,15 @@ class ContainerSpec(_Strict):
         return size
 
 
+def bin_volume_points(inner_size_m: Sequence[float], per_side: int = 9) -> np.ndarray:
+    """(per_side**2 * 3, 3) a grid over the bin's inner volume (floor, half height, rim) in the bin frame."""
+    hx, hy, hz = (float(v) / 2.0 for v in inner_size_m)
+    x, y, z = np.meshgrid(
+        np.linspace(-hx, hx, per_side), np.linspace(-hy, hy, per_side), (0.0, hz, 2.0 * hz), indexing="ij"
+    )
+    return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+
+
 def bin_inner_corners(inner_size_m: Sequence[float]) -> np.ndarray:
     """(8, 3) the corners of a bin's inner volume (floor and rim), where parts can be, in the bin frame (metres;
     origin at the centre of the inner floor, z up)."""
@@ -166,17 +194,19 @@ def bin_inner_corners(inner_size_m: Sequence[float]) -> np.ndarray:
 
 
 class IntrinsicsSpec(_Strict):
+    """Pinhole intrinsics in pixels (OpenCV: pixel centres at integers); ``fx`` and ``fy`` may differ."""
+
     fx: Positive
     fy: Positive
-    cx: float
-    cy: float
+    cx: Float
+    cy: Float
 
 
 class CameraPoseSampling(_Strict):
     """The camera looks at a point near the bin centre from a random viewpoint on a spherical cap above it."""
 
     distance_m: tuple[Positive, Positive] = (0.55, 0.75)
-    max_tilt_deg: Annotated[float, Field(ge=0, le=80)] = 15.0
+    max_tilt_deg: Annotated[float, Strict(), Field(ge=0, le=80)] = 15.0
     look_at_jitter_m: NonNegative = 0.02
 
     @field_validator("distance_m")
@@ -188,18 +218,24 @@ class CameraPoseSampling(_Strict):
 
 
 class CameraSpec(_Strict):
-    width_px: int = Field(default=640, gt=0, le=8192)
-    height_px: int = Field(default=480, gt=0, le=8192)
-    fov_y_deg: float | None = Field(default=None, gt=1, lt=170)
+    """The image size, the intrinsics (``fov_y_deg``, square pixels, or explicit ``intrinsics``; default a 45 deg
+    vertical field of view) and the pose: a fixed, rigid ``T_world_camera`` (16 numbers, row-major; OpenCV
+    camera frame) or ``pose_sampling``."""
+
+    width_px: Int = Field(default=640, gt=0, le=8192)
+    height_px: Int = Field(default=480, gt=0, le=8192)
+    fov_y_deg: Annotated[float, Strict(), Field(gt=1, lt=170)] | None = None
     intrinsics: IntrinsicsSpec | None = None
-    T_world_camera: tuple[float, ...] | None = None
+    T_world_camera: tuple[Float, ...] | None = None
     pose_sampling: CameraPoseSampling = CameraPoseSampling()
 
     @field_validator("T_world_camera")
     @classmethod
-    def _sixteen(cls, T: tuple[float, ...] | None) -> tuple[float, ...] | None:
-        if T is not None and len(T) != 16:
-            raise ValueError(f"must be a 4x4 transform as 16 numbers (row-major), got {len(T)}")
+    def _rigid(cls, T: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if T is not None:
+            if len(T) != 16:
+                raise ValueError(f"must be a 4x4 transform as 16 numbers (row-major), got {len(T)}")
+            _check_rigid(T, "")
         return T
 
     @model_validator(mode="after")
@@ -209,13 +245,35 @@ class CameraSpec(_Strict):
         return self
 
 
+def intrinsics_from_spec(camera: CameraSpec) -> CameraIntrinsics:
+    """Pinhole intrinsics from the scene's camera: explicit ``intrinsics``, else ``fov_y_deg`` (default
+    ``DEFAULT_FOV_Y_DEG``) with square pixels and the principal point at the image centre."""
+    if camera.intrinsics is not None:
+        k = camera.intrinsics
+        return CameraIntrinsics(k.fx, k.fy, k.cx, k.cy, camera.width_px, camera.height_px)
+    return CameraIntrinsics.from_fov(camera.width_px, camera.height_px, camera.fov_y_deg or DEFAULT_FOV_Y_DEG)
+
+
+def _check_rigid(T: Sequence[float], prefix: str) -> None:
+    """Raises ValueError (``prefix`` + what is wrong) unless the 16 numbers are a rigid 4x4 transform."""
+    M = np.asarray(T, dtype=float).reshape(4, 4)
+    if is_rigid(M, atol=RIGID_TOLERANCE):
+        return
+    scales = np.linalg.svd(M[:3, :3], compute_uv=False)
+    raise ValueError(
+        f"{prefix}must be a rigid transform (orthonormal rotation with det +1, last row 0 0 0 1, to "
+        f"{RIGID_TOLERANCE:g}); got rotation scales {np.round(scales, 6).tolist()}, det "
+        f"{np.linalg.det(M[:3, :3]):.6g}, last row {M[3].tolist()}"
+    )
+
+
 class EnvironmentSpec(_Strict):
     """Lighting: an HDR environment map file (path relative to the scene file) or a procedural sky + lamps."""
 
     map_file: str | None = None
-    procedural: bool = True
+    procedural: Bool = True
     strength: NonNegative = 1.0
-    random_lights: tuple[int, int] = (1, 3)
+    random_lights: tuple[Annotated[int, Strict(), Field(ge=0)], Annotated[int, Strict(), Field(ge=0)]] = (1, 3)
 
 
 RENDER_PRESETS: dict[str, dict[str, Any]] = {
@@ -230,8 +288,8 @@ RENDER_PRESETS: dict[str, dict[str, Any]] = {
 class RenderSpec(_Strict):
     preset: Literal["fast", "paper"] = "fast"
     mode: Literal["pathtrace", "raster"] = "pathtrace"
-    spp: int = Field(default=16, ge=1, le=1 << 16)
-    max_depth: int = Field(default=8, ge=1, le=128)
+    spp: Int = Field(default=16, ge=1, le=1 << 16)
+    max_depth: Int = Field(default=8, ge=1, le=128)
     denoiser: Literal["none", "oidn"] = "oidn"
     reconstruction_filter: Literal["box", "gaussian"] = "box"
 
@@ -248,17 +306,17 @@ class RenderSpec(_Strict):
 
 
 class PhysicsSpec(_Strict):
-    timestep_s: Annotated[float, Field(gt=0, le=0.01)] = 0.002
-    max_time_s: Annotated[float, Field(gt=0, le=60)] = 3.0
+    timestep_s: Annotated[float, Strict(), Field(gt=0, le=0.01)] = 0.002
+    max_time_s: Annotated[float, Strict(), Field(gt=0, le=60)] = 3.0
     settle_linear_speed_m_s: Positive = 0.005
     settle_angular_speed_rad_s: Positive = 0.1
-    friction: Annotated[float, Field(gt=0, le=2)] = 0.5
+    friction: Annotated[float, Strict(), Field(gt=0, le=2)] = 0.5
     collision_tier: Literal["auto", "hull", "coacd", "vhacd"] = "auto"
     max_penetration_m: Positive = 0.0005
     spawn_clearance_m: NonNegative = 0.002
     # MuJoCo island sleeping: an island whose velocities stay below this (MuJoCo's size-scaled threshold) stops
     # being simulated; 0 turns sleeping off. `sygrid bench physics` charts its speed gain against rest drift.
-    sleep_tolerance: Annotated[float, Field(ge=0, le=1)] = 0.03
+    sleep_tolerance: Annotated[float, Strict(), Field(ge=0, le=1)] = 0.03
 
 
 class SceneSpec(_Strict):
@@ -287,6 +345,24 @@ class SceneSpec(_Strict):
         named = [f"objects[{k}]" for k, o in enumerate(self.objects) if o.catalogue_part is not None]
         if named and self.catalogue is None:
             raise ValueError(f"{', '.join(named)} name(s) a 'catalogue_part': give the scene's 'catalogue' file")
+        return self
+
+    @model_validator(mode="after")
+    def _fixed_camera_sees_the_bin(self) -> SceneSpec:
+        """A fixed camera that sees none of the bin's inner volume would only make empty items."""
+        if self.camera.T_world_camera is None:
+            return self
+        K = intrinsics_from_spec(self.camera)
+        T_camera_world = invert(np.asarray(self.camera.T_world_camera, dtype=float).reshape(4, 4))
+        p = transform_points(T_camera_world, bin_volume_points(self.container.inner_size_m))
+        front = p[:, 2] > 1e-6
+        uv = project_points(K.K, p[front]) if front.any() else np.zeros((0, 2))
+        inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < K.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < K.height - 0.5)
+        if not inside.any():
+            raise ValueError(
+                "camera.T_world_camera: the camera sees none of the bin (its inner volume projects outside the "
+                f"{K.width}x{K.height} image or lies behind the camera); point the camera's +z axis at the bin"
+            )
         return self
 
 
@@ -359,6 +435,7 @@ def _describe(err: dict) -> str:
         "int_parsing": lambda: "must be an integer",
         "float_type": lambda: "must be a number",
         "float_parsing": lambda: "must be a number",
+        "finite_number": lambda: "must be a finite number",
         "string_type": lambda: "must be a string",
         "bool_type": lambda: "must be true or false",
         "tuple_type": lambda: "must be a list",

@@ -9,7 +9,8 @@ import json
 import numpy as np
 
 from perception.detector_eval import bin_region_camera, region_box
-from sygrid.dataset import DatasetBin, item_T_world_camera, ledger_recipe
+from sygrid.dataset import DatasetBin, ledger_recipe
+from sygrid.dataset_item import item_T_world_camera
 from sygrid.transforms import invert, transform_points
 from sygrid.writers import load_bop_item
 

@@ -88,3 +88,62 @@ def test_scene_materials_are_the_object_materials():
     from sygrid.scene import Material
 
     assert set(get_args(Material)) == set(MATERIAL_DENSITY_KG_M3)
+
+
+# ------------------------------------------------------------------------------- numbers, transforms, the view
+DOWN = [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0.6, 0, 0, 0, 1]  # 0.6 m above the bin, looking straight down
+UP = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0.6, 0, 0, 0, 1]  # the same place, looking up: away from the bin
+
+
+@pytest.mark.parametrize(
+    ("scene", "message"),
+    [
+        ({"objects": [NUT], "container": {"inner_size_m": [float("nan"), 0.2, 0.1]}},
+         r"container\.inner_size_m\[0\]: must be a finite number, got NaN$"),
+        ({"objects": [NUT], "camera": {"T_world_camera": [*DOWN[:3], float("inf"), *DOWN[4:]]}},
+         r"camera\.T_world_camera\[3\]: must be a finite number, got Infinity$"),
+        ({"objects": [NUT], "physics": {"friction": float("nan")}}, r"physics\.friction: must be a finite number"),
+        ({"objects": [NUT], "camera": {"intrinsics": {"fx": 600, "fy": 600, "cx": float("nan"), "cy": 240}}},
+         r"camera\.intrinsics\.cx: must be a finite number"),
+        ({"objects": [{**NUT, "count": True}]}, r"objects\[0\]\.count: must be an integer, got true$"),
+        ({"objects": [{**NUT, "count": {"min": 0, "max": True}}]}, r"objects\[0\]\.count\.max: must be an integer"),
+        ({"objects": [NUT], "render": {"spp": True}}, r"render\.spp: must be an integer, got true$"),
+        ({"objects": [NUT], "container": {"inner_size_m": [True, 0.2, 0.1]}},
+         r"container\.inner_size_m\[0\]: must be a number, got true$"),
+        ({"objects": [NUT], "camera": {"width_px": False}}, r"camera\.width_px: must be an integer, got false$"),
+        ({"objects": [NUT], "environment": {"procedural": 1}}, r"environment\.procedural: must be true or false"),
+        ({"objects": [NUT], "camera": {"T_world_camera": [2 * v if i < 11 and i % 4 < 3 else v
+                                                          for i, v in enumerate(DOWN)]}},
+         r"camera\.T_world_camera: must be a rigid transform .* rotation scales \[2\.0, 2\.0, 2\.0\]"),
+        ({"objects": [NUT], "camera": {"T_world_camera": [*DOWN[:12], 0, 0, 0, 2]}},
+         r"camera\.T_world_camera: must be a rigid transform .* last row \[0\.0, 0\.0, 0\.0, 2\.0\]"),
+        ({"objects": [NUT], "camera": {"T_world_camera": [*DOWN[:5], 1, *DOWN[6:]]}},
+         r"camera\.T_world_camera: must be a rigid transform .* det -1"),
+        ({"objects": [NUT], "camera": {"T_world_camera": UP}},
+         r"camera\.T_world_camera: the camera sees none of the bin"),
+        ({"objects": [{"file": "a.ply", "unit": "mm", "obj_id": 3,
+                       "symmetries_discrete": [[1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1.5, 0, 0, 0, 0, 1]]}]},
+         r"objects\[0\]\.symmetries_discrete: \[0\] must be a rigid transform"),
+    ],
+)  # fmt: skip
+def test_nan_booleans_and_non_rigid_transforms_are_refused_naming_the_field(scene, message):
+    with pytest.raises(ConfigError, match=r"^bad\.json: .*" + message):
+        parse_scene(scene, "bad.json")
+
+
+def test_a_fixed_camera_that_sees_the_bin_and_a_real_cameras_k_are_accepted():
+    camera = {"T_world_camera": DOWN, "intrinsics": {"fx": 608.2, "fy": 631.4, "cx": 322.1, "cy": 241.7}}
+    scene = parse_scene({"objects": [NUT], "camera": camera})
+    assert scene.camera.T_world_camera == tuple(float(v) for v in DOWN)
+    assert parse_scene({"objects": [{**NUT, "count": 3}], "container": {"inner_size_m": [1, 0.2, 0.1]}})
+
+
+def test_nan_in_the_bin_size_is_refused_in_python_too():
+    """Not only from a file: a ContainerSpec made in code refuses NaN (it used to reach the spawner as an
+    OverflowError)."""
+    from pydantic import ValidationError
+
+    from sygrid.scene import ContainerSpec
+
+    with pytest.raises(ValidationError, match="finite number"):
+        ContainerSpec(inner_size_m=(float("nan"), 0.2, 0.1))

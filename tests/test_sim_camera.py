@@ -66,12 +66,26 @@ def test_frame_format_intrinsics_and_timestamps(world: CellWorld) -> None:
         small.capture()
 
 
-def test_depth_is_camera_z_on_a_tilted_plane() -> None:
+@pytest.mark.parametrize(
+    ("intrinsics", "pan_deg"),
+    [(None, 0.0), (CameraIntrinsics(608.2, 631.4, 331.0, 229.5, 640, 480), -20.0)],
+    ids=["from_fov", "non_square"],
+)
+def test_depth_is_camera_z_on_a_tilted_plane(intrinsics: CameraIntrinsics | None, pan_deg: float) -> None:
     # The camera looks at an empty stretch of table, tilted, so every pixel's depth follows from ray-plane geometry
-    # and a wrong intrinsic, ray distance instead of camera z, or a wrong clip plane would show.
-    R = np.diag([1.0, -1.0, -1.0]) @ rotation_about(np.array([1.0, 0, 0]), np.radians(10.0))
+    # and a wrong intrinsic, ray distance instead of camera z, or a wrong clip plane would show. A real camera's K
+    # (fx != fy, principal point off the centre) renders as it is; tilted about its y axis too, the plane's depth
+    # changes along the rows, where fy in place of fx would be 4 mm off.
+    R = (
+        np.diag([1.0, -1.0, -1.0])
+        @ rotation_about(np.array([1.0, 0, 0]), np.radians(10.0))
+        @ rotation_about(np.array([0, 1.0, 0]), np.radians(pan_deg))
+    )
     T_world_camera = make_T(R, (-0.35, 0.27, 0.30))
-    world = CellWorld(CellConfig(T_world_camera=T_world_camera))
+    config = CellConfig(T_world_camera=T_world_camera)
+    if intrinsics is not None:
+        config = CellConfig(T_world_camera=T_world_camera, camera_intrinsics=intrinsics)
+    world = CellWorld(config)
     K = world.config.camera_intrinsics.K
     h, w = 480, 640
     u, v = np.meshgrid(np.arange(w), np.arange(h))
@@ -83,6 +97,7 @@ def test_depth_is_camera_z_on_a_tilted_plane() -> None:
     assert hit[..., 1].min() > 0.13 and hit[..., 1].max() < 0.49, "the view must miss the bin and the robot"
     with SimCamera(world) as camera:
         frame = _capture_or_skip(camera)
+    np.testing.assert_allclose(frame.intrinsics.K, K, rtol=1e-6, atol=1e-4)
     error = np.abs(frame.depth_m - expected)
     assert error.max() < _DEPTH_TOL_M, f"worst depth error {error.max() * 1e3:.3f} mm"
 

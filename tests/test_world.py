@@ -222,9 +222,10 @@ def test_bad_arguments_and_configs_are_refused_with_the_reason(tmp_path) -> None
         CellConfig(T_world_bin=np.diag([1.0, 1.0, 2.0, 1.0]))
     from sygrid.camera import CameraIntrinsics
 
-    off_centre = CameraIntrinsics(500.0, 500.0, 300.0, 240.0, 640, 480)
-    with pytest.raises(ConfigError, match="principal point at the image centre"):
-        CellConfig(camera_intrinsics=off_centre)
+    off_centre = CameraIntrinsics(500.0, 520.0, 300.0, 240.0, 640, 480)  # any pinhole renders (sygrid.mjspec)
+    assert CellConfig(camera_intrinsics=off_centre).camera_intrinsics == off_centre
+    with pytest.raises(ConfigError, match="fx, fy > 0"):
+        CellConfig(camera_intrinsics=CameraIntrinsics(-500.0, 500.0, 300.0, 240.0, 640, 480))
     with pytest.raises(ConfigError, match="timestep_s"):
         CellConfig(timestep_s=0.05)
     assert math.isclose(CellConfig().camera_intrinsics.fov_y_deg, 45.0)

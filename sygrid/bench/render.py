@@ -13,7 +13,7 @@ Three measurements on the 20-part bin (``launch/scenes/builtin_bin.json``, 640x4
    image, not the noisy linear colour and its guides, so the OIDN variant is a second render of the same samples
    (same seed) rather than OIDN applied to the first one.
 2. **Complete items of the default preset** (the scene's own render settings, "fast": 4 spp + OIDN, box filter):
-   ``sygrid.dataset.make_item`` (drop + render with full masks + annotations), then the item written in BOP, YOLO
+   ``sygrid.dataset_item.make_item`` (drop + render with full masks + annotations), then the item written in BOP, YOLO
    and COCO to a temporary folder by the generator's own writers. Median seconds per item and the split by stage.
 3. **Memory**: the process's resident set size after each of ``--rss-items`` consecutive complete items; growth =
    last / first-after-warm-up - 1. The timings of step 2 are the medians of these same items.
@@ -43,13 +43,14 @@ import numpy as np
 from tqdm import tqdm
 
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_results
-from sygrid.dataset import DatasetOutput, make_item
+from sygrid.dataset import DatasetOutput
+from sygrid.dataset_item import make_item
 from sygrid.drop import drop_scene, resolve_objects
 from sygrid.errors import ConfigError, SygridError
 from sygrid.recipe import Recipe, parse_recipe
-from sygrid.render import intrinsics_from_spec, render_item, sample_T_world_camera
+from sygrid.render import render_item, sample_T_world_camera
 from sygrid.render.renderer import RenderResult
-from sygrid.scene import SceneSpec, load_scene, scene_to_json
+from sygrid.scene import SceneSpec, intrinsics_from_spec, load_scene, scene_to_json
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,5 @@
 """Rendering of SyGRID data items with Mitsuba: variant choice, camera poses, materials, the scene, the renderer."""
 
-from sygrid.render.camera_pose import intrinsics_from_spec as intrinsics_from_spec
 from sygrid.render.camera_pose import look_at_T_world_camera as look_at_T_world_camera
 from sygrid.render.camera_pose import sample_T_world_camera as sample_T_world_camera
 from sygrid.render.materials import MATERIALS as MATERIALS

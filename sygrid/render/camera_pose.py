@@ -1,4 +1,4 @@
-"""Camera poses and intrinsics for rendering a scene.
+"""Camera poses for rendering a scene (the intrinsics: ``sygrid.scene.intrinsics_from_spec``).
 
 Camera frame: OpenCV convention, x right, y down, z forward (out of the lens). ``T_world_camera`` maps camera-frame
 points to the world frame (origin at the centre of the bin's inner floor, z up).
@@ -10,10 +10,7 @@ import math
 
 import numpy as np
 
-from sygrid.camera import CameraIntrinsics
 from sygrid.scene import CameraPoseSampling, CameraSpec
-
-DEFAULT_FOV_Y_DEG = 45.0
 
 
 def look_at_T_world_camera(
@@ -73,11 +70,3 @@ def camera_T_world_camera(camera: CameraSpec, rng: np.random.Generator) -> np.nd
     if camera.T_world_camera is not None:
         return np.asarray(camera.T_world_camera, dtype=float).reshape(4, 4)
     return sample_T_world_camera(camera.pose_sampling, rng)
-
-
-def intrinsics_from_spec(camera: CameraSpec) -> CameraIntrinsics:
-    """Pinhole intrinsics from the scene's camera: explicit ``intrinsics``, else ``fov_y_deg`` (default 45 deg)."""
-    if camera.intrinsics is not None:
-        k = camera.intrinsics
-        return CameraIntrinsics(k.fx, k.fy, k.cx, k.cy, camera.width_px, camera.height_px)
-    return CameraIntrinsics.from_fov(camera.width_px, camera.height_px, camera.fov_y_deg or DEFAULT_FOV_Y_DEG)

@@ -7,6 +7,13 @@ tells instances apart; scenes are loaded with ``optimize=False`` so Mitsuba does
 
 Camera: ``T_world_camera`` is an OpenCV camera (x right, y down, z forward); a Mitsuba sensor looks along its +z
 with +x to the image's left and +y up, so ``T_world_sensor = T_world_camera @ diag(-1, -1, 1)``.
+
+Non-square pixels: Mitsuba's perspective sensor has square pixels and refuses a scale in its pose. A camera with
+``fx != fy`` is rendered as the sensor with focal length ``fy`` on both axes looking at the scene stretched by
+``fx / fy`` along the camera's x axis about the camera centre (``anamorphic_warp``, applied to every shape and lamp):
+every point then lands on the pixel ``K`` projects it to, and its camera-frame depth (z) is unchanged, so the RGB,
+depth, ids and masks are exact in geometry; only the shading sees the stretched geometry's normals (and the
+environment map, at infinity, is not stretched).
 """
 
 from __future__ import annotations
@@ -47,8 +54,9 @@ def sensor_dict(
     rfilter: str = "box",
     pixel_format: str = "rgb",
 ) -> dict:
-    """A Mitsuba perspective sensor matching an OpenCV pinhole camera (square pixels: ``fy`` sets the field of
-    view; the principal point becomes Mitsuba's principal point offset)."""
+    """A Mitsuba perspective sensor matching an OpenCV pinhole camera with square pixels of focal length ``fy`` (the
+    principal point becomes Mitsuba's principal point offset); with ``fx != fy`` the scene must be built with
+    ``anamorphic_warp`` (see the module doc)."""
     import mitsuba as mi
 
     T = np.asarray(T_world_camera, dtype=float) @ _CV_TO_MITSUBA
@@ -69,6 +77,21 @@ def sensor_dict(
         },
         "sampler": {"type": "independent", "sample_count": int(spp)},
     }  # fmt: skip
+
+
+def anamorphic_warp(T_world_camera: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray | None:
+    """(4, 4) the world-to-world stretch by ``fx / fy`` along the camera's x axis about the camera centre that makes
+    ``sensor_dict``'s square-pixel sensor render ``intrinsics``; None when the pixels are square."""
+    fx, fy = float(intrinsics.fx), float(intrinsics.fy)
+    if abs(fx - fy) <= 1e-9 * fy:
+        return None
+    T = np.asarray(T_world_camera, dtype=float)
+    return T @ np.diag([fx / fy, 1.0, 1.0, 1.0]) @ np.linalg.inv(T)
+
+
+def _warped(warp: np.ndarray | None, points_m: np.ndarray) -> np.ndarray:
+    points_m = np.asarray(points_m, dtype=float)
+    return points_m if warp is None else points_m @ warp[:3, :3].T + warp[:3, 3]
 
 
 def make_mesh(name: str, vertices_m: np.ndarray, faces: np.ndarray, bsdf: object) -> object:
@@ -92,11 +115,11 @@ def make_mesh(name: str, vertices_m: np.ndarray, faces: np.ndarray, bsdf: object
     return mesh
 
 
-def _box_mesh(name: str, centre: np.ndarray, half: np.ndarray, bsdf: object) -> object:
+def _box_mesh(name: str, centre: np.ndarray, half: np.ndarray, bsdf: object, warp: np.ndarray | None) -> object:
     import trimesh
 
     box = trimesh.creation.box(extents=2.0 * np.asarray(half))
-    return make_mesh(name, box.vertices + np.asarray(centre), box.faces, bsdf)
+    return make_mesh(name, _warped(warp, box.vertices + np.asarray(centre)), box.faces, bsdf)
 
 
 def build_shapes(
@@ -105,8 +128,10 @@ def build_shapes(
     T_world_obj: np.ndarray,
     container: ContainerSpec,
     rng: np.random.Generator,
+    warp: np.ndarray | None = None,
 ) -> MitsubaShapes:
-    """Floor, the bin (5 boxes, frame = world origin at the inner floor centre) and one mesh per part instance.
+    """Floor, the bin (5 boxes, frame = world origin at the inner floor centre) and one mesh per part instance;
+    ``warp``: ``anamorphic_warp``'s stretch of every vertex, or None.
 
     Materials are drawn from ``rng`` once per model (all instances of a part share a finish) and once for the bin.
     """
@@ -119,26 +144,29 @@ def build_shapes(
     floor = mi.load_dict(floor_bsdf(rng))
     out.shapes["floor"] = make_mesh(
         "floor",
-        np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * FLOOR_HALF_SIZE_M + [0, 0, -f],
+        _warped(warp, np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * FLOOR_HALF_SIZE_M + [0, 0, -f]),
         np.array([[0, 1, 2], [0, 2, 3]]),
         floor,
     )
     bin_bsdf = mi.load_dict(material_bsdf(container.material, rng))
     for part, (centre, half) in open_box_parts(container.inner_size_m, container.wall_thickness_m, f).items():
-        out.shapes[f"bin_{part}"] = _box_mesh(f"bin_{part}", np.array(centre), np.array(half), bin_bsdf)
+        out.shapes[f"bin_{part}"] = _box_mesh(f"bin_{part}", np.array(centre), np.array(half), bin_bsdf, warp)
     bsdfs = [mi.load_dict(material_bsdf(m.material, rng)) for m in models]
     for k, (inst, T) in enumerate(zip(instances, np.asarray(T_world_obj, dtype=float), strict=True)):
         model = models[inst.model_index]
-        V = model.mesh.vertices @ T[:3, :3].T + T[:3, 3]
+        V = _warped(warp, model.mesh.vertices @ T[:3, :3].T + T[:3, 3])
         name = f"part_{k:04d}"
         out.shapes[name] = make_mesh(name, V, model.mesh.faces, bsdfs[inst.model_index])
         out.part_names.append(name)
     return out
 
 
-def environment_emitters(env: EnvironmentSpec, rng: np.random.Generator, base_dir: Path | str = ".") -> dict:
+def environment_emitters(
+    env: EnvironmentSpec, rng: np.random.Generator, base_dir: Path | str = ".", warp: np.ndarray | None = None
+) -> dict:
     """Lights: the environment map file when the scene names one, else a constant sky and 1-3 (``random_lights``)
-    area lights above the bin, all drawn from ``rng``."""
+    area lights above the bin, all drawn from ``rng``; ``warp``: ``anamorphic_warp``'s stretch of the lamps, or
+    None (lights at infinity are not stretched)."""
     import mitsuba as mi
 
     s = env.strength
@@ -166,6 +194,8 @@ def environment_emitters(env: EnvironmentSpec, rng: np.random.Generator, base_di
         to_world = mi.ScalarTransform4f.look_at(origin=pos, target=[0, 0, 0], up=[0, 1, 0]).scale(
             [side / 2, side / 2, 1.0]
         )
+        if warp is not None:
+            to_world = mi.ScalarTransform4f(warp.tolist()) @ to_world
         emitters[f"lamp_{i}"] = {
             "type": "rectangle",
             "to_world": to_world,

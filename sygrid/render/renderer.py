@@ -10,8 +10,10 @@ Passes (Mitsuba, variant from ``choose_variant``):
 
 ``scene.render.mode == "raster"`` renders with MuJoCo's offscreen rasteriser instead (``_render_raster``): flat
 colours per material, no global illumination, far cheaper than path tracing; ids come from MuJoCo's segmentation
-pass and full masks from one segmentation pass per instance with the other parts moved away. The OpenGL backend is
-``MUJOCO_GL`` (``egl`` when unset; ``osmesa`` works where EGL does not).
+pass and full masks from one segmentation pass per instance with the other parts moved away. Both modes render any
+pinhole intrinsics (``fx != fy``, an off-centre principal point): MuJoCo's camera takes them natively
+(``sygrid.mjspec.add_camera``), Mitsuba's through the anamorphic warp of ``sygrid.render.mitsuba_scene``. The
+OpenGL backend is ``MUJOCO_GL`` (``egl`` when unset; ``osmesa`` works where EGL does not).
 
 Determinism: Mitsuba's sampler seed and every material/light draw come from ``rng``; the same rng state gives the
 same bytes on the same machine and variant.
@@ -33,6 +35,7 @@ from sygrid.objects.model import ObjectModel
 from sygrid.physics import Instance
 from sygrid.render.mitsuba_scene import (
     MitsubaShapes,
+    anamorphic_warp,
     build_shapes,
     environment_emitters,
     sensor_dict,
@@ -146,8 +149,9 @@ def render_item(
     timings: dict[str, float] = {}
     used = choose_variant(variant)
     T_world_obj = np.asarray(T_world_obj, dtype=float).reshape(-1, 4, 4)
-    built: MitsubaShapes = build_shapes(models, instances, T_world_obj, scene.container, rng)
-    emitters = environment_emitters(scene.environment, rng, base_dir)
+    warp = anamorphic_warp(T_world_camera, intrinsics)  # None unless fx != fy
+    built: MitsubaShapes = build_shapes(models, instances, T_world_obj, scene.container, rng, warp)
+    emitters = environment_emitters(scene.environment, rng, base_dir, warp)
     seed_rgb, seed_ids = _seed(rng), _seed(rng)
     rs = scene.render
     colour_sensor = sensor_dict(T_world_camera, intrinsics, rs.spp, rs.reconstruction_filter)
@@ -236,16 +240,11 @@ def _render_raster(
 ) -> RenderResult:
     import mujoco
 
-    from sygrid.mjspec import add_mesh_asset, add_open_box, quat_wxyz
+    from sygrid.mjspec import add_camera, add_mesh_asset, add_open_box, quat_wxyz
     from sygrid.render.mitsuba_scene import BIN_FLOOR_THICKNESS_M
 
     t0 = time.perf_counter()
     K = intrinsics
-    if abs(K.cx - (K.width - 1) / 2) > 0.5 or abs(K.cy - (K.height - 1) / 2) > 0.5 or abs(K.fx - K.fy) > 1e-6 * K.fy:
-        raise ValueError(
-            f"render.mode 'raster' needs square pixels and a centred principal point, got fx={K.fx}, fy={K.fy}, "
-            f"cx={K.cx}, cy={K.cy} for {K.width}x{K.height}; use mode 'pathtrace' for these intrinsics"
-        )
     T_world_obj = np.asarray(T_world_obj, dtype=float).reshape(-1, 4, 4)
     if len(T_world_obj) != len(instances):
         raise ValueError(f"T_world_obj has {len(T_world_obj)} poses for {len(instances)} instances")
@@ -279,11 +278,7 @@ def _render_raster(
             name=f"lamp_{i}", pos=pos, dir=(-np.asarray(pos) / np.linalg.norm(pos)).tolist(),
             diffuse=[0.5 * scene.environment.strength] * 3, castshadow=False,
         )  # fmt: skip
-    R_world_mjcam = np.asarray(T_world_camera, dtype=float)[:3, :3] @ np.diag([1.0, -1.0, -1.0])
-    spec.worldbody.add_camera(
-        name="cam", pos=np.asarray(T_world_camera)[:3, 3].tolist(), quat=quat_wxyz(R_world_mjcam).tolist(),
-        fovy=K.fov_y_deg,
-    )  # fmt: skip
+    add_camera(spec.worldbody, "cam", np.asarray(T_world_camera, dtype=float), K)
     mj_model = spec.compile()
     data = mujoco.MjData(mj_model)
     mujoco.mj_forward(mj_model, data)

@@ -208,6 +208,22 @@ class BopWriter:
         self.written += paths
         return paths
 
+    def item_files(self, scene_id: int, image_id: int, n_instances: int, true_depth: bool = False) -> list[Path]:
+        """The image files ``write`` makes for an image with ``n_instances`` instances (its entries in the scene
+        JSONs aside): rgb, depth (and depth_true), and a full and a visible mask per instance."""
+        sdir, im = self.scene_dir(scene_id), f"{image_id:06d}"
+        paths = [sdir / "rgb" / f"{im}.png", sdir / "depth" / f"{im}.png"]
+        if true_depth:
+            paths.append(sdir / "depth_true" / f"{im}.png")
+        for g in range(n_instances):
+            paths += [sdir / "mask" / f"{im}_{g:06d}.png", sdir / "mask_visib" / f"{im}_{g:06d}.png"]
+        return paths
+
+    def instance_counts(self, scene_id: int) -> dict[int, int]:
+        """image id -> number of instances, for every image of the scene with a ``scene_gt.json`` entry."""
+        gt = _load_json(self.scene_dir(scene_id) / "scene_gt.json")
+        return {int(k): len(v) if isinstance(v, list) else 0 for k, v in gt.items()}
+
     def finish(self) -> list[Path]:
         """Nothing left to write (every item is complete on disk); logs and returns everything written."""
         log.info("BOP dataset: %d files written under %s", len(self.written), self.root)

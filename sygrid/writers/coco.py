@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from sygrid.annotations import ImageAnnotation, check_item
+from sygrid.annotations import ImageAnnotation, check_item, image_name
 from sygrid.errors import ConfigError
 from sygrid.fileio import write_bytes_atomic, write_json_atomic
 from sygrid.objects.model import ObjectModel
@@ -97,6 +97,11 @@ class CocoWriter:
         ]
         self.written += paths
         return paths
+
+    def item_files(self, scene_id: int, image_id: int) -> list[Path]:
+        """The files ``write`` makes for image ``scene_id/image_id``: the image and its annotation record."""
+        name = image_name(scene_id, image_id)
+        return [self.root / "images" / self.split / f"{name}.png", self.items_dir / f"{name}.json"]
 
     def _records(self) -> list[dict]:
         records = []

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sygrid.annotations import ImageAnnotation, check_item, mask_to_polygon
+from sygrid.annotations import ImageAnnotation, check_item, image_name, mask_to_polygon
 from sygrid.fileio import write_bytes_atomic
 from sygrid.objects.model import ObjectModel
 from sygrid.writers.bop import encode_png
@@ -113,6 +113,11 @@ class YoloWriter:
         if new_split:  # data.yaml names the splits: keep it true even if the run never reaches finish()
             self.written.append(self._write_yaml())
         return [image, label]
+
+    def item_files(self, scene_id: int, image_id: int, split: str | None = None) -> list[Path]:
+        """The files ``write`` makes for image ``scene_id/image_id`` in ``split``: the image and its label file."""
+        split, name = self.split if split is None else split, image_name(scene_id, image_id)
+        return [self.root / "images" / split / f"{name}.png", self.root / "labels" / split / f"{name}.txt"]
 
     def finish(self) -> list[Path]:
         """Rewrites ``data.yaml`` (``val`` points at ``images/val`` once it exists); returns everything written."""
