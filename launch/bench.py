@@ -11,6 +11,7 @@ BENCHMARKS = {
     "physics": "sygrid.bench.physics",
     "sim": "sim.bench",
     "render": "sygrid.bench.render",
+    "parts": "sygrid.bench.parts",
     "perception": "perception.bench",
     "cell": "launch.bench_cell",
     "cell-detector": "launch.bench_cell_detector",

@@ -34,12 +34,14 @@ def quat_wxyz(R: np.ndarray) -> np.ndarray:
 
 def part_inertial(model: ObjectModel) -> tuple[float, np.ndarray, np.ndarray]:
     """Mass (kg), centre of mass (m, object frame) and MuJoCo's full inertia [ixx, iyy, izz, ixy, ixz, iyz]
-    (kg m^2, about the centre of mass), from the true mesh: a collision hull would fill the holes and overstate
-    both. An open CAD mesh has no inside, so its convex hull stands in."""
-    mesh = model.mesh if model.mesh.is_volume else model.mesh.convex_hull
-    inertia = np.asarray(mesh.moment_inertia) * model.density_kg_m3  # trimesh: unit density
+    (kg m^2, about the centre of mass), from the part's solid (``ObjectModel.solid``: the true mesh, or the repair
+    of an open or multi-body one) at the density that gives ``ObjectModel.mass_kg``: a collision hull would fill
+    the holes and overstate both."""
+    solid = model.solid
+    density = model.effective_density_kg_m3
+    inertia = np.asarray(solid.moment_inertia) * density  # trimesh: unit density
     full = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
-    return float(abs(mesh.volume)) * model.density_kg_m3, np.asarray(mesh.center_mass), np.array(full)
+    return model.mass_kg, np.asarray(solid.center_mass), np.array(full)
 
 
 def open_box_parts(

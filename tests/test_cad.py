@@ -95,7 +95,10 @@ def test_small_hole_is_filled(tmp_path: Path) -> None:
     assert model.mesh.is_watertight and model.metadata["repairs"]["hole_faces_added"] == 1
 
 
-def test_open_mesh_is_accepted_with_a_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_open_mesh_is_accepted_with_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SYGRID_CACHE_DIR", str(tmp_path / "cache"))
     tube = trimesh.creation.cylinder(radius=10.0, height=30.0, sections=32)
     walls = np.abs(tube.face_normals[:, 2]) < 0.5  # drop both caps: two 32-edge holes, too big to fill
     path = _write(trimesh.Trimesh(tube.vertices, tube.faces[walls], process=False), tmp_path / "open_tube.ply")
@@ -103,7 +106,19 @@ def test_open_mesh_is_accepted_with_a_warning(tmp_path: Path, caplog: pytest.Log
         model = load_cad(path, "mm", 1)
     assert "not watertight" in caplog.text and "64 open edges" in caplog.text
     assert model.metadata["watertight"] is False
-    assert model.volume_m3 == pytest.approx(model.mesh.convex_hull.volume)
+    # its matter is the zero-thickness wall thickened to the minimum thickness (1 mm), not its convex hull
+    assert model.solid.is_volume
+    assert model.volume_m3 == pytest.approx(2 * np.pi * 10e-3 * 30e-3 * 1e-3, rel=0.1)
+    assert model.mass_kg == pytest.approx(model.volume_m3 * model.density_kg_m3)
+
+
+def test_declared_mass_overrides_volume_times_density(tmp_path: Path) -> None:
+    path = _write(_box("mm"), tmp_path / "box.stl")
+    model = load_cad(path, "mm", 1, mass_kg=0.25)
+    assert model.mass_kg == 0.25 and model.effective_density_kg_m3 == pytest.approx(0.25 / np.prod(BOX_M))
+    for bad in (0.0, -1.0, float("nan"), True):
+        with pytest.raises(MeshError, match="mass_kg must be a finite number > 0"):
+            load_cad(path, "mm", 1, mass_kg=bad)
 
 
 def test_recenter_moves_the_symmetries_with_the_frame(tmp_path: Path) -> None:

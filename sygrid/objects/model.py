@@ -47,7 +47,13 @@ class GraspAnnotation:
 
 @dataclass(frozen=True, eq=False)
 class ObjectModel:
-    """A rigid part: triangle mesh in metres (object frame), BOP id, name and symmetry/grasp annotations."""
+    """A rigid part: triangle mesh in metres (object frame), BOP id, name and symmetry/grasp annotations.
+
+    ``mesh`` is what is rendered; ``solid`` is the part's matter (the mesh itself when it is one closed volume,
+    else a repaired closed solid: ``sygrid.objects.collision.solid``), which volume, mass, inertia and collision
+    come from. ``declared_mass_kg`` (optional) overrides ``volume_m3 * density_kg_m3``; the inertia is then scaled
+    to it.
+    """
 
     obj_id: int
     name: str
@@ -59,6 +65,7 @@ class ObjectModel:
     source: str = ""
     density_kg_m3: float = 7850.0
     metadata: dict = field(default_factory=dict)
+    declared_mass_kg: float | None = None
 
     @cached_property
     def diameter_m(self) -> float:
@@ -77,12 +84,29 @@ class ObjectModel:
         return self.bounds_m[1] - self.bounds_m[0]
 
     @cached_property
+    def solid(self) -> trimesh.Trimesh:
+        """The closed solid (metres, object frame) of the part's matter: ``mesh`` when it is one closed volume,
+        else its repair with the default ``CollisionParams``, made on first use and kept in the collision cache."""
+        from sygrid.objects.collision.solid import repaired_solid  # the repair is only loaded when needed
+
+        return repaired_solid(self.mesh, self.content_hash, name=self.name).mesh
+
+    @cached_property
     def volume_m3(self) -> float:
-        return float(abs(self.mesh.volume)) if self.mesh.is_volume else float(self.mesh.convex_hull.volume)
+        """The volume of ``solid`` (m^3)."""
+        return float(abs(self.solid.volume))
 
     @property
     def mass_kg(self) -> float:
-        return self.volume_m3 * self.density_kg_m3
+        """``declared_mass_kg`` when given, else ``volume_m3 * density_kg_m3``."""
+        return self.declared_mass_kg if self.declared_mass_kg is not None else self.volume_m3 * self.density_kg_m3
+
+    @property
+    def effective_density_kg_m3(self) -> float:
+        """The density that gives ``mass_kg`` over ``solid`` (``density_kg_m3`` without a declared mass)."""
+        if self.declared_mass_kg is None:
+            return self.density_kg_m3
+        return self.declared_mass_kg / self.volume_m3
 
     @property
     def mass_source(self) -> str:

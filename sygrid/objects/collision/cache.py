@@ -1,6 +1,11 @@
 """The disk cache of collision models: one entry per (mesh content hash, tier, the tier's parameters, decomposer
-version), an ``.npz`` of the pieces and a ``.json`` of the rest with the npz's SHA-256, each replaced atomically; a
-damaged or foreign entry is ignored with a warning (and rebuilt by the caller)."""
+version, and for a repaired part the repair's method, parameters and version), an ``.npz`` of the pieces and a
+``.json`` of the rest with the npz's SHA-256, each replaced atomically; a damaged or foreign entry is ignored with a
+warning (and rebuilt by the caller).
+
+Beside them: the repaired solids (``<hash>-solid-<key>.{npz,json}``, the same way) and time-out markers
+(``<entry>.timeout.json``: a decomposition that ran out of its time limit, so that it is not started again with no
+more time than that)."""
 
 from __future__ import annotations
 
@@ -23,6 +28,8 @@ from sygrid.objects.collision.params import CollisionParams, CollisionTier
 log = logging.getLogger(__name__)
 
 _CACHE_FORMAT = "sygrid-collision/1"
+_SOLID_FORMAT = "sygrid-solid/1"
+_TIMEOUT_FORMAT = "sygrid-timeout/1"
 
 
 def resolve_cache_dir(cache_dir: Path | str | None = None) -> Path:
@@ -40,15 +47,13 @@ def _library_version(tier: CollisionTier) -> str:
         return f"{dist}==unknown"
 
 
-def cache_entry(folder: Path, content_hash: str, tier: CollisionTier, params: CollisionParams) -> tuple[Path, str]:
+def cache_entry(
+    folder: Path, content_hash: str, tier: CollisionTier, params: CollisionParams, solid: dict | None = None
+) -> tuple[Path, str]:
     """``(stem, key)`` of the cache entry of a mesh (by content hash) in ``tier`` with ``params``: the entry's files
-    are ``stem.npz`` and ``stem.json``; ``key`` (SHA-256 of the format, hash, tier, the tier's parameters and the
-    decomposer's version) is recorded in the JSON and checked on loading."""
-    key = _cache_key(content_hash, tier, params)
-    return folder / f"{content_hash[:16]}-{tier.value}-{key[:16]}", key
-
-
-def _cache_key(content_hash: str, tier: CollisionTier, params: CollisionParams) -> str:
+    are ``stem.npz`` and ``stem.json``; ``key`` (SHA-256 of the format, hash, tier, the tier's parameters, the
+    decomposer's version and ``solid``: what the repair that made the decomposed solid depends on, None for a mesh
+    decomposed as it is) is recorded in the JSON and checked on loading."""
     payload = {
         "format": _CACHE_FORMAT,
         "content_hash": content_hash,
@@ -56,12 +61,21 @@ def _cache_key(content_hash: str, tier: CollisionTier, params: CollisionParams) 
         "params": params.key_fields(tier),
         "library": _library_version(tier),
     }
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+    if solid is not None:
+        payload["solid"] = solid
+    key = hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+    return folder / f"{content_hash[:16]}-{tier.value}-{key[:16]}", key
+
+
+def solid_entry(folder: Path, content_hash: str, solid: dict) -> tuple[Path, str]:
+    """``(stem, key)`` of the cache entry of a mesh's repaired solid; ``solid``: what the repair depends on."""
+    payload = {"format": _SOLID_FORMAT, "content_hash": content_hash, "solid": solid}
+    key = hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+    return folder / f"{content_hash[:16]}-solid-{key[:16]}", key
 
 
 def save_cached(stem: Path, key: str, result: CollisionModel) -> None:
-    """Arrays to ``stem.npz``, then metadata (with the npz's SHA-256) to ``stem.json``: the JSON is written last,
-    so a reader never pairs a new JSON with an old or half-written npz. Each file is replaced atomically."""
+    """The model's arrays and metadata as the entry at ``stem`` (``_write_entry``)."""
     pieces = result.pieces
     buffer = io.BytesIO()
     np.savez(
@@ -71,7 +85,6 @@ def save_cached(stem: Path, key: str, result: CollisionModel) -> None:
         vertex_counts=np.array([len(p.vertices) for p in pieces], dtype=np.int64),
         face_counts=np.array([len(p.faces) for p in pieces], dtype=np.int64),
     )
-    payload = buffer.getvalue()
     meta = {
         "format": _CACHE_FORMAT,
         "key": key,
@@ -86,8 +99,14 @@ def save_cached(stem: Path, key: str, result: CollisionModel) -> None:
             {"kind": p.kind, "size_m": list(p.size_m), "T_obj_geom": np.asarray(p.T_obj_geom).tolist()}
             for p in result.primitives
         ],
-        "npz_sha256": hashlib.sha256(payload).hexdigest(),
     }
+    _write_entry(stem, buffer.getvalue(), meta)
+
+
+def _write_entry(stem: Path, payload: bytes, meta: dict) -> None:
+    """``payload`` to ``stem.npz``, then ``meta`` with the npz's SHA-256 to ``stem.json``: the JSON is written last,
+    so a reader never pairs a new JSON with an old or half-written npz. Each file is replaced atomically."""
+    meta = {**meta, "npz_sha256": hashlib.sha256(payload).hexdigest()}
     try:
         write_bytes_atomic(stem.with_suffix(".npz"), payload)
         write_json_atomic(stem.with_suffix(".json"), meta)
@@ -97,20 +116,37 @@ def save_cached(stem: Path, key: str, result: CollisionModel) -> None:
     log.debug("wrote collision cache entry %s.{npz,json}", stem)
 
 
+def _read_entry(stem: Path, key: str, fmt: str) -> tuple[dict, bytes] | None:
+    """``(meta, npz bytes)`` of the entry at ``stem``; None when there is none.
+
+    Raises:
+        ValueError: the entry is of another format or key, or its npz does not match its recorded SHA-256.
+        OSError: a file cannot be read.
+    """
+    json_path, npz_path = stem.with_suffix(".json"), stem.with_suffix(".npz")
+    if not json_path.exists():
+        return None
+    meta = json.loads(json_path.read_text())
+    if meta.get("format") != fmt or meta.get("key") != key:
+        raise ValueError(f"format/key mismatch (expected {fmt}, key {key[:16]}...)")
+    payload = npz_path.read_bytes()
+    if hashlib.sha256(payload).hexdigest() != meta["npz_sha256"]:
+        raise ValueError(f"{npz_path.name} does not match the SHA-256 recorded in {json_path.name}")
+    return meta, payload
+
+
+_UNREADABLE = (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile)
+
+
 def load_cached(
     stem: Path, key: str, tier: CollisionTier, content_hash: str, params: CollisionParams
 ) -> CollisionModel | None:
     """The cached model at ``stem``, or None when there is none or it is unreadable (with a warning)."""
-    json_path, npz_path = stem.with_suffix(".json"), stem.with_suffix(".npz")
-    if not json_path.exists():
-        return None
     try:
-        meta = json.loads(json_path.read_text())
-        if meta.get("format") != _CACHE_FORMAT or meta.get("key") != key:
-            raise ValueError(f"format/key mismatch (expected {_CACHE_FORMAT}, key {key[:16]}...)")
-        payload = npz_path.read_bytes()
-        if hashlib.sha256(payload).hexdigest() != meta["npz_sha256"]:
-            raise ValueError(f"{npz_path.name} does not match the SHA-256 recorded in {json_path.name}")
+        entry = _read_entry(stem, key, _CACHE_FORMAT)
+        if entry is None:
+            return None
+        meta, payload = entry
         with np.load(io.BytesIO(payload), allow_pickle=False) as npz:
             pieces = _split_pieces(npz["vertices"], npz["faces"], npz["vertex_counts"], npz["face_counts"])
         primitives = tuple(_primitive_from_json(p) for p in meta["primitives"])
@@ -128,8 +164,60 @@ def load_cached(
             params=params,
             from_cache=True,
         )
-    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:
-        log.warning("ignoring the unreadable collision cache entry %s (%s); rebuilding it", json_path, exc)
+    except _UNREADABLE as exc:
+        log.warning("ignoring the unreadable collision cache entry %s.json (%s); rebuilding it", stem, exc)
+        return None
+
+
+def save_solid(stem: Path, key: str, vertices: np.ndarray, faces: np.ndarray, meta: dict) -> None:
+    """A repaired solid's mesh (metres) and ``meta`` (how it was made) as the entry at ``stem``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, vertices=np.asarray(vertices, dtype=np.float64), faces=np.asarray(faces, dtype=np.int64))
+    _write_entry(stem, buffer.getvalue(), {"format": _SOLID_FORMAT, "key": key, **meta})
+
+
+def load_solid(stem: Path, key: str) -> tuple[np.ndarray, np.ndarray, dict] | None:
+    """``(vertices, faces, meta)`` of the solid cached at ``stem``; None when there is none or it is unreadable
+    (with a warning)."""
+    try:
+        entry = _read_entry(stem, key, _SOLID_FORMAT)
+        if entry is None:
+            return None
+        meta, payload = entry
+        with np.load(io.BytesIO(payload), allow_pickle=False) as npz:
+            vertices, faces = np.array(npz["vertices"], dtype=np.float64), np.array(npz["faces"], dtype=np.int64)
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"vertices/faces must be (n, 3), got {vertices.shape} and {faces.shape}")
+        if len(faces) < 4 or faces.min() < 0 or faces.max() >= len(vertices) or not np.all(np.isfinite(vertices)):
+            raise ValueError("too few faces, face indices out of range or non-finite vertices")
+        return vertices, faces, meta
+    except _UNREADABLE as exc:
+        log.warning("ignoring the unreadable solid cache entry %s.json (%s); rebuilding it", stem, exc)
+        return None
+
+
+def save_timeout(stem: Path, key: str, limit_s: float) -> None:
+    """Records that the decomposition of entry ``stem`` ran out of ``limit_s`` seconds."""
+    try:
+        write_json_atomic(
+            stem.with_suffix(".timeout.json"), {"format": _TIMEOUT_FORMAT, "key": key, "limit_s": float(limit_s)}
+        )
+    except OSError as exc:
+        log.warning("could not write the time-out marker of %s: %s", stem, exc)
+
+
+def load_timeout(stem: Path, key: str) -> float | None:
+    """The time limit (s) that the decomposition of entry ``stem`` ran out of, or None (none recorded)."""
+    path = stem.with_suffix(".timeout.json")
+    try:
+        meta = json.loads(path.read_text())
+        if meta.get("format") != _TIMEOUT_FORMAT or meta.get("key") != key:
+            return None
+        return float(meta["limit_s"])
+    except FileNotFoundError:
+        return None
+    except _UNREADABLE as exc:
+        log.warning("ignoring the unreadable time-out marker %s (%s)", path, exc)
         return None
 
 

@@ -40,6 +40,7 @@ class CollisionParams:
         coacd_concavity_threshold: the concavity (a distance relative to the part's size) below which a piece is
             not cut further; 0.01 is very fine, 1.0 coarse. Lower keeps more detail with more pieces.
         coacd_max_hulls: at most this many pieces after merging (-1: no limit). Merging does not shorten the search.
+            The default is the cap on pieces per part (each piece is a geom per instance in every drop).
         coacd_remesh: when CoACD voxel-remeshes the input first: "if_not_watertight" (meshes that trimesh finds
             not to be a watertight volume; CoACD's own check also rejects sound meshes with sliver triangles, and
             its remesh inflates small parts), "always" or "never".
@@ -55,6 +56,14 @@ class CollisionParams:
         vhacd_max_vertices_per_hull: vertices per piece.
         vhacd_min_volume_error_percent: stop splitting a piece when its hull is within this percent of its volume.
         vhacd_max_recursion_depth: splitting depth.
+    Repaired solid (``sygrid.objects.collision.solid``; only for meshes that are not one closed volume):
+        solid_min_thickness_m: surfaces that bound no volume (a sheet exported as its mid-surface) are thickened to
+            this. Twice the drop's penetration bound (``PhysicsSpec.max_penetration_m``, 0.5 mm by default), so a
+            neighbour resting on a thickened sheet cannot reach its middle.
+        solid_seal_m: openings narrower than twice this (a wall's open end, a crack between faces) are closed before
+            the inside is filled.
+        solid_max_cells: the voxel grid spans at most this many cells along the part's longest side; its pitch is
+            half ``solid_min_thickness_m`` unless that would exceed it (then sheets are thickened to 2 pitches).
     Fidelity measurement:
         fidelity_samples: Monte-Carlo points; the standard error of the volume ratios falls as 1 / sqrt(samples).
         fidelity_seed: seed of those points; the same seed gives the same numbers.
@@ -62,7 +71,7 @@ class CollisionParams:
 
     primitive_max_excess_ratio: float = 0.03
     coacd_concavity_threshold: float = 0.05
-    coacd_max_hulls: int = -1
+    coacd_max_hulls: int = 64
     coacd_remesh: Literal["if_not_watertight", "always", "never"] = "if_not_watertight"
     coacd_preprocess_resolution: int = 50
     coacd_mcts_iterations: int = 60
@@ -75,6 +84,9 @@ class CollisionParams:
     vhacd_max_vertices_per_hull: int = 64
     vhacd_min_volume_error_percent: float = 1.0
     vhacd_max_recursion_depth: int = 10
+    solid_min_thickness_m: float = 0.001
+    solid_seal_m: float = 0.001
+    solid_max_cells: int = 96
     fidelity_samples: int = 20_000
     fidelity_seed: int = 0
 
@@ -96,6 +108,9 @@ class CollisionParams:
             "vhacd_max_vertices_per_hull": (self.vhacd_max_vertices_per_hull >= 4, ">= 4"),
             "vhacd_min_volume_error_percent": (0.0 < self.vhacd_min_volume_error_percent <= 100.0, "in (0, 100]"),
             "vhacd_max_recursion_depth": (self.vhacd_max_recursion_depth >= 1, ">= 1"),
+            "solid_min_thickness_m": (0.0 < self.solid_min_thickness_m <= 0.05, "in (0, 0.05] m"),
+            "solid_seal_m": (0.0 <= self.solid_seal_m <= 0.05, "in [0, 0.05] m"),
+            "solid_max_cells": (16 <= self.solid_max_cells <= 512, "in [16, 512]"),
             "fidelity_samples": (self.fidelity_samples >= 1000, ">= 1000"),
         }
         for name, (ok, expected) in checks.items():
@@ -106,3 +121,7 @@ class CollisionParams:
         """The fields that change ``tier``'s result: the cache key does not change with another tier's knobs."""
         prefix = {CollisionTier.HULL: "primitive_", CollisionTier.COACD: "coacd_", CollisionTier.VHACD: "vhacd_"}
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name.startswith((prefix[tier], "fidelity_"))}
+
+    def solid_key_fields(self) -> dict:
+        """The fields that change a repaired solid (``sygrid.objects.collision.solid``)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name.startswith("solid_")}

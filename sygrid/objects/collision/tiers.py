@@ -19,15 +19,26 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull, QhullError
 
+from sygrid.errors import MeshError
 from sygrid.objects.collision.geometry import ConvexPiece, PrimitiveGeom
 from sygrid.objects.collision.params import CollisionParams, CollisionTier
+from sygrid.objects.collision.worker import run_decomposer, run_in_child
 
 log = logging.getLogger(__name__)
+
+
+class DecompositionTimeoutError(MeshError):
+    """A decomposer did not finish within its time limit (``limit_s``, seconds)."""
+
+    def __init__(self, message: str, limit_s: float) -> None:
+        super().__init__(message)
+        self.limit_s = limit_s
+
 
 _MIN_PIECE_VOLUME_RATIO = 1e-6  # pieces smaller than this fraction of the hull's volume are slivers: dropped
 
 
-def _build_hull(mesh: trimesh.Trimesh, params: CollisionParams) -> tuple[tuple, tuple]:
+def _build_hull(mesh: trimesh.Trimesh, params: CollisionParams, limit_s: float | None) -> tuple[tuple, tuple]:
     """A box or cylinder that encloses the convex hull with little excess volume, else the hull itself."""
     hull = mesh.convex_hull
     hull_volume = float(hull.volume)
@@ -50,54 +61,65 @@ def _build_hull(mesh: trimesh.Trimesh, params: CollisionParams) -> tuple[tuple, 
     return (_convex_piece(np.asarray(hull.vertices)),), ()
 
 
-def _build_coacd(mesh: trimesh.Trimesh, params: CollisionParams) -> tuple[tuple, tuple]:
-    import coacd  # heavy native library: imported on use
-
-    coacd.set_log_level("error")
+def _build_coacd(mesh: trimesh.Trimesh, params: CollisionParams, limit_s: float | None) -> tuple[tuple, tuple]:
     remesh = params.coacd_remesh == "always" or (params.coacd_remesh == "if_not_watertight" and not mesh.is_volume)
-    parts = coacd.run_coacd(
-        coacd.Mesh(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)),
-        threshold=params.coacd_concavity_threshold,
-        max_convex_hull=params.coacd_max_hulls,
-        preprocess_mode="on" if remesh else "off",
-        preprocess_resolution=params.coacd_preprocess_resolution,
-        pca=params.coacd_pca,
-        mcts_iterations=params.coacd_mcts_iterations,
-        mcts_nodes=params.coacd_mcts_nodes,
-        mcts_max_depth=params.coacd_mcts_max_depth,
-        seed=params.coacd_seed,
-    )
-    return _clean_pieces([np.asarray(v, dtype=np.float64) for v, _f in parts], mesh), ()
+    options = {
+        "threshold": params.coacd_concavity_threshold,
+        "max_convex_hull": params.coacd_max_hulls,
+        "preprocess_mode": "on" if remesh else "off",
+        "preprocess_resolution": params.coacd_preprocess_resolution,
+        "pca": params.coacd_pca,
+        "mcts_iterations": params.coacd_mcts_iterations,
+        "mcts_nodes": params.coacd_mcts_nodes,
+        "mcts_max_depth": params.coacd_mcts_max_depth,
+        "seed": params.coacd_seed,
+    }
+    return _clean_pieces(_decompose("coacd", mesh, options, limit_s), mesh), ()
 
 
-def _build_vhacd(mesh: trimesh.Trimesh, params: CollisionParams) -> tuple[tuple, tuple]:
-    from vhacdx import compute_vhacd  # heavy native library: imported on use
+def _build_vhacd(mesh: trimesh.Trimesh, params: CollisionParams, limit_s: float | None) -> tuple[tuple, tuple]:
+    options = {
+        "maxConvexHulls": params.vhacd_max_hulls,
+        "resolution": params.vhacd_voxel_resolution,
+        "minimumVolumePercentErrorAllowed": params.vhacd_min_volume_error_percent,
+        "maxRecursionDepth": params.vhacd_max_recursion_depth,
+        "maxNumVerticesPerCH": params.vhacd_max_vertices_per_hull,
+        "asyncACD": False,  # the threaded search is not guaranteed to give the same pieces twice
+    }
+    return _clean_pieces(_decompose("vhacd", mesh, options, limit_s), mesh), ()
 
-    # vhacdx wants the faces flat, each prefixed by its vertex count: [3, i, j, k, 3, ...] (as trimesh.decomposition
-    # builds them). An (f, 3) array is accepted without an error and gives garbage hulls.
-    faces = np.column_stack([np.full(len(mesh.faces), 3), mesh.faces]).ravel().astype(np.uint32)
-    parts = compute_vhacd(
-        np.asarray(mesh.vertices, dtype=np.float64),
-        faces,
-        maxConvexHulls=params.vhacd_max_hulls,
-        resolution=params.vhacd_voxel_resolution,
-        minimumVolumePercentErrorAllowed=params.vhacd_min_volume_error_percent,
-        maxRecursionDepth=params.vhacd_max_recursion_depth,
-        maxNumVerticesPerCH=params.vhacd_max_vertices_per_hull,
-        asyncACD=False,  # the threaded search is not guaranteed to give the same pieces twice
-    )
-    return _clean_pieces([np.asarray(v, dtype=np.float64) for v, _f in parts], mesh), ()
+
+def _decompose(decomposer: str, mesh: trimesh.Trimesh, options: dict, limit_s: float | None) -> list[np.ndarray]:
+    """The decomposer's pieces: in this process without a time limit, else in a child process killed at it."""
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    if limit_s is None:
+        return run_decomposer(decomposer, vertices, faces, options)
+    try:
+        pieces = run_in_child(decomposer, vertices, faces, options, limit_s)
+    except RuntimeError as exc:
+        raise MeshError(str(exc)) from exc
+    if pieces is None:
+        raise DecompositionTimeoutError(f"{decomposer} did not finish within {limit_s:.1f} s", limit_s)
+    return pieces
 
 
 _BUILDERS = {CollisionTier.HULL: _build_hull, CollisionTier.COACD: _build_coacd, CollisionTier.VHACD: _build_vhacd}
 
 
 def build_tier(
-    mesh: trimesh.Trimesh, tier: CollisionTier, params: CollisionParams
+    mesh: trimesh.Trimesh, tier: CollisionTier, params: CollisionParams, time_limit_s: float | None = None
 ) -> tuple[tuple[ConvexPiece, ...], tuple[PrimitiveGeom, ...]]:
     """``mesh``'s collision geometry in ``tier`` (object frame): ``(pieces, primitives)``, one of them empty; both
-    empty when the decomposer gave no usable piece."""
-    return _BUILDERS[tier](mesh, params)
+    empty when the decomposer gave no usable piece.
+
+    With ``time_limit_s`` a decomposer (coacd, vhacd) runs in a child process that is killed at the limit; the hull
+    is always built in this process (it takes milliseconds).
+
+    Raises:
+        DecompositionTimeoutError: the decomposer ran out of ``time_limit_s``.
+        MeshError: the decomposer's child process failed.
+    """
+    return _BUILDERS[tier](mesh, params, time_limit_s)
 
 
 def _convex_piece(points: np.ndarray) -> ConvexPiece:
