@@ -11,11 +11,14 @@ Three ways, the cheapest that applies (``solid_method``):
   is subtracted. Falls back to ``voxel`` when manifold3d refuses a body.
 - ``voxel``: anything else (open or non-manifold). On a grid of pitch ``h`` tied to the part's size
   (``solid_pitch_m``): the surface is sampled; the region the surface encloses once openings narrower than
-  ``2 * CollisionParams.solid_seal_m`` are sealed (a morphological closing) is the inside; surfaces that bound no
-  inside (a zero-thickness sheet, a wall thinner than a voxel) are thickened to
-  ``CollisionParams.solid_min_thickness_m``; the signed distance field is meshed as a manifold level set and
-  simplified to within a quarter of the pitch. Near the surface the field's magnitude is the distance to surface
-  samples, so the solid follows the surface to a fraction of the pitch, not to whole voxels.
+  ``2 * CollisionParams.solid_seal_m`` are sealed (a morphological closing) is the inside, and so is the gap
+  between two surfaces facing each other closer than that (a wall given by its two faces, with open ends); a
+  surface with no matter on either side (a sheet exported as its mid-surface) and a wall thinner than
+  ``CollisionParams.solid_min_thickness_m`` are thickened about their middle to that thickness; the signed
+  distance field is meshed as a manifold level set and simplified to within half a pitch. Near the surface the
+  field's magnitude is the distance to surface samples, so the solid follows the surface to a fraction of the
+  pitch, not to whole voxels. Openings wider than ``2 * solid_seal_m`` stay open: such a part is taken as a
+  shell of walls (a box missing a face is a cup).
 
 Units: metres in, metres out. The result is deterministic for a given mesh and parameters.
 """
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import logging
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -92,6 +96,7 @@ def solid_key(mesh: trimesh.Trimesh, params: CollisionParams) -> dict | None:
 
 
 _MEMO: OrderedDict[str, RepairedSolid] = OrderedDict()
+_MEMO_LOCK = threading.Lock()
 
 
 def repaired_solid(
@@ -112,9 +117,10 @@ def repaired_solid(
     if key_fields is None:
         return RepairedSolid(mesh, "as-is", None, 0.0)
     stem, key = solid_entry(resolve_cache_dir(cache_dir), content_hash, key_fields)
-    if key in _MEMO:
-        _MEMO.move_to_end(key)
-        return _MEMO[key]
+    with _MEMO_LOCK:
+        if key in _MEMO:
+            _MEMO.move_to_end(key)
+            return _MEMO[key]
     cached = load_solid(stem, key)
     if cached is not None:
         vertices, faces, meta = cached
@@ -126,9 +132,10 @@ def repaired_solid(
         meta = {"content_hash": content_hash, "solid": key_fields, "method": solid.method, "pitch_m": solid.pitch_m,
                 "compute_s": solid.compute_s, "volume_m3": float(solid.mesh.volume)}  # fmt: skip
         save_solid(stem, key, solid.mesh.vertices, solid.mesh.faces, meta)
-    _MEMO[key] = solid
-    while len(_MEMO) > _MEMO_SIZE:
-        _MEMO.popitem(last=False)
+    with _MEMO_LOCK:
+        _MEMO[key] = solid
+        while len(_MEMO) > _MEMO_SIZE:
+            _MEMO.popitem(last=False)
     return solid
 
 
