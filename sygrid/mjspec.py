@@ -35,11 +35,9 @@ def quat_wxyz(R: np.ndarray) -> np.ndarray:
 def part_inertial(model: ObjectModel) -> tuple[float, np.ndarray, np.ndarray]:
     """Mass (kg), centre of mass (m, object frame) and MuJoCo's full inertia [ixx, iyy, izz, ixy, ixz, iyz]
     (kg m^2, about the centre of mass), from the part's solid (``ObjectModel.solid``: the true mesh, or the repair
-    of an open or multi-body one) at the density that gives ``ObjectModel.mass_kg``: a collision hull would fill
-    the holes and overstate both."""
+    of an open or multi-body one) and its density: a collision hull would fill the holes and overstate both."""
     solid = model.solid
-    density = model.effective_density_kg_m3
-    inertia = np.asarray(solid.moment_inertia) * density  # trimesh: unit density
+    inertia = np.asarray(solid.moment_inertia) * model.density_kg_m3  # trimesh: unit density
     full = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
     return model.mass_kg, np.asarray(solid.center_mass), np.array(full)
 

@@ -112,15 +112,6 @@ def test_open_mesh_is_accepted_with_a_warning(
     assert model.mass_kg == pytest.approx(model.volume_m3 * model.density_kg_m3)
 
 
-def test_declared_mass_overrides_volume_times_density(tmp_path: Path) -> None:
-    path = _write(_box("mm"), tmp_path / "box.stl")
-    model = load_cad(path, "mm", 1, mass_kg=0.25)
-    assert model.mass_kg == 0.25 and model.effective_density_kg_m3 == pytest.approx(0.25 / np.prod(BOX_M))
-    for bad in (0.0, -1.0, float("nan"), True):
-        with pytest.raises(MeshError, match="mass_kg must be a finite number > 0"):
-            load_cad(path, "mm", 1, mass_kg=bad)
-
-
 def test_recenter_moves_the_symmetries_with_the_frame(tmp_path: Path) -> None:
     box = _box("m")
     box.apply_translation((0.1, 0.0, 0.0))

@@ -249,7 +249,7 @@ def test_sygrid_parts_on_a_folder_writes_a_catalogue(cad: Path, tmp_path: Path, 
     assert main(["parts", str(cad), "--unit", "mm", "--write-catalogue", str(out)]) == 0
     text = capsys.readouterr().out
     assert "2 component(s)" in text and "OPEN (not watertight)" in text
-    assert "density x convex hull volume" in text and "warning: open mesh" in text
+    assert "density x repaired solid volume" in text and "warning: open mesh" in text
     assert "symmetries proposed: 1 discrete + 1 continuous: continuous about (0, 0, 1)" in text  # the tube
     written = load_catalogue(out)
     assert written.names == ("pair", "plate", "tube")

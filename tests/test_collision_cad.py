@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from sygrid.mjspec import part_inertial
 from sygrid.objects import load_cad
 from sygrid.objects.collision import build as build_module
 from sygrid.objects.collision import solid as solid_module
@@ -107,6 +108,12 @@ def test_mass_of_an_open_mesh_comes_from_its_solid_not_its_hull() -> None:
     # a 1 mm sheet: about its (one-sided) area times the thickness; its convex hull is five times heavier
     assert clamp.volume_m3 == pytest.approx(clamp.mesh.area * 1e-3, rel=0.3)
     assert clamp.mesh.convex_hull.volume > 5 * clamp.volume_m3
+    assert clamp.mass_source == "density x repaired solid volume"
+    # a declared mass: the inertia is the solid's at the density that gives it
+    declared = clamp.with_mass(0.01)
+    mass, _com, inertia = part_inertial(declared)
+    assert mass == pytest.approx(0.01)
+    np.testing.assert_allclose(inertia[0], clamp.solid.moment_inertia[0, 0] * 0.01 / clamp.volume_m3, rtol=1e-9)
 
 
 def test_the_solid_is_cached_on_disk(tmp_path: Path) -> None:

@@ -5,7 +5,7 @@ faces, unreferenced vertices, inconsistent winding, small holes, tiny stray comp
 ``MeshError`` naming the file and the problem, what it cannot (no file, unknown format, unparsable or empty mesh,
 NaN/inf vertices, a size implausible for the declared unit). A mesh that stays open after repair is still accepted
 (it renders fine) with a warning and ``metadata["watertight"] = False``; its volume, mass, inertia and collision
-come from a repaired closed solid (``ObjectModel.solid``, made on first use), or the mass from ``mass_kg``.
+come from a repaired closed solid (``ObjectModel.solid``, made on first use).
 
 The CAD frame is kept by default, because user-declared symmetries are given in it (in metres, after the unit
 conversion); ``recenter=True`` moves the origin to the bounding-box centre and moves the symmetries with it.
@@ -61,7 +61,6 @@ def load_cad(
     recenter: bool = False,
     density_kg_m3: float | None = None,
     verify_symmetries: bool = True,
-    mass_kg: float | None = None,
 ) -> ObjectModel:
     """Loads a PLY, OBJ or STL mesh as an ``ObjectModel`` in metres.
 
@@ -76,7 +75,6 @@ def load_cad(
         recenter: move the origin to the bounding-box centre (symmetries are moved with it); the pose of the new
             frame in the CAD frame is recorded in ``metadata["T_cad_obj"]``.
         density_kg_m3: overrides the material's density (optional).
-        mass_kg: the part's declared mass (optional): overrides volume x density (the inertia is scaled to it).
         verify_symmetries: check each declared symmetry on the mesh and log a warning (recorded in
             ``metadata["symmetry_problems"]``) for one that moves the surface more than ``SYMMETRY_TOL_REL`` of the
             model diameter.
@@ -87,10 +85,6 @@ def load_cad(
     """
     path = Path(path)
     _check_arguments(path, unit, obj_id, material)
-    for field_name, value in (("density_kg_m3", density_kg_m3), ("mass_kg", mass_kg)):
-        valid = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-        if value is not None and not (valid and np.isfinite(value) and value > 0):
-            raise MeshError(f"{path}: {field_name} must be a finite number > 0, got {value!r}")
     raw = _read_mesh(path)
     scale_m = UNIT_SCALE_M[unit]
     _check_extent(path, raw, unit, scale_m)
@@ -127,7 +121,6 @@ def load_cad(
         source=f"file:{path}",
         density_kg_m3=float(density_kg_m3) if density_kg_m3 is not None else MATERIAL_DENSITY_KG_M3[material],
         metadata=metadata,
-        declared_mass_kg=float(mass_kg) if mass_kg is not None else None,
     )
     if verify_symmetries and model.is_symmetric:
         problems = check_symmetries(model, tol_m=SYMMETRY_TOL_REL * model.diameter_m)

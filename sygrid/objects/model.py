@@ -51,8 +51,7 @@ class ObjectModel:
 
     ``mesh`` is what is rendered; ``solid`` is the part's matter (the mesh itself when it is one closed volume,
     else a repaired closed solid: ``sygrid.objects.collision.solid``), which volume, mass, inertia and collision
-    come from. ``declared_mass_kg`` (optional) overrides ``volume_m3 * density_kg_m3``; the inertia is then scaled
-    to it.
+    come from. A declared mass (``with_mass``) sets the density that gives it over that volume.
     """
 
     obj_id: int
@@ -65,7 +64,6 @@ class ObjectModel:
     source: str = ""
     density_kg_m3: float = 7850.0
     metadata: dict = field(default_factory=dict)
-    declared_mass_kg: float | None = None
 
     @cached_property
     def diameter_m(self) -> float:
@@ -98,23 +96,17 @@ class ObjectModel:
 
     @property
     def mass_kg(self) -> float:
-        """``declared_mass_kg`` when given, else ``volume_m3 * density_kg_m3``."""
-        return self.declared_mass_kg if self.declared_mass_kg is not None else self.volume_m3 * self.density_kg_m3
-
-    @property
-    def effective_density_kg_m3(self) -> float:
-        """The density that gives ``mass_kg`` over ``solid`` (``density_kg_m3`` without a declared mass)."""
-        if self.declared_mass_kg is None:
-            return self.density_kg_m3
-        return self.declared_mass_kg / self.volume_m3
+        return self.volume_m3 * self.density_kg_m3
 
     @property
     def mass_source(self) -> str:
-        """Where ``mass_kg`` comes from: ``"declared"`` (``with_mass``), ``"density x solid volume"``, or
-        ``"density x convex hull volume"`` (an open mesh has no inside: its hull stands in, overstating the mass)."""
+        """Where ``mass_kg`` comes from: ``"declared"`` (``with_mass``), ``"density x solid volume"`` (a closed
+        mesh), or ``"density x repaired solid volume"`` (an open or multi-body mesh: ``solid``)."""
+        from sygrid.objects.collision.solid import solid_method
+
         if "mass_declared_kg" in self.metadata:
             return "declared"
-        return "density x solid volume" if self.mesh.is_volume else "density x convex hull volume"
+        return "density x solid volume" if solid_method(self.mesh) == "as-is" else "density x repaired solid volume"
 
     def with_mass(self, mass_kg: float) -> ObjectModel:
         """This model with a declared mass [kg] (> 0): its density becomes ``mass_kg / volume_m3``, so the mass,

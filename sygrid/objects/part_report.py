@@ -47,8 +47,9 @@ def part_report(model: ObjectModel, propose: bool = True) -> PartReport:
             proposal.tol_m,
         )
     warnings = []
-    if model.mass_source == "density x convex hull volume":
-        warnings.append("open mesh: its volume and mass come from the convex hull and overstate them; declare mass_kg")
+    if model.mass_source == "density x repaired solid volume" and not model.mesh.is_watertight:
+        warnings.append("open mesh: its volume and mass come from a repaired solid (a zero-thickness sheet thickened "
+                        "to the minimum thickness); declare mass_kg if the part is heavier")  # fmt: skip
     warnings += [f"declared symmetry does not hold: {p}" for p in model.metadata.get("symmetry_problems", [])]
     if matches is False:
         warnings.append("the declared symmetries differ from the proposed ones: check both")
