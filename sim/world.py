@@ -258,7 +258,8 @@ class CellWorld:
 
         ``collision[i]`` is part i's collision model (``sygrid.objects.collision``: the same tiers the generator's
         drop uses); the part is then drawn with its true mesh. Without one the mesh itself is the collision geom
-        (convexified by MuJoCo). Mass and inertia come from the repaired solid (``ObjectModel.solid``) and the model's density.
+        (convexified by MuJoCo). Mass and inertia come from the repaired solid (``ObjectModel.solid``) and the
+        model's density.
         Returns the new bodies' names.
         """
         T_world_obj = np.asarray(T_world_obj, dtype=float)

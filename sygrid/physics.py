@@ -165,7 +165,8 @@ def build_drop_spec(
     physics: PhysicsSpec,
 ) -> mujoco.MjSpec:
     """An MjSpec with the bin (static boxes) and one free body per instance, its geoms from the collision model
-    and its mass and inertia from the repaired solid (``ObjectModel.solid``; a collision hull would fill the holes and overstate both)."""
+    and its mass and inertia from the repaired solid (``ObjectModel.solid``; a collision hull would fill the holes
+    and overstate both)."""
     spec = mujoco.MjSpec()
     spec.option.timestep = physics.timestep_s
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
