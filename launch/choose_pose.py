@@ -6,7 +6,9 @@ model folder.
 With ground-truth masks (the pose stage alone, ``perception.strategy_eval``), every strategy of
 ``perception.pose_strategies`` runs on every instance seen at least 10 %; the table gives per part and strategy the
 ADD(-S) recall, the recall of the accepted estimates, median re and te, median wall and CPU milliseconds per object,
-and the verification's false accepts, false refusals and accepted wrong-class fits. The choice per part is the
+and the verification's false accepts, false refusals and accepted wrong-class fits. As at run time, the depth is
+corrected on the bin's floor first (the manifest's ``depth_tare``) and the verification allows the depth noise of the
+dataset's sensor (``VerifyConfig.for_sensor``). The choice per part is the
 cheapest strategy whose recall of accepted estimates reaches ``--bar`` (refused poses are dropped by the pipeline),
 else the most accurate; the verification threshold is the lowest that keeps the chosen strategies' false accepts
 within ``--max-false-accept`` (the two chosen in turn until they agree). Writes ``MODELS/pose_strategies.json``
@@ -45,8 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from perception.evaluation import EvalSettings
-    from perception.pipeline import load_manifest
+    from perception.evaluation import EvalSettings, frames_sensor
+    from perception.pipeline import load_manifest, tare_config
     from perception.pose import PoseEstimator
     from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
     from perception.strategy_eval import choose_all, evaluate_strategies, summarize
@@ -65,10 +67,11 @@ def run(args: argparse.Namespace) -> int:
     manifest = load_manifest(args.models)
     models = {m.obj_id: m for m in (resolve_object(spec, args.models) for spec in manifest.objects)}
     network = PoseEstimator(args.models / manifest.pose.onnx, models=models, num_threads=args.threads)
-    verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m)
-    runner = StrategyRunner(verifier=PoseVerifier(verify))
     settings = EvalSettings(split=args.split, max_images=args.max_images)
-    records = evaluate_strategies(runner, network, models, args.data, strategies, settings)
+    verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m).for_sensor(frames_sensor(args.data, settings))
+    runner = StrategyRunner(verifier=PoseVerifier(verify))
+    records = evaluate_strategies(runner, network, models, args.data, strategies, settings,
+                                  tare=tare_config(manifest.depth_tare))  # fmt: skip
     choice, threshold = choose_all(records, args.bar, args.max_false_accept)
     chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
     names = {obj_id: m.name for obj_id, m in models.items()}
@@ -80,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
         "bar": args.bar,
         "max_false_accept": args.max_false_accept,
         "min_confidence": threshold,
+        "verify_depth_noise_m": verify.depth_noise_m,
+        "depth_tare": manifest.depth_tare.enabled,
         "choice": {names[k]: v for k, v in choice.items()},
         "rows": [
             {"part": names[obj_id], "strategy": s, **summarize(recs, threshold)}

@@ -130,7 +130,7 @@ def open_cell(
                     floor = planner_config.bin.floor_plane_camera(T_base_camera)
             perception = PerceptionPipeline.from_folder(
                 models_dir, overrides, region_camera_m=region, floor_plane_camera=floor,
-                floor_margin_m=d.perception.floor_margin_m,
+                floor_margin_m=d.perception.floor_margin_m, sensor=sensor_preset(d.camera.sensor),
             )  # fmt: skip
             models = perception.models
             if planner_config.bin is not None:  # parts on the bin's floor, as far as its farthest corner

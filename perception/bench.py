@@ -13,7 +13,10 @@ through a stereo sensor model, e.g. ``launch/recipes/builtin_test_noisy.json``),
   recall over every instance seen at least 10 % (missed or refused counts as a failure), per part, false accepts
   and false refusals of the verified estimates, median milliseconds per object (strategy, refinement and
   verification; the network's batch time is in the per-frame timings);
-- the dataset's depth against the exact depth: AbsRel, delta1 and fill rate (0, 1 and 1 for a noise-free set).
+- the dataset's depth against the exact depth: AbsRel, delta1 and fill rate (0, 1 and 1 for a noise-free set), and
+  after the depth tare on the bin's floor (``perception.depth_tare``, both passes), with the tare's offsets.
+
+The verification allows the depth noise of each dataset's sensor (``VerifyConfig.for_sensor``).
 
 Writes ``bench/results/perception.{json,png}``: accuracy against median milliseconds per object, one point per
 strategy, one panel per dataset, the targets (``TARGETS``) drawn; the printed table ends with every target and its
@@ -33,13 +36,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.ticker import FixedLocator, FormatStrFormatter, NullFormatter
 
-from perception.evaluation import EvalSettings, evaluate
+from perception.evaluation import EvalSettings, dataset_sensor, evaluate, frames_sensor
 from perception.pipeline import PerceptionPipeline, PipelineOverrides, load_manifest
 from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
 from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize
 from perception.verify import PoseVerifier, VerifyConfig
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, save_chart, save_results
-from sygrid.dataset import LEDGER_NAME
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 
@@ -73,13 +75,16 @@ def run_benchmark(
     pipeline = PerceptionPipeline.from_folder(models_dir, PipelineOverrides(num_threads=threads))
     min_confidence = manifest.verify.min_confidence
     verify = VerifyConfig(min_confidence=min_confidence, depth_noise_m=manifest.verify.depth_noise_m)
-    runner = pipeline.runner if pipeline.runner is not None else StrategyRunner(verifier=PoseVerifier(verify))
     measured = tuple(dict.fromkeys([*strategies, *(pipeline.strategies or {}).values()]))
     settings = EvalSettings(max_images=max_images)
     conditions = {}
     for name, path in datasets.items():
         if progress:
             print(f"-- {name}: {path}")
+        sensor = frames_sensor(path, settings)
+        pipeline.use_sensor(sensor)  # evaluate does it too; the ground-truth pass shares the pipeline's runner
+        runner = pipeline.runner if pipeline.runner is not None else StrategyRunner(verifier=PoseVerifier(
+            verify.for_sensor(sensor)))  # fmt: skip
         conditions[name] = {
             "dataset_sensor": sensors[name],
             **measure(pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress),
@@ -95,17 +100,6 @@ def run_benchmark(
         "conditions": conditions,
         "target_checks": target_checks(conditions),
     }
-
-
-def dataset_sensor(data_dir: Path) -> str:
-    """The sensor model a generated dataset's RGB and depth went through (its ledger's recipe): "ideal" for a
-    ledger from before sensor models, "unknown" for a folder without a ledger."""
-    path = Path(data_dir) / LEDGER_NAME
-    if not path.is_file():
-        return "unknown"
-    ledger = read_json(path, "dataset ledger")
-    recipe = ledger.get("recipe") if isinstance(ledger, dict) else None
-    return str(recipe.get("sensor", "ideal")) if isinstance(recipe, dict) else "unknown"
 
 
 def checked_sensor(condition: str, data_dir: Path) -> str:
@@ -134,13 +128,16 @@ def measure(
     the pipeline end to end, and the depth metrics."""
     names = {obj_id: m.name for obj_id, m in pipeline.models.items()}
     records = evaluate_strategies(runner, pipeline.pose, pipeline.models, data_dir, strategies, settings,
-                                  wrong_class=wrong_class, progress=progress)  # fmt: skip
+                                  wrong_class=wrong_class, progress=progress,
+                                  tare=pipeline.depth_tare)  # fmt: skip
     report = evaluate(pipeline, data_dir, settings, progress=progress)
     return {
         "data": str(data_dir),
         "split": report["split"],
         "n_images": report["n_images"],
         "depth": report["depth"],
+        "depth_tared": report["depth_tared"],
+        "depth_tare": report["depth_tare"],
         "gt_masks": gt_mask_summary(records, min_confidence, names, pipeline.strategies),
         "end_to_end": end_to_end_summary(report),
     }
@@ -279,6 +276,11 @@ def format_results(results: dict) -> str:
         d = c["depth"]
         lines += ["", f"== {name}: {c['data']} (sensor {c['dataset_sensor']}), {c['n_images']} images; depth AbsRel "
                       f"{d['abs_rel']:.4f}, delta1 {_pct(d['delta1'])}, fill {_pct(d['fill_rate'])}"]  # fmt: skip
+        if c.get("depth_tare"):
+            t, dt = c["depth_tare"], c.get("depth_tared") or {}
+            lines.append(f"depth tare on the bin floor: applied in {t['applied']} of {t['images']} images, offset "
+                         f"|median| {t['offset_mm_at_1m_abs_median']:.2f} mm at 1 m; depth AbsRel after it "
+                         f"{dt.get('abs_rel', math.nan):.4f}")  # fmt: skip
         lines += _gt_mask_lines(c["gt_masks"]) + _end_to_end_lines(c["end_to_end"])
     lines += ["", "targets:"]
     for t in results["target_checks"]:

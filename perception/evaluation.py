@@ -8,7 +8,13 @@ first); unmatched instances count as misses (ADD(-S) failures). Detection mAP go
 Sensing: each image's RGB and exact depth (``depth_true/`` when the dataset was generated through a sensor, else
 ``depth/``) go through ``EvalSettings.sensor`` (a ``sygrid.sensor`` preset), seeded from ``sensor_seed`` and the
 image's ids, before the pipeline sees them; "ideal" keeps the stored frame. The sensed depth's AbsRel, delta1 and
-fill rate against the exact depth are reported per image and overall.
+fill rate against the exact depth are reported per image and overall. The pipeline's verification allows the depth
+noise of the sensor the frames went through (``frames_sensor``: ``EvalSettings.sensor``, else the dataset's own).
+
+As a cell knows its bin from calibration, the pipeline is given each image's bin floor (``bin_floor_camera``: the
+plane and the bin's inner corners, from the dataset's ``DatasetBin``), for the depth tare on the floor
+(``perception.depth_tare``) and the floor's pixels left out of the fit; the tare's offsets are reported, and the
+depth metrics again after the tare.
 
 A dataset without depth (photos converted by ``sygrid convert``) is evaluated for detection only, and a dataset
 whose parts the models do not know is refused up front (``check_model_classes``), naming both lists.
@@ -26,12 +32,13 @@ import numpy as np
 from tqdm import tqdm
 
 from perception.camera import Frame
+from perception.depth_tare import Tare, apply_tare
 from perception.detector import YoloSegDetector
 from perception.detector_eval import bin_region_camera, detector_report, run_detector
 from perception.pipeline import PerceptionPipeline, region_of_interest
 from perception.results import ObjectPose
 from sygrid.annotations import ImageAnnotation
-from sygrid.dataset import DatasetBin
+from sygrid.dataset import LEDGER_NAME, DatasetBin
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 from sygrid.metrics import (
@@ -44,7 +51,7 @@ from sygrid.metrics import (
 )
 from sygrid.objects.model import ObjectModel
 from sygrid.scene import METALS
-from sygrid.sensor import metal_mask, sensor_preset, sensor_rng
+from sygrid.sensor import IDEAL, SensorModel, metal_mask, sensor_preset, sensor_rng
 from sygrid.train.detector.data import parse_data_yaml
 from sygrid.writers import load_bop_item, load_bop_true_depth
 
@@ -60,6 +67,7 @@ class EvalSettings:
     sensor: str = "ideal"  # a sygrid.sensor preset the frames go through
     sensor_seed: int = 0
     region: str = "full"  # where the detector looks: "full" frame or the "bin"'s box (perception.detector_eval)
+    floor: bool = True  # the pipeline gets each image's bin floor (bin_floor_camera) where the dataset has a ledger
 
 
 def bop_items(root: Path, split: str) -> list[tuple[int, int]]:
@@ -93,6 +101,40 @@ def eval_items(data_dir: str | Path, settings: EvalSettings) -> tuple[Path, str,
         raise ConfigError(f"{data_dir}: not a generated dataset (no bop/ folder)")
     split = settings.split or default_split(root)
     return root, split, bop_items(root, split)[: settings.max_images]
+
+
+def dataset_sensor(data_dir: str | Path) -> str:
+    """The sensor model a generated dataset's RGB and depth went through (its ledger's recipe): "ideal" for a
+    ledger from before sensor models, "unknown" for a folder without a ledger."""
+    path = Path(data_dir) / LEDGER_NAME
+    if not path.is_file():
+        return "unknown"
+    ledger = read_json(path, "dataset ledger")
+    recipe = ledger.get("recipe") if isinstance(ledger, dict) else None
+    return str(recipe.get("sensor", "ideal")) if isinstance(recipe, dict) else "unknown"
+
+
+def frames_sensor(data_dir: str | Path, settings: EvalSettings) -> SensorModel:
+    """The sensor model the frames an evaluation feeds the pipeline went through: ``settings.sensor`` where it is
+    not "ideal" (it senses the exact depth again), else the dataset's own (``dataset_sensor``; ideal if unknown)."""
+    if settings.sensor != "ideal":
+        return sensor_preset(settings.sensor, "EvalSettings.sensor")
+    name = dataset_sensor(data_dir)
+    return IDEAL if name == "unknown" else sensor_preset(name, f"{Path(data_dir) / LEDGER_NAME}: recipe.sensor")
+
+
+def floor_bin(data_dir: str | Path, settings: EvalSettings) -> DatasetBin | None:
+    """The dataset's bin when ``settings.floor`` is on and the dataset has a ledger (a converted set has none)."""
+    return DatasetBin(data_dir) if settings.floor and (Path(data_dir) / LEDGER_NAME).is_file() else None
+
+
+def bin_floor_camera(dataset_bin: DatasetBin, ann: ImageAnnotation) -> tuple[np.ndarray, np.ndarray]:
+    """``(plane, bounds)`` of the bin's inner floor in ``ann``'s camera frame: the plane ``(a, b, c, d)`` (a point p
+    lies ``(a, b, c) . p + d`` above it; the bin frame's z = 0, z up) and the bin's (8, 3) inner corners, which
+    bound where the floor is seen (``perception.depth_tare``)."""
+    T = dataset_bin.T_camera_bin(ann)
+    normal = T[:3, 2] / np.linalg.norm(T[:3, 2])
+    return np.append(normal, -normal @ T[:3, 3]), bin_region_camera(dataset_bin, ann)
 
 
 def match_poses(ann: ImageAnnotation, poses: list[ObjectPose], min_visib: float, min_iou: float) -> list:
@@ -139,14 +181,18 @@ def evaluate(
         raise ConfigError(f"{root / split}: no images")
     names = {obj_id: m.name for obj_id, m in pipeline.models.items()}
     check_model_classes(data_dir, names, split)
+    pipeline.use_sensor(frames_sensor(data_dir, s))
     images, detections, records, timings, depth_rows, sensor_ms = [], [], [], [], [], []
     verdicts, per_object = [], []
     with_depth: bool | None = None  # decided by the first image
     dataset_bin = DatasetBin(data_dir) if s.region == "bin" else None
+    floor = floor_bin(data_dir, s)
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
         if dataset_bin is not None:  # the bin moves with each generated view
             pipeline.region_camera_m = bin_region_camera(dataset_bin, ann)
+        if floor is not None:
+            pipeline.floor_plane_camera, pipeline.floor_bounds_camera_m = bin_floor_camera(floor, ann)
         if with_depth is None:
             with_depth = depth is not None
             if not with_depth and not sensor.is_ideal:
@@ -167,8 +213,10 @@ def evaluate(
             metals = _metal_mask(ann, pipeline.models)
             rgb, depth = sensor.sense(rgb, depth_true, ann.intrinsics, rng, metal_mask=metals)
         sensor_ms.append(1000.0 * (time.perf_counter() - t0))
-        depth_rows.append((scene_id, image_id, depth_metrics(depth, depth_true)))
         result = pipeline.run(Frame(rgb, depth, ann.intrinsics, timestamp_s=0.0))
+        tare = result.depth_tare
+        tared = depth_metrics(apply_tare(depth, tare), depth_true) if tare is not None else None
+        depth_rows.append((scene_id, image_id, depth_metrics(depth, depth_true), tared, tare))
         detections.append(result.detections)
         timings.append(result.timings_ms)
         for inst, pose in match_poses(ann, result.poses, s.min_visib_fract, s.match_iou):
@@ -193,12 +241,41 @@ def evaluate(
         "sensor": sensor.name,
         "sensor_seed": s.sensor_seed,
         "sensor_ms_median": _median_of(sensor_ms) if with_depth else None,
-        "depth": asdict(mean_depth_metrics(m for *_, m in depth_rows)) if with_depth else None,
-        "depth_per_image": [{"scene_id": sc, "image_id": im, **asdict(m)} for sc, im, m in depth_rows],
+        "depth": asdict(mean_depth_metrics(m for _, _, m, _, _ in depth_rows)) if with_depth else None,
+        "depth_tared": _tared_metrics(depth_rows) if with_depth else None,
+        "depth_tare": _tare_summary([t for *_, t in depth_rows]) if with_depth else None,
+        "depth_per_image": [
+            {"scene_id": sc, "image_id": im, **asdict(m), "tare": None if t is None else t.as_dict()}
+            for sc, im, m, _, t in depth_rows
+        ],
         "strategies": None if pipeline.strategies is None else {names[k]: v for k, v in pipeline.strategies.items()},
         "verification": _verification_summary(verdicts) if pipeline.strategies is not None and with_depth else None,
         "pose_ms_per_object_median": _median_of([t for t, _ in per_object]),
         "pose_cpu_ms_per_object_median": _median_of([c for _, c in per_object]),
+    }
+
+
+def _tared_metrics(rows: list) -> dict | None:
+    """The depth metrics after the tare (rows ``(scene, image, sensed, tared, tare)``), None where none ran."""
+    tared = [r[3] for r in rows]
+    return None if any(m is None for m in tared) else asdict(mean_depth_metrics(tared))
+
+
+def _tare_summary(tares: list[Tare | None]) -> dict | None:
+    """How often the tare was applied, the median and largest size of its offsets (mm of depth at 1 m) and the median
+    floor pixels; None where it did not run (no floor plane, or off)."""
+    ran = [t for t in tares if t is not None]
+    if not ran:
+        return None
+    applied = [t for t in ran if t.applied]
+    sizes = [abs(t.offset_mm_at_1m) for t in applied]
+    return {
+        "images": len(ran),
+        "applied": len(applied),
+        "offset_mm_at_1m_abs_median": _median_of(sizes),
+        "offset_mm_at_1m_abs_max": max(sizes) if sizes else math.nan,
+        "floor_px_median": _median_of([float(t.floor_px) for t in ran]),
+        "not_applied": sorted({t.reason for t in ran if not t.applied}),
     }
 
 
@@ -350,6 +427,14 @@ def format_table(report: dict) -> str:
             f"sensor {report['sensor']} (seed {report['sensor_seed']}): depth AbsRel {d['abs_rel']:.4f}  "
             f"delta1 {_pct(d['delta1'])}  fill {_pct(d['fill_rate'])} against the exact depth"
         )
+        if report.get("depth_tare"):
+            tare, dt = report["depth_tare"], report.get("depth_tared") or {}
+            lines.append(
+                f"depth tare on the bin floor: applied in {tare['applied']} of {tare['images']} images, offset "
+                f"|median| {tare['offset_mm_at_1m_abs_median']:.2f} mm at 1 m (max "
+                f"{tare['offset_mm_at_1m_abs_max']:.2f}), floor pixels median {tare['floor_px_median']:.0f}; after it "
+                f"AbsRel {dt.get('abs_rel', math.nan):.4f}"
+            )
     t = dict(report["timings_ms_median"])
     if report["sensor_ms_median"] is not None:
         t["sensor"] = report["sensor_ms_median"]

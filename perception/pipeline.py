@@ -8,6 +8,7 @@ Loaded from a model folder whose ``manifest.json`` names the files and settings:
      "pose": {"onnx": "pose.onnx", "method": "direct",
               "strategies": {"hex_nut": "depth+icp", "bracket": "hybrid+search"}},
      "verify": {"min_confidence": 0.9},
+     "depth_tare": {"enabled": true},
      "refine": {"enabled": true}}
 
 ``objects`` uses the scene description's object entries (paths relative to the folder). The detector gives
@@ -27,6 +28,12 @@ floor: the refinement then ignores depth pixels on the floor (the strategies' ma
 support, else finds the surface around each part, ``perception.mask_cleanup``). A detection mask at this scale is
 a filled blob, so a nut's mask takes in the floor seen through its hole, which pulled ICP towards a nut standing on
 edge; no part surface lies on the floor plane itself.
+
+With the floor plane, a stereo camera's per-frame depth offset is measured on the floor and taken out of the depth
+before anything uses it (``perception.depth_tare``, manifest ``depth_tare``, on by default), inside the floor's
+polygon: the region's points (the bin's corners) projected onto the floor, or ``floor_bounds_camera_m``. The
+estimate is in ``PerceptionResult.depth_tare``. When the frames come through a sensor model (``from_folder``'s
+``sensor``, ``use_sensor``), the verification allows at least that sensor's depth noise (``VerifyConfig.for_sensor``).
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -42,6 +49,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from perception.camera import Frame
+from perception.depth_tare import Tare, TareConfig, tared_depth
 from perception.detector import YoloSegDetector
 from perception.pose import PoseEstimator
 from perception.pose_strategies import NETWORK_STRATEGIES, STRATEGIES, StrategyRunner
@@ -55,6 +63,7 @@ from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 from sygrid.objects.model import ObjectModel
 from sygrid.scene import ObjectSpec, validation_message
+from sygrid.sensor import SensorModel
 
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = "sygrid-models/1"
@@ -106,6 +115,14 @@ class VerifyEntry(_Strict):
     depth_noise_m: float = Field(default=0.0, ge=0, lt=0.1)
 
 
+class DepthTareEntry(_Strict):
+    """The depth tare on the bin's floor (perception.depth_tare.TareConfig), used where a floor plane is given."""
+
+    enabled: bool = True
+    fit_gain: bool = False
+    min_floor_px: int = Field(default=TareConfig().min_floor_px, ge=1)
+
+
 class RefineEntry(_Strict):
     enabled: bool = True
     max_refined: int | None = Field(default=None, ge=1)
@@ -118,6 +135,7 @@ class Manifest(_Strict):
     pose: PoseEntry
     refine: RefineEntry = RefineEntry()
     verify: VerifyEntry = VerifyEntry()
+    depth_tare: DepthTareEntry = DepthTareEntry()
     min_mask_px: int = Field(default=30, ge=0)
 
 
@@ -135,6 +153,7 @@ class PipelineOverrides:
     num_threads: int = 2
     detector_scale: float | None = None  # perception.tiling.ViewSettings.scale
     detector_tile_px: int | None = None  # perception.tiling.ViewSettings.tile_px (0: no tiles)
+    depth_tare: bool | None = None  # the depth tare on the floor (perception.depth_tare) on or off
 
 
 @dataclass
@@ -143,12 +162,15 @@ class PerceptionResult:
 
     ``refused``: the poses the verification refused (the model at the fitted pose disagrees with the depth and
     mask: a wrong pose or a wrong class), kept out of ``poses`` so that nothing picks them; empty without pose
-    strategies (no verification)."""
+    strategies (no verification). ``depth_tare``: the stereo offset measured on the floor and taken out of the depth
+    (``perception.depth_tare``; its ``applied`` False with the reason where it could not be measured); None without
+    a floor plane or with the tare off."""
 
     poses: list[ObjectPose]
     detections: list[Detection]
     timings_ms: dict[str, float] = field(default_factory=dict)
     refused: list[ObjectPose] = field(default_factory=list)
+    depth_tare: Tare | None = None
 
 
 class PerceptionPipeline:
@@ -168,6 +190,8 @@ class PerceptionPipeline:
         floor_margin_m: float = FLOOR_MARGIN_M,
         strategies: dict[int, str] | None = None,
         runner: StrategyRunner | None = None,
+        depth_tare: TareConfig | None = None,
+        floor_bounds_camera_m: np.ndarray | None = None,
     ) -> None:
         """``strategies``: obj_id -> pose strategy (``perception.pose_strategies``), run by ``runner``; the network
         runs only for the detections whose strategy uses it, and every pose is verified. None: the network's pose
@@ -178,6 +202,10 @@ class PerceptionPipeline:
         inner corners at its floor and rim; the detector looks only inside their image box. None: the whole frame.
         ``floor_plane_camera``: ``(a, b, c, d)`` the floor the parts lie on, in the camera frame (see
         ``without_floor``); depth less than ``floor_margin_m`` above it is not used for refinement. None: all depth.
+        ``depth_tare``: with a floor plane, each frame's depth is corrected by the stereo offset measured on the floor
+        (``perception.depth_tare``) inside the polygon of ``floor_bounds_camera_m`` ((n, 3) camera-frame points
+        bounding the floor, e.g. the bin's inner corners; None: ``region_camera_m``; neither: no tare, since the plane
+        reaches beyond the bin where a table or the ground lies lower). None: no tare.
         """
         if max_refined is not None and max_refined < 1:
             raise ConfigError(f"PerceptionPipeline: max_refined must be >= 1 or None, got {max_refined}")
@@ -185,15 +213,9 @@ class PerceptionPipeline:
         self.pose_method = pose_method
         self.min_mask_px = min_mask_px
         self.max_refined = max_refined
-        self.region_camera_m = None
-        if region_camera_m is not None:
-            region = np.asarray(region_camera_m, dtype=float)
-            if region.ndim != 2 or region.shape[1] != 3 or len(region) < 1 or not (region[:, 2] > 0).all():
-                raise ConfigError(
-                    "PerceptionPipeline: region_camera_m must be (n, 3) points in front of the camera (z > 0), "
-                    f"got {region.tolist()}"
-                )
-            self.region_camera_m = region
+        self.region_camera_m = _camera_points(region_camera_m, "region_camera_m")
+        self.floor_bounds_camera_m = _camera_points(floor_bounds_camera_m, "floor_bounds_camera_m")
+        self.depth_tare = depth_tare
         self.floor_plane_camera = None
         if floor_plane_camera is not None:
             plane = np.asarray(floor_plane_camera, dtype=float)
@@ -213,6 +235,8 @@ class PerceptionPipeline:
             )
         self.strategies = strategies
         self.runner = runner if runner is not None or strategies is None else StrategyRunner()
+        # the verification's settings without a sensor's noise allowance (use_sensor starts from these)
+        self._verify_config = self.runner.verifier.config if self.runner is not None else None
 
     @classmethod
     def from_folder(
@@ -222,9 +246,12 @@ class PerceptionPipeline:
         region_camera_m: np.ndarray | None = None,
         floor_plane_camera: np.ndarray | None = None,
         floor_margin_m: float | None = None,
+        sensor: SensorModel | None = None,
+        floor_bounds_camera_m: np.ndarray | None = None,
     ) -> PerceptionPipeline:
         """Loads the manifest's models; errors name the folder's files and fields. ``floor_margin_m`` None: the
-        default (``FLOOR_MARGIN_M``)."""
+        default (``FLOOR_MARGIN_M``). ``sensor``: the sensor model the frames come through (a simulated camera's),
+        for the verification's noise allowance (``use_sensor``); None: the manifest's allowance as it is."""
         folder = Path(folder)
         o = overrides or PipelineOverrides()
         manifest = load_manifest(folder)
@@ -247,7 +274,7 @@ class PerceptionPipeline:
                 min_confidence=manifest.verify.min_confidence, depth_noise_m=manifest.verify.depth_noise_m
             )
             runner = StrategyRunner(verifier=PoseVerifier(verify))
-        return cls(
+        pipeline = cls(
             detector,
             pose,
             models,
@@ -260,7 +287,28 @@ class PerceptionPipeline:
             floor_margin_m=FLOOR_MARGIN_M if floor_margin_m is None else floor_margin_m,
             strategies=strategies,
             runner=runner,
+            depth_tare=tare_config(manifest.depth_tare, o.depth_tare),
+            floor_bounds_camera_m=floor_bounds_camera_m,
         )
+        if sensor is not None:
+            pipeline.use_sensor(sensor)
+        return pipeline
+
+    def use_sensor(self, sensor: SensorModel) -> None:
+        """The frames come through ``sensor`` from now on: the verification allows at least its depth noise
+        (``VerifyConfig.for_sensor`` of the pipeline's own settings, not of an earlier sensor's). Without pose
+        strategies (no verification) nothing changes."""
+        if self.runner is not None and self._verify_config is not None:
+            self.runner.verifier = PoseVerifier(self._verify_config.for_sensor(sensor))
+
+    def tare(self, frame: Frame) -> tuple[Frame, Tare | None]:
+        """``frame`` with its depth corrected by the stereo offset measured on the floor (``depth_tare``), and the
+        estimate; ``(frame, None)`` without a floor plane, floor bounds or tare config."""
+        bounds = self.floor_bounds_camera_m if self.floor_bounds_camera_m is not None else self.region_camera_m
+        depth, tare = tared_depth(frame.depth_m, frame.intrinsics, self.floor_plane_camera, bounds, self.depth_tare)
+        if tare is None or not tare.applied:
+            return frame, tare
+        return replace(frame, depth_m=depth), tare
 
     def poseable(self, detections: list[Detection]) -> list[Detection]:
         """The detections a pose is estimated for: of a part the pipeline has a model of, and not a sliver (too few
@@ -270,9 +318,14 @@ class PerceptionPipeline:
         ]
 
     def run(self, frame: Frame) -> PerceptionResult:
-        """Detects, estimates and (optionally) refines every part in ``frame``; an empty frame gives no poses."""
+        """Detects, estimates and (optionally) refines every part in ``frame``; an empty frame gives no poses. With a
+        floor plane and the depth tare, the depth is corrected first (``tare``; ``timings_ms["tare"]``)."""
         timings: dict[str, float] = {}
         t = time.perf_counter()
+        frame, tare = self.tare(frame)
+        if tare is not None:
+            timings["tare"] = 1e3 * (time.perf_counter() - t)
+            t = time.perf_counter()
         roi = None
         if self.region_camera_m is not None:
             roi = region_of_interest(self.region_camera_m, frame.intrinsics)
@@ -285,7 +338,9 @@ class PerceptionPipeline:
         timings["detect"] = 1e3 * (time.perf_counter() - t)
         usable = self.poseable(detections)
         if self.strategies is not None:
-            return self._run_strategies(frame, detections, usable, timings)
+            result = self._run_strategies(frame, detections, usable, timings)
+            result.depth_tare = tare
+            return result
         t = time.perf_counter()
         poses = self.pose.estimate(frame.rgb, usable, frame.intrinsics, method=self.pose_method)
         timings["pose"] = 1e3 * (time.perf_counter() - t)
@@ -295,14 +350,16 @@ class PerceptionPipeline:
         timings["refine"] = 1e3 * (time.perf_counter() - t)
         timings["total"] = sum(timings.values())
         poses.sort(key=lambda p: -p.score)
-        return PerceptionResult(poses, detections, timings)
+        return PerceptionResult(poses, detections, timings, depth_tare=tare)
 
     def refine_more(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose] | None:
         """``poses`` with the next ``max_refined`` of those ``run`` skipped refined (nearest first), for a caller
         that found nothing to do with the refined ones; None when none was skipped. With pose strategies, the
-        skipped parts are fitted, and those the verification refuses are left out."""
+        skipped parts are fitted, and those the verification refuses are left out. ``frame``: the one given to
+        ``run`` (its depth is corrected again, as there)."""
         if not any(_icp_status(p) == "skipped" for p in poses):
             return None
+        frame, _ = self.tare(frame)
         if self.strategies is not None:
             skipped = [p for p in poses if _icp_status(p) == "skipped"]
             kept = [p for p in poses if _icp_status(p) != "skipped"]
@@ -412,6 +469,24 @@ def without_floor(
     height = depth * (along_v[:, None] + along_u[None, :] + normal[2]) + offset
     on_floor = np.isfinite(depth) & (depth > 0) & (height < margin_m)
     return np.where(on_floor, 0, depth_m).astype(np.asarray(depth_m).dtype)
+
+
+def tare_config(entry: DepthTareEntry, enabled: bool | None = None) -> TareConfig | None:
+    """The depth tare's settings from the manifest's ``depth_tare`` (``enabled`` overrides its own); None: off."""
+    if not (entry.enabled if enabled is None else enabled):
+        return None
+    return TareConfig(min_floor_px=entry.min_floor_px, fit_gain=entry.fit_gain)
+
+
+def _camera_points(points: np.ndarray | None, name: str) -> np.ndarray | None:
+    """``points`` as an (n, 3) float array of points in front of the camera; None stays None."""
+    if points is None:
+        return None
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 1 or not (p[:, 2] > 0).all():
+        raise ConfigError(f"PerceptionPipeline: {name} must be (n, 3) points in front of the camera (z > 0), got "
+                          f"{p.tolist()}")  # fmt: skip
+    return p
 
 
 def _strategy_ids(by_name: dict[str, str], models: dict[int, ObjectModel], path: Path) -> dict[int, str]:

@@ -5,7 +5,11 @@ For every ground-truth instance seen at least ``min_visib_fract``, a detection i
 box; each strategy (``perception.pose_strategies``) estimates the pose; the record keeps its pose errors
 (``sygrid.metrics.pose_errors``), its time (a share of the network's batch time for the strategies that use the
 network) and the verification's verdict. A wrong-class trial per instance fits the model of another part (the next
-obj_id) with each strategy: its verification must refuse it.
+obj_id) with each strategy: its verification must refuse it. As in the pipeline end to end
+(``perception.evaluation.evaluate``), each image's bin floor is given (``bin_floor_camera``, ``EvalSettings.floor``):
+the depth is corrected by the stereo offset measured on it (``tare``, ``perception.depth_tare``) and the strategies
+take it as the parts' support. The verifier's noise allowance is the caller's (``VerifyConfig.for_sensor`` of the
+frames' sensor, ``perception.evaluation.frames_sensor``).
 
 The choice per part is the cheapest strategy (median CPU milliseconds per object: steadier than wall time on a
 shared machine) whose ADD(-S) recall reaches the bar, else the
@@ -22,7 +26,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from perception.evaluation import EvalSettings, eval_items
+from perception.depth_tare import TareConfig, tared_depth
+from perception.evaluation import EvalSettings, bin_floor_camera, eval_items, floor_bin
 from perception.pose import PoseEstimator
 from perception.pose_strategies import NETWORK_STRATEGIES, STRATEGIES, StrategyRunner
 from perception.results import Detection, ObjectPose
@@ -102,18 +107,25 @@ def evaluate_strategies(
     settings: EvalSettings | None = None,
     wrong_class: bool = True,
     progress: bool = True,
+    tare: TareConfig | None = None,
 ) -> dict[tuple[int, str], list[StrategyRecord]]:
-    """Runs every strategy on every evaluated instance; (obj_id, strategy) -> records."""
+    """Runs every strategy on every evaluated instance; (obj_id, strategy) -> records. ``tare``: the depth tare's
+    settings (the pipeline's, ``PerceptionPipeline.depth_tare``); None: the depth as stored."""
     s = settings or EvalSettings()
     root, split, items = eval_items(data_dir, s)
     if not items:
         raise ConfigError(f"{root / split}: no images")
     stats: dict[tuple[int, str], list[StrategyRecord]] = {}
     ids = sorted(models)
+    floor_of = floor_bin(data_dir, s)
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
         if depth is None:
             raise ConfigError(f"{root / split / f'{scene_id:06d}'}: image {image_id} has no depth map")
+        floor = bounds = None
+        if floor_of is not None:
+            floor, bounds = bin_floor_camera(floor_of, ann)
+            depth, _ = tared_depth(depth, ann.intrinsics, floor, bounds, tare)
         instances = [i for i in ann.instances if i.visib_fract >= s.min_visib_fract and i.obj_id in models]
         instances = [i for i in instances if i.mask_visib.any()]
         if not instances:
@@ -129,13 +141,13 @@ def evaluate_strategies(
             model = models[inst.obj_id]
             for strategy in strategies:
                 uses_net = strategy in NETWORK_STRATEGIES
-                pose = _run(runner, strategy, det, depth, ann.intrinsics, model, by_det.get(id(det)), uses_net)
+                pose = _run(runner, strategy, det, depth, ann.intrinsics, model, by_det.get(id(det)), uses_net, floor)
                 ms = pose.details.get("time_ms", 0.0) + (net_ms if uses_net else 0.0) if pose else math.nan
                 cpu_ms = pose.details.get("cpu_ms", 0.0) + (net_cpu_ms if uses_net else 0.0) if pose else math.nan
                 wrong_confidence = math.nan
                 if wrong_class and len(ids) > 1:
                     bad_pose = _run(runner, strategy, bad, depth, ann.intrinsics, models[bad.obj_id],
-                                    by_det.get(id(bad)), uses_net)  # fmt: skip
+                                    by_det.get(id(bad)), uses_net, floor)  # fmt: skip
                     wrong_confidence = bad_pose.score if bad_pose is not None else 0.0
                 stats.setdefault((inst.obj_id, strategy), []).append(
                     _record(inst, model, strategy, pose, ms, cpu_ms, wrong_confidence, f"{ann.name}/{inst.inst_id}")
@@ -152,10 +164,11 @@ def _run(
     model: ObjectModel,
     net: ObjectPose | None,
     uses_net: bool,
+    floor_plane_camera: np.ndarray | None = None,
 ) -> ObjectPose | None:
     if uses_net and net is None:
         return None
-    return runner.estimate(strategy, det, depth, intrinsics, model, net if uses_net else None)
+    return runner.estimate(strategy, det, depth, intrinsics, model, net if uses_net else None, floor_plane_camera)
 
 
 def _record(

@@ -20,15 +20,17 @@ accepted when the confidence reaches ``min_confidence``.
 
 The tolerance is ``max(tolerance_min_m, tolerance_fraction x diameter)``, plus three standard deviations of the
 camera's depth noise at the pixel's depth (``depth_noise_m`` at 1 m, growing with the square of the depth, the
-stereo error model), plus a pixel's worth of the surface's slope (``z / f x tan`` of the angle between the ray and
-the surface normal): where a face recedes steeply, a sub-pixel shift of an edge changes the depth by millimetres.
+stereo error model; ``VerifyConfig.for_sensor`` raises it to a sensor model's), plus a pixel's worth of the
+surface's slope (``z / f x tan`` of the angle between the ray and the surface normal): where a face recedes steeply,
+a sub-pixel shift of an edge changes the depth by millimetres.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -37,6 +39,9 @@ import open3d as o3d
 from perception.observation import Observation
 from sygrid.camera import project_points
 from sygrid.objects.model import ObjectModel
+
+if TYPE_CHECKING:
+    from sygrid.sensor import SensorModel
 
 
 @dataclass(frozen=True)
@@ -81,6 +86,13 @@ class VerifyConfig:
                 "VerifyConfig: need min_confidence in [0, 1], max_rays and coarse_rays >= 16 and window_margin_px >= 0,"
                 f" got {self.min_confidence}, {self.max_rays}, {self.coarse_rays}, {self.window_margin_px}"
             )
+
+    def for_sensor(self, sensor: SensorModel) -> VerifyConfig:
+        """These settings for frames from ``sensor``: ``depth_noise_m`` at least the sensor's per-pixel depth noise at
+        1 m (``SensorModel.depth_noise_sigma_m(1.0)``; 0 for the ideal sensor), this config's where higher. The one
+        place the noise allowance follows the sensor: the pipeline, ``sygrid models choose-pose`` and the benchmark."""
+        noise = float(sensor.depth_noise_sigma_m(1.0))
+        return replace(self, depth_noise_m=noise) if noise > self.depth_noise_m else self
 
 
 @dataclass(frozen=True)

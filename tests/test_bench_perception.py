@@ -72,7 +72,7 @@ class _PerfectNetwork:
 class _PerfectPipeline:
     """What `measure` needs of a pipeline: every instance found at its ground-truth pose and accepted."""
 
-    pose_method, refiner = "direct", None
+    pose_method, refiner, depth_tare = "direct", None, None
 
     def __init__(self, data_dir: Path, models: dict) -> None:
         by_mask, self.by_rgb = _ground_truth(data_dir)
@@ -86,6 +86,9 @@ class _PerfectPipeline:
         poses = [ObjectPose(gt_detection(i), i.T_camera_obj, 1.0, "rgb", {"time_ms": 2.0, "cpu_ms": 2.0}, True)
                  for i in shown]  # fmt: skip
         return PerceptionResult(poses, [p.detection for p in poses], {"detect": 1.0, "total": 3.0})
+
+    def use_sensor(self, sensor) -> None:
+        pass
 
 
 def _check_consistent(condition: dict) -> None:

@@ -257,6 +257,9 @@ class _NoPipeline:
         self.frames.append(frame)
         return PerceptionResult(detections=[], poses=[], timings_ms={"total": 1.0})
 
+    def use_sensor(self, sensor) -> None:
+        pass
+
 
 def test_eval_senses_each_image_seeded_and_reports_depth_metrics(tiny_dataset: Path):
     from perception.evaluation import EvalSettings, eval_items, evaluate, format_comparison, format_table
