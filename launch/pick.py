@@ -122,14 +122,16 @@ def open_cell(
                 refine=d.perception.refine, max_refined=d.perception.max_refined, min_fitness=d.perception.min_fitness,
                 mask_erosion_px=d.perception.mask_erosion_px, num_threads=d.perception.num_threads,
             )  # fmt: skip
-            region = floor = None
+            region = floor = corners = None
             if planner_config.bin is not None:
+                corners = planner_config.bin.inner_corners_camera(T_base_camera)
                 if d.perception.detect_in_bin:
-                    region = planner_config.bin.inner_corners_camera(T_base_camera)
+                    region = corners
                 if d.perception.ignore_floor:
                     floor = planner_config.bin.floor_plane_camera(T_base_camera)
             perception = PerceptionPipeline.from_folder(
                 models_dir, overrides, region_camera_m=region, floor_plane_camera=floor,
+                floor_bounds_camera_m=corners if floor is not None else None,
                 floor_margin_m=d.perception.floor_margin_m, sensor=sensor_preset(d.camera.sensor),
             )  # fmt: skip
             models = perception.models
