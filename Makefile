@@ -27,9 +27,10 @@ bench: setup
 # Retrain the shipped models (models/builtin) from scratch: the datasets, both networks, the model cards.
 # Hours on a 2-core CPU; every step resumes where it stopped when run again.
 models: setup
-	$(VENV)/bin/sygrid generate launch/recipes/builtin_train.json --out datasets/builtin_train --count 580 --seed 0 --workers 2
+	$(VENV)/bin/sygrid generate launch/recipes/builtin_train.json --out datasets/builtin_train --count 2000 --seed 0 --workers 2
 	$(VENV)/bin/sygrid generate launch/recipes/builtin_test.json --out datasets/builtin_test --count 200 --seed 1000 --workers 2
-	$(VENV)/bin/sygrid train detector --data datasets/builtin_train --out runs/detector --epochs 35 --threads 1 --seed 0 $(if $(wildcard runs/detector/last.pt),--resume)
+	# the detector: TrainConfig's defaults are the shipped recipe (models/builtin/detector.card.md)
+	$(VENV)/bin/sygrid train detector --data datasets/builtin_train --out runs/detector --threads 1 --seed 0 $(if $(wildcard runs/detector/last.pt),--resume)
 	# the shipped pose model: 12 epochs, then resumed to 24 (see models/builtin/pose.card.md)
 	test -f runs/pose/last.pt || $(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 12 --threads 1 --seed 0
 	$(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 24 --threads 1 --seed 0 --resume
