@@ -9,9 +9,9 @@ runtime through the stock ur_rtde client) with one thing made worse per point.
 - ``clutter_cell`` (axis 2, in the cell): the cell's scene with N parts per bin.
 
 Methods: "pick success" (picks over the attempts that moved the arm; per part family, thin parts being the pinch
-grasps), "parts cleared" (parts out of the bin, ground truth) and, for timing, "runs completed" (a bin run that
-ended without an error stop: a watchdog, a lost link or an exception). The perception is ``Options.cell_perception``
-("oracle": the ground truth, so that the grasps and the robot link alone are measured).
+grasps), "parts cleared" (parts out of the bin, ground truth, of those the cycles could clear) and "runs completed"
+(a bin run that ended without an error stop: a watchdog, a lost link or an exception). The perception is
+``Options.cell_perception`` ("oracle": the ground truth, so that the grasps and the robot link alone are measured).
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ CELL_CRITERION = Criterion(fraction=0.8, floor=0.5)
 PROXY_HOST = "127.0.0.64"  # bench_cell's emulator listens on .63
 ABORTED = ("error", "needs_operator", "interrupted")
 PICKS, CLEARED, COMPLETED = "pick success", "parts cleared", "runs completed"
+CELL_METHODS = (Method(PICKS, PICKS), Method(CLEARED, CLEARED), Method(COMPLETED, COMPLETED))
 
 
 def _family_of(kind: str) -> str:
@@ -42,9 +43,13 @@ def _family_of(kind: str) -> str:
         return "?"
 
 
-def bin_measurements(outcome: dict[str, Any] | None, error: str | None = None) -> dict[str, Measurement]:
-    """A bin run's methods (see the module docstring) from ``bench_cell.run_bin``'s outcome; None with ``error``:
-    the run raised (no attempt, not completed)."""
+def bin_measurements(
+    outcome: dict[str, Any] | None, max_cycles: int, error: str | None = None
+) -> dict[str, Measurement]:
+    """A bin run's methods (see the module docstring) from ``bench_cell.run_bin``'s outcome of at most
+    ``max_cycles`` cycles; None with ``error``: the run raised (no attempt, not completed). Parts cleared counts of
+    the parts the cycles could clear (one a cycle: ``min(parts, max_cycles)``), per family of the parts in the
+    bin."""
     if outcome is None:
         return {PICKS: Measurement(0, 0, extra={"error": error}), CLEARED: Measurement(0, 0, extra={"error": error}),
                 COMPLETED: Measurement(0, 1, extra={"error": error})}  # fmt: skip
@@ -59,12 +64,13 @@ def bin_measurements(outcome: dict[str, Any] | None, error: str | None = None) -
         for g in (f"family {_family_of(kind)}", f"part {kind}"):
             row = cleared.setdefault(g, [0, 0])
             row[0], row[1] = row[0] + n - left, row[1] + n
+    reachable = min(outcome["n_parts"], max_cycles)
     extra = {k: outcome[k] for k in ("stop_reason", "stop_detail", "failures", "wall_s") if k in outcome}
     extra["cycle_median_s"] = float(np.median(outcome["cycle_s"])) if outcome.get("cycle_s") else None
     completed = outcome["stop_reason"] not in ABORTED
     return {
         PICKS: Measurement(outcome["n_picked"], outcome["n_tried"], picks, extra),
-        CLEARED: Measurement(outcome["n_parts"] - outcome["n_left"], outcome["n_parts"], cleared, extra),
+        CLEARED: Measurement(min(outcome["n_parts"] - outcome["n_left"], reachable), reachable, cleared, extra),
         COMPLETED: Measurement(int(completed), 1, extra=extra),
     }
 
@@ -81,9 +87,11 @@ def run_cell_bin(
     base = load_cell_setup(opts.cell_config)
     v = Variant(opts.cell_perception, "stability point", calibration="sim", **variant)
     try:
-        return bin_measurements(run_bin(base, v, seed, scene, max_cycles or opts.max_cycles))
+        return bin_measurements(
+            run_bin(base, v, seed, scene, max_cycles or opts.max_cycles), max_cycles or opts.max_cycles
+        )
     except Exception as exc:  # the point's failure is the measurement
-        return bin_measurements(None, f"{type(exc).__name__}: {exc}")
+        return bin_measurements(None, 0, f"{type(exc).__name__}: {exc}")
 
 
 def _cell_settings(opts: Options, **more: Any) -> dict[str, Any]:
@@ -98,7 +106,7 @@ def timing_axis(opts: Options) -> Axis:
 
     ports = ControllerPorts()
     port_list = (ports.rtde, ports.dashboard, *ports.script, ports.gripper)
-    latencies = (0.0, 50.0) if opts.quick else (0.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
+    latencies = (0.0, 50.0) if opts.quick else (0.0, 5.0, 20.0, 50.0, 100.0, 200.0, 400.0)
 
     def measure(point: Point, seed: int) -> dict[str, Measurement]:
         latency, jitter = point.params["latency_ms"] / 1e3, point.params["jitter_ms"] / 1e3
@@ -108,7 +116,7 @@ def timing_axis(opts: Options) -> Axis:
     return Axis(
         name="timing", title="Controller timing", x_label="added one-way latency [ms] (jitter: half of it, uniform)",
         points=tuple(Point(f"{ms:g}ms", ms, {"latency_ms": ms, "jitter_ms": ms / 2}) for ms in latencies),
-        methods=(Method(COMPLETED, COMPLETED), Method(PICKS, PICKS)), measure=measure,
+        methods=CELL_METHODS, measure=measure,
         seeds=opts.seeds_or((0,) if opts.quick else (0, 1, 2)), criterion=CELL_CRITERION,
         summary="the robot link holds to {x} ms of one-way latency", unit="ms", settings=_cell_settings(opts),
         description="The runtime's robot and gripper connections through a loopback proxy delaying each chunk both "
@@ -142,7 +150,7 @@ def calibration_axis(opts: Options, unit: str) -> Axis:
     return Axis(
         name=f"calibration_{unit}", title=f"Calibration error ({unit})", x_label=f"hand-eye {what} error [{unit}]",
         points=tuple(Point(f"{v:g}{unit}", v, {unit: v}) for v in values),
-        methods=(Method(PICKS, PICKS), Method(CLEARED, CLEARED)), measure=measure,
+        methods=CELL_METHODS, measure=measure,
         seeds=opts.seeds_or((0,) if opts.quick else (0, 1, 2)), criterion=CELL_CRITERION,
         summary=f"picks hold to {{x}} {unit} of calibration error", unit=unit, settings=_cell_settings(opts),
         description=f"A {what} error added to the camera pose the cell believes (its direction drawn from the "
@@ -173,7 +181,7 @@ def clutter_cell_axis(opts: Options) -> Axis:
     return Axis(
         name="clutter_cell", title="Clutter in the cell", x_label="parts per bin",
         points=tuple(Point(f"{n} parts", n, {"parts": n}) for n in counts),
-        methods=(Method(CLEARED, CLEARED), Method(PICKS, PICKS)), measure=measure,
+        methods=CELL_METHODS, measure=measure,
         seeds=opts.seeds_or((0,) if opts.quick else (0, 1, 2)), criterion=CELL_CRITERION,
         summary="the cell clears bins of up to {x} parts", unit="parts",
         settings=_cell_settings(opts, scene=str(base_scene)),

@@ -84,11 +84,11 @@ def occlusion_axis(opts: Options, stack: PerceptionStack) -> Axis:
         return tally(stack, rows(), lambda r: lo <= r["visib"] < hi)
 
     return Axis(
-        name="occlusion", title="Occlusion", x_label="visible fraction of the part",
-        points=tuple(Point(f"{100 * lo:.0f}-{min(100 * hi, 100):.0f}%", (lo + min(hi, 1.0)) / 2,
+        name="occlusion", title="Occlusion", x_label="visible part of the part [%] (bin centres)",
+        points=tuple(Point(f"{100 * lo:.0f}-{min(100 * hi, 100):.0f}%", 50 * (lo + min(hi, 1.0)),
                            {"visible_fraction": [lo, hi]}) for lo, hi in VISIBILITY_BINS),
         methods=_methods(stack), measure=measure, seeds=(0,), criterion=PERCEPTION_CRITERION,
-        summary="holds down to {x} of the part visible", unit="",
+        summary="holds down to {x} % of the part visible", unit="%",
         settings=_settings(opts, stack, data=str(opts.data), max_images=max_images),
         description="One pass over the noise-free test set (the detector at its operating threshold; pose "
         "strategies on ground-truth masks), each instance binned by its visible fraction.",

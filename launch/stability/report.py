@@ -97,16 +97,19 @@ def headline(result: dict[str, Any], metric: str) -> str:
         return ""
     name, best = max(rows.items(), key=lambda item: _reach(item[1]["failure"], result))
     f = best["failure"]
+    note = f" (best: {name})" if len(rows) > 1 else ""
     if result["categorical"] and f["status"] in (HOLDS, FAILS):
         below = f.get("below") or []
         x = ", ".join(p["label"] for p in result["points"] if p["label"] not in below) or "none"
     elif f["status"] == HOLDS:
-        x = f"{f.get('last_measured')} (the hardest point measured) or beyond"
+        last = next(p for p in result["points"] if p["label"] == f.get("last_measured"))
+        x = _g(last["x"])
+        note = f" or further: it holds at the hardest point measured{note}"
     elif f["status"] == FAILS:
         x = _g(f["x"]) + (f" ± {_g(f['sigma_x'])}" if f["sigma_x"] is not None else "")
     else:
         return f"{metric}: no method reaches the threshold at the easiest point"
-    return f"{metric}: {result['summary'].format(x=x)} (best: {name})"
+    return f"{metric}: {result['summary'].format(x=x)}{note}"
 
 
 def _reach(failure: dict[str, Any], result: dict[str, Any]) -> float:
@@ -196,7 +199,7 @@ def axis_chart(result: dict[str, Any]):
         top, bottom = axes[0][col], axes[1][col]
         rows = {n: m for n, m in result["methods"].items() if m["metric"] == metric}
         for name, m in rows.items():
-            colour = f"C{names.index(name) % 10}"
+            colour = _colour(names, name)
             _draw_curve(top, result, m["curve"], colour, name)
             _draw_failure(top, result, m["failure"], colour)
         best_name = max(rows, key=lambda n: _reach(rows[n]["failure"], result))
@@ -208,7 +211,8 @@ def axis_chart(result: dict[str, Any]):
         bottom.set(title=f"{best_name}, per part family", ylabel=metric)
         for ax in (top, bottom):
             _axis_frame(ax, result)
-            ax.legend(fontsize=7, loc="best")
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=7, loc="best")
     fig.suptitle(f"sygrid bench stability: {result['title']} (failure: below max({result['criterion']['fraction']:g}"
                  f" x best, {result['criterion']['floor']:g}); bands: ± 1 s.e. of the failure point)")  # fmt: skip
     fig.tight_layout()
@@ -228,12 +232,13 @@ def overview_chart(results: Sequence[dict[str, Any]]):
     for ax, result in zip(axes.flat, results, strict=False):
         names = list(result["methods"])
         for name, m in result["methods"].items():
-            colour = f"C{names.index(name) % 10}"
+            colour = _colour(names, name)
             _draw_curve(ax, result, m["curve"], colour, name, errors=False)
             _draw_failure(ax, result, m["failure"], colour, band=False)
         _axis_frame(ax, result)
         ax.set_title(result["title"], fontsize=10)
-        ax.legend(fontsize=6, loc="best")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6, loc="best")
     for ax in list(axes.flat)[len(results) :]:
         ax.set_visible(False)
     fig.suptitle("sygrid bench stability: where each method fails (vertical lines: failure points)")
@@ -258,14 +263,22 @@ def _draw_curve(ax, result: dict[str, Any], curve: list[dict], colour: str, labe
         ax.plot(x, y, color=colour, marker="o", ms=3, lw=1, label=label)
 
 
+def _colour(names: list[str], name: str):
+    """A method's colour: tab10's, or tab20's for more than ten methods."""
+    import matplotlib
+
+    i = names.index(name)
+    return f"C{i % 10}" if len(names) <= 10 else matplotlib.colormaps["tab20"](i % 20)
+
+
 def _draw_failure(ax, result: dict[str, Any], failure: dict[str, Any], colour: str, band: bool = True) -> None:
-    if failure["status"] != FAILS:
+    """A crossing's vertical line (± sigma band) and threshold; nothing on a categorical axis (the summary names
+    the points below)."""
+    if failure["status"] != FAILS or result["categorical"] or failure["x"] is None:
         return
-    labels = [p["label"] for p in result["points"]]
-    categorical = result["categorical"] or failure["x"] is None
-    x = labels.index(failure["label"]) - 0.5 if categorical else failure["x"]
+    x = failure["x"]
     ax.axvline(x, color=colour, ls="--", lw=0.9)
-    if band and failure["sigma_x"] is not None and not result["categorical"]:
+    if band and failure["sigma_x"] is not None:
         ax.axvspan(x - failure["sigma_x"], x + failure["sigma_x"], color=colour, alpha=0.12)
     if failure["threshold"] is not None:
         ax.plot([x], [failure["threshold"]], marker="_", ms=14, color=colour)

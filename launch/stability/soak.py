@@ -117,7 +117,7 @@ def _cell_soak(opts: Options, folder, minutes: float, parts: int, cycles: int) -
     seed = 0
     while time.perf_counter() - start < 60.0 * minutes or len(log["bins"]) < parts:
         try:
-            picks = bin_measurements(run_bin(base, variant, seed, None, cycles))["pick success"]
+            picks = bin_measurements(run_bin(base, variant, seed, None, cycles), cycles)["pick success"]
             row = {"n_picked": picks.k, "n_tried": picks.n, "cycle_median_s": picks.extra["cycle_median_s"],
                    "error": None}  # fmt: skip
         except Exception as exc:  # a bin that raised is a bin without picks
