@@ -67,6 +67,8 @@ class Variant:
     min_fitness: float | None = None
     mask_erosion_px: int | None = None
     calibration: str | None = None  # another [calibration] source than the cell file's ("sim": the true pose)
+    robot_host: str | None = None  # where the robot and gripper clients connect (e.g. a delaying proxy); None: HOST
+    camera_error: tuple[tuple[float, ...], ...] | None = None  # 4x4 onto the camera pose (launch.pick.open_cell)
 
 
 _BUILTIN_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "builtin")
@@ -331,8 +333,8 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
     perception = d.perception.model_copy(
         update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}
     )
-    robot = {**d.robot, "host": HOST}
-    gripper = {**d.gripper, "host": HOST}
+    robot = {**d.robot, "host": variant.robot_host or HOST}
+    gripper = {**d.gripper, "host": variant.robot_host or HOST}
     picker = {**d.picker, **variant.picker}
     calibration = d.calibration.model_copy(update={"source": variant.calibration or d.calibration.source})
     data = d.model_copy(
@@ -355,7 +357,11 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
     setup = _setup(base, variant, seed, scene)
     start = time.perf_counter()
     calibration: dict[str, Any] = {}
-    with open_cell(setup, seed, variant.perception, calibration_info=calibration) as (picker, process):
+    error = None if variant.camera_error is None else np.array(variant.camera_error, dtype=float)
+    with open_cell(setup, seed, variant.perception, calibration_info=calibration, T_camera_error=error) as (
+        picker,
+        process,
+    ):
         kinds = [name.split("_", 1)[1] for name in process.part_names()]
         obj_kind = {builtin_part(k).obj_id: k for k in set(kinds)}
         plans: list[Any] = []
@@ -404,6 +410,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         # picks held at another width than planned (the picker's note), for how often the verify rule decided
         "held_off_plan": [a.detail for a in report.attempts if a.outcome == Outcome.PICKED and a.detail],
         "n_tried": sum(a.outcome != Outcome.MOTION_REFUSED for a in report.attempts),
+        "attempts_by_kind": _attempts_by_kind(report.attempts, obj_kind),
         "failures": report.failures_by_cause(),
         "nudges": [c.nudge["outcome"].value for c in cycles if c.nudge is not None],
         "failed_attempts": [
@@ -432,6 +439,18 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "plan_ms": [1e3 * c.stage_wall_s["plan"] for c in cycles if c.n_planned or c.end == "nothing_safe"],
         "wall_s": time.perf_counter() - start,
     }
+
+
+def _attempts_by_kind(attempts: list[Any], obj_kind: dict[int, str]) -> dict[str, list[int]]:
+    """Per part kind: ``[picked, tried]`` over the attempts that moved the arm (as ``n_tried`` counts them)."""
+    out: dict[str, list[int]] = {}
+    for a in attempts:
+        if a.outcome == Outcome.MOTION_REFUSED:
+            continue
+        row = out.setdefault(str(obj_kind.get(a.obj_id, a.obj_id)), [0, 0])
+        row[0] += a.outcome == Outcome.PICKED
+        row[1] += 1
+    return out
 
 
 def _in_bin(T_world_obj: np.ndarray, cell: Any) -> np.ndarray:

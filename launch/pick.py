@@ -65,10 +65,15 @@ def open_cell(
     perception_kind: str | None = None,
     controller_kwargs: dict | None = None,
     calibration_info: dict | None = None,
+    T_camera_error: np.ndarray | None = None,
 ) -> Iterator[tuple[Picker, Any]]:
     """Starts (sim) or connects to (hardware) everything the cell file names; yields ``(picker, process)``
     (``process``: the emulator's ``ControllerProcess``, None on hardware). Everything is stopped on exit.
-    ``calibration_info`` (a dict) receives where the camera pose came from (``camera_pose_info``)."""
+    ``calibration_info`` (a dict) receives where the camera pose came from (``camera_pose_info``).
+    ``T_camera_error``: a 4x4 rigid error composed onto the camera pose (``T_base_camera @ T_camera_error``, in the
+    camera frame) before anything uses it, as a wrong hand-eye calibration would be (``sygrid bench stability``); the
+    oracle perception keeps the pose without it (the camera's own), so its poses carry the error as a camera's
+    would."""
     from robot.grasp_planner import GraspPlanner
     from robot.gripper import make_gripper
     from robot.nudge import NudgePlanner
@@ -80,6 +85,9 @@ def open_cell(
     with contextlib.ExitStack() as stack:
         process = None
         T_base_camera, info = camera_pose(setup, seed)
+        T_oracle_camera = T_base_camera
+        if T_camera_error is not None:
+            T_base_camera = T_base_camera @ np.asarray(T_camera_error, dtype=float)
         if calibration_info is not None:
             calibration_info.update(info)
         if setup.is_sim:
@@ -109,7 +117,7 @@ def open_cell(
             from sygrid.drop import resolve_objects
             from sygrid.scene import default_scene, load_scene
 
-            perception = OraclePerception(process, cell.T_world_base, T_base_camera)
+            perception = OraclePerception(process, cell.T_world_base, T_oracle_camera)
             spec = load_scene(scene) if scene else default_scene()
             models = {m.obj_id: m for m in resolve_objects(spec, Path("."))}
         else:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,12 +32,13 @@ from perception.evaluation import EvalSettings, bin_floor_camera, eval_items, fl
 from perception.pose import PoseEstimator
 from perception.pose_strategies import NETWORK_STRATEGIES, STRATEGIES, StrategyRunner
 from perception.results import Detection, ObjectPose
-from sygrid.annotations import InstanceAnnotation
+from sygrid.annotations import ImageAnnotation, InstanceAnnotation
 from sygrid.errors import ConfigError
 from sygrid.metrics import ADD_THRESHOLD_FRACTION, pose_errors
 from sygrid.objects.model import ObjectModel
 from sygrid.writers import load_bop_item
 
+SenseFn = Callable[[ImageAnnotation, np.ndarray, np.ndarray | None], tuple[np.ndarray, np.ndarray | None]]
 THRESHOLDS = tuple(round(0.5 + 0.01 * k, 2) for k in range(50))  # the verification thresholds choose_threshold tries
 
 
@@ -106,6 +108,7 @@ def evaluate_strategies(
     strategies: tuple[str, ...] = STRATEGIES,
     settings: EvalSettings | None = None,
     wrong_class: bool = True,
+    sense: SenseFn | None = None,  # (annotation, rgb, depth) -> (rgb, depth) as a sensor sees them; None: as stored
     progress: bool = True,
     tare: TareConfig | None = None,
 ) -> dict[tuple[int, str], list[StrategyRecord]]:
@@ -120,6 +123,8 @@ def evaluate_strategies(
     floor_of = floor_bin(data_dir, s)
     for scene_id, image_id in tqdm(items, unit="image", disable=not progress):
         ann, rgb, depth = load_bop_item(root, scene_id, image_id, split=split)
+        if sense is not None:
+            rgb, depth = sense(ann, rgb, depth)
         if depth is None:
             raise ConfigError(f"{root / split / f'{scene_id:06d}'}: image {image_id} has no depth map")
         floor = bounds = None

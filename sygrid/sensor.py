@@ -123,6 +123,29 @@ class SensorModel:
             return 0.0 * np.asarray(z_m)
         return np.asarray(z_m) ** 2 * self.disparity_bias_px / self.focal_baseline_px_m
 
+    def scaled(self, factor: float) -> SensorModel:
+        """The same sensor with the depth's random errors times ``factor`` (>= 0): the disparity noise and per-frame
+        bias, and the dropout probabilities (edge, flying pixels, dark, specular, holes), each capped at 1, with
+        ``edge_dropout + flying_pixel_fraction`` kept <= 1 by scaling both down alike. The stereo geometry (range,
+        subpixel step, occlusion shadows, saturation) and the RGB noise are unchanged: ``scaled(0)`` is the pair's
+        geometry without random depth errors. Named ``"<name> x<factor>"``."""
+        if not (math.isfinite(factor) and factor >= 0):
+            raise ConfigError(f"SensorModel.scaled: factor must be finite and >= 0, got {factor}")
+        edge, flying = self.edge_dropout * factor, self.flying_pixel_fraction * factor
+        if edge + flying > 1.0:
+            edge, flying = edge / (edge + flying), flying / (edge + flying)
+        return replace(
+            self,
+            name=f"{self.name} x{factor:g}",
+            disparity_noise_px=self.disparity_noise_px * factor,
+            disparity_bias_px=self.disparity_bias_px * factor,
+            edge_dropout=edge,
+            flying_pixel_fraction=flying,
+            dark_dropout=min(1.0, self.dark_dropout * factor),
+            specular_dropout=min(1.0, self.specular_dropout * factor),
+            hole_fraction=min(1.0, self.hole_fraction * factor),
+        )
+
     # ------------------------------------------------------------------------------------------------- applying
     def sense(
         self,
