@@ -210,7 +210,7 @@ def evaluate(
         t0 = time.perf_counter()
         if not sensor.is_ideal:
             rng = sensor_rng(s.sensor_seed, scene_id, image_id)
-            metals = _metal_mask(ann, pipeline.models)
+            metals = image_metal_mask(ann, pipeline.models)
             rgb, depth = sensor.sense(rgb, depth_true, ann.intrinsics, rng, metal_mask=metals)
         sensor_ms.append(1000.0 * (time.perf_counter() - t0))
         result = pipeline.run(Frame(rgb, depth, ann.intrinsics, timestamp_s=0.0))
@@ -350,7 +350,7 @@ def evaluate_detector(
             "ms_median": float(np.median(ms)) if ms else math.nan, **report}  # fmt: skip
 
 
-def _metal_mask(ann: ImageAnnotation, models: dict[int, ObjectModel]) -> np.ndarray | None:
+def image_metal_mask(ann: ImageAnnotation, models: dict[int, ObjectModel]) -> np.ndarray | None:
     """The image's pixels of specular metal, from the visible masks and the parts' materials."""
     materials = [models[i.obj_id].material if i.obj_id in models else "" for i in ann.instances]
     return metal_mask([i.mask_visib for i in ann.instances], materials, METALS)

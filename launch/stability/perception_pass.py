@@ -98,8 +98,8 @@ def sensing(sensor, seed: int, data_dir: Path, split: str, models: dict) -> Call
     """A ``strategy_eval`` sense function: each image's exact depth (``depth_true/``, else ``depth/``) and RGB through
     ``sensor`` (a ``sygrid.sensor.SensorModel``), seeded from ``seed`` and the image's ids, specular metal dropping
     out on the parts of a metal material (as ``perception.evaluation`` senses its frames)."""
-    from sygrid.scene import METALS
-    from sygrid.sensor import metal_mask, sensor_rng
+    from perception.evaluation import image_metal_mask
+    from sygrid.sensor import sensor_rng
     from sygrid.writers import load_bop_true_depth
 
     root = Path(data_dir) / "bop"
@@ -108,8 +108,7 @@ def sensing(sensor, seed: int, data_dir: Path, split: str, models: dict) -> Call
         if depth is None:
             return rgb, depth
         true = load_bop_true_depth(root, ann, split)
-        materials = [models[i.obj_id].material if i.obj_id in models else "" for i in ann.instances]
-        metals = metal_mask([i.mask_visib for i in ann.instances], materials, METALS)
+        metals = image_metal_mask(ann, models)
         rng = sensor_rng(seed, ann.scene_id, ann.image_id)
         return sensor.sense(rgb, depth if true is None else true, ann.intrinsics, rng, metal_mask=metals)
 
@@ -119,6 +118,11 @@ def sensing(sensor, seed: int, data_dir: Path, split: str, models: dict) -> Call
 def cache_path(cache_dir: Path, key: dict[str, Any]) -> Path:
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
     return Path(cache_dir) / "passes" / f"{digest}.json"
+
+
+# Bumped when what a pass measures changes (2: the depth tare and the sensor's noise allowance), so that cached
+# passes of the old measurement are not reused.
+PASS_VERSION = 2
 
 
 def measure_set(
@@ -135,7 +139,8 @@ def measure_set(
     ``SensorModel`` the frames go through (None: as stored); ``detection`` False leaves the detectors out."""
     key = {"data": str(Path(data_dir).resolve()), "max_images": max_images, "models": str(stack.models_dir.resolve()),
            "strategies": list(stack.strategies), "detection": detection,
-           "sensor": None if sensor is None else repr(sensor), "sensor_seed": sensor_seed}  # fmt: skip
+           "sensor": None if sensor is None else repr(sensor), "sensor_seed": sensor_seed,
+           "pipeline": PASS_VERSION}  # fmt: skip
     path = cache_path(cache_dir, key)
     if path.is_file():
         return read_json(path, "stability pass")["rows"]
@@ -151,6 +156,7 @@ def _measure(stack, data_dir, max_images, detection, sensor, sensor_seed, progre
     from perception.strategy_eval import evaluate_strategies
     from sygrid.dataset import DatasetBin
     from sygrid.detection_breakdown import match_instances
+    from sygrid.sensor import sensor_preset
 
     settings = EvalSettings(max_images=max_images)
     root, split, items = eval_items(data_dir, settings)
@@ -165,8 +171,11 @@ def _measure(stack, data_dir, max_images, detection, sensor, sensor_seed, progre
                     row = rows.setdefault(f"{ann.name}/{inst.inst_id}", _row(ann, inst, p.models))
                     row["found"][name] = det is not None
     sense = None if sensor is None else sensing(sensor, sensor_seed, data_dir, split, p.models)
+    # As the pipeline runs on such frames: the verification allows for this sensor's noise, and the depth is tared
+    # on the bin's floor.
+    p.use_sensor(sensor if sensor is not None else sensor_preset("ideal"))
     records = evaluate_strategies(stack.runner, p.pose, p.models, data_dir, stack.strategies, settings,
-                                  wrong_class=False, sense=sense, progress=progress)  # fmt: skip
+                                  wrong_class=False, sense=sense, progress=progress, tare=p.depth_tare)  # fmt: skip
     for (obj_id, strategy), recs in records.items():
         for r in recs:
             row = rows.setdefault(r.image, {"obj_id": obj_id, "visib": r.visib_fract, "nominal_px": None,
