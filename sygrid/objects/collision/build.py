@@ -38,6 +38,9 @@ DEFAULT_MAX_PIECES = 64  # select_collision_model's cap on geoms per part
 DEFAULT_TIME_BUDGET_S = 30.0  # select_collision_model's budget per part on first use (repair + tiers + fidelity)
 RETRY_AFTER_TIMEOUT_FACTOR = 1.25  # a decomposition that ran out of time is retried only with this much more
 _MIN_ATTEMPT_S = 1.0  # a decomposition is not started with less time left than this
+# Kept back from a decomposition's time limit: the worker process's start and stop and the fidelity measurement run
+# outside the decomposer's own clock but inside the part's budget.
+_RESERVE_S = 1.5
 _WARNED: set[tuple] = set()  # (content hash, tier, missed tolerances) already warned about in this process
 
 
@@ -207,7 +210,7 @@ def select_collision_model(
             finer = base.coacd_concavity_threshold * COACD_REFINE_FACTOR
             attempts.append(replace(base, coacd_concavity_threshold=finer))
         for attempt in attempts:
-            left = None if time_budget_s is None else time_budget_s - spent
+            left = None if time_budget_s is None else time_budget_s - spent - _RESERVE_S
             if left is not None and left < _MIN_ATTEMPT_S and tier is not CollisionTier.HULL:
                 log.info("%s: the %.0f s collision time budget is spent; %s not tried", model.name, time_budget_s,
                          tier.value)  # fmt: skip
