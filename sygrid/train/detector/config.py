@@ -87,6 +87,8 @@ class TrainConfig:
         labels: ``"auto"``, ``"coco"`` or ``"yolo"`` (see ``data.open_dataset``).
         obj_ids: BOP obj_id per class (None: from the dataset).
         id_map: class name or index -> obj_id, for a dataset whose classes nothing else maps (``sygrid.id_map``).
+        catalogue: a parts catalogue file (``sygrid.catalogue``): the classes' ids by name, checked against the
+            dataset's (``data.catalogue_class_ids``); recorded in the log for ``sygrid models pack``.
         val_every: validate every this many epochs (and always after the last).
         channels_last: NHWC tensors (oneDNN's preferred CPU layout).
         augment: overrides of ``AugmentConfig`` fields.
@@ -123,6 +125,7 @@ class TrainConfig:
     labels: str = "auto"
     obj_ids: tuple[int, ...] | None = None
     id_map: dict[str, int] | None = None
+    catalogue: str | None = None
     val_every: int = 1
     channels_last: bool = True
     augment: dict = field(default_factory=dict)
