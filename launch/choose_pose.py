@@ -48,12 +48,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from perception.evaluation import EvalSettings, frames_sensor
-    from perception.pipeline import load_manifest, tare_config
+    from perception.pipeline import load_manifest, manifest_models, tare_config
     from perception.pose import PoseEstimator
     from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
     from perception.strategy_eval import choose_all, evaluate_strategies, summarize
     from perception.verify import PoseVerifier, VerifyConfig
-    from sygrid.drop import resolve_object
 
     strategies = STRATEGIES if args.strategies is None else tuple(s.strip() for s in args.strategies.split(","))
     try:
@@ -65,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--bar must be in (0, 1] and --max-false-accept in [0, 1), got {args.bar}, "
                           f"{args.max_false_accept}")  # fmt: skip
     manifest = load_manifest(args.models)
-    models = {m.obj_id: m for m in (resolve_object(spec, args.models) for spec in manifest.objects)}
+    models = manifest_models(args.models, manifest)
     network = PoseEstimator(args.models / manifest.pose.onnx, models=models, num_threads=args.threads)
     settings = EvalSettings(split=args.split, max_images=args.max_images)
     verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m).for_sensor(frames_sensor(args.data, settings))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from sygrid.catalogue import load_catalogue
 from sygrid.convert import FORMATS, REPORT_NAME, ConvertOptions, convert_sygrid_pickle, convert_yolo_seg
 from sygrid.errors import ConfigError
 from sygrid.id_map import load_id_map
@@ -30,6 +31,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--id-map", type=Path, default=None, help="JSON object: class name or index (a pickle: its obj_id) -> obj_id"
     )
+    parser.add_argument(
+        "--catalogue", type=Path, default=None,
+        help="parts catalogue (.toml/.json): class names -> its ids, the output's part names, meshes for bop",
+    )  # fmt: skip
     parser.add_argument("--names", default=None, help="YOLO-seg without data.yaml: class names by index, a,b,c")
     parser.add_argument("--images", type=Path, default=None, help="pickle: image folder (default rgb/ or images/)")
     parser.add_argument("--depth", type=Path, default=None, help="pickle: depth PNG folder (default depth/, if any)")
@@ -64,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
         bop_models=args.bop_models,
         depth=not args.no_depth,
         force=args.force,
+        catalogue=load_catalogue(args.catalogue) if args.catalogue is not None else None,
     )
     if is_pickle:
         report = convert_sygrid_pickle(args.source, args.out, options, images_dir=args.images, depth_dir=args.depth)

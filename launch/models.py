@@ -10,6 +10,14 @@ alone at confidence 0.001, the convention for mAP), ``OUT/eval_direct.json`` and
 ``OUT/detector.card.md`` / ``OUT/pose.card.md``. Everything in the cards is read from the runs' ``train_log.json``,
 the datasets' ledgers (``dataset.json``: recipe, seed, items) and the evaluations, so the cards cannot drift from
 the files they describe.
+
+The folder's parts (the manifest's ``objects``): the built-in parts the detector's classes name, or, for your own
+parts, the parts catalogue the models were trained with (``--catalogue FILE``, default: the one the detector was
+trained with, ``sygrid train detector --catalogue``). The catalogue is copied into the folder
+(``OUT/catalogue/parts.toml`` with the parts' CAD files, the manifest's ``"catalogue"`` naming it), not referenced:
+the networks are bound to the ids and meshes they were trained on, so the folder keeps them when the catalogue is
+edited later or the folder is moved to the cell's machine. The detector's classes and the pose model's parts must
+be the catalogue's by name and obj_id.
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ import math
 import shutil
 from pathlib import Path
 
+from sygrid.catalogue import copy_catalogue, load_catalogue
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 
@@ -32,6 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pack.add_argument("--detector", type=Path, required=True, help="'sygrid train detector' output folder")
     pack.add_argument("--pose", type=Path, required=True, help="'sygrid train pose' output folder")
     pack.add_argument("--out", type=Path, required=True, help="model folder to write (e.g. models/builtin)")
+    pack.add_argument(
+        "--catalogue", type=Path, default=None,
+        help="parts catalogue the models were trained with, copied into the folder (default: the detector run's)",
+    )  # fmt: skip
     pack.add_argument("--test-data", type=Path, default=None, help="held-out dataset for the cards' metrics")
     pack.add_argument("--max-images", type=int, default=None, help="evaluate on the first N test images")
     pack.add_argument("--conf-threshold", type=float, default=0.4, help="the manifest's detector threshold")
@@ -73,11 +86,11 @@ def pack(args: argparse.Namespace) -> int:
         tmp = args.out / f".{name}.tmp"
         shutil.copyfile(run_dir / name, tmp)
         tmp.replace(args.out / name)
-    names = det_log["dataset"]["names"]
+    parts = pack_parts(args, det_log, pose_log)
     view = {k: v for k, v in (("scale", args.scale), ("tile_px", args.tile_px)) if v is not None}
     manifest = {
         "format": "sygrid-models/1",
-        "objects": [{"builtin": n} for n in names],
+        **parts,
         "detector": {"onnx": "detector.onnx", "conf_threshold": args.conf_threshold, **view},
         "pose": {"onnx": "pose.onnx", "method": args.method},
         "refine": {"enabled": True},
@@ -95,6 +108,40 @@ def pack(args: argparse.Namespace) -> int:
         f"wrote {args.out}: manifest.json, detector.onnx, pose.onnx, model cards" + (", evaluations" if evals else "")
     )
     return 0
+
+
+CATALOGUE_COPY = "catalogue/parts.toml"
+
+
+def pack_parts(args: argparse.Namespace, det_log: dict, pose_log: dict) -> dict:
+    """The manifest's ``objects`` (and ``catalogue``) for the detector's classes: the catalogue's parts, copied into
+    the folder (``CATALOGUE_COPY``), where one is given or the detector was trained with one; else the built-in
+    parts. Raises ConfigError when a class or a pose model's obj_id is not a part of that source by name and id."""
+    names, ids = det_log["dataset"]["names"], [int(i) for i in det_log["dataset"]["obj_ids"]]
+    pose_ids = [int(i) for i in pose_log.get("obj_ids", [])]
+    source = args.catalogue or det_log["config"].get("catalogue")
+    if source is None:
+        from sygrid.objects.parts import BUILTIN_PARTS, builtin_part
+
+        known = {n: builtin_part(n).obj_id for n in names if n in BUILTIN_PARTS}
+        where = "the built-in parts"
+    else:
+        catalogue = load_catalogue(source)
+        known = {p.name: p.id for p in catalogue.parts}
+        where = f"the catalogue {source}"
+    wrong = [f"{n!r} (obj_id {i})" for n, i in zip(names, ids, strict=True) if known.get(n) != i]
+    unknown_pose = sorted(set(pose_ids) - set(known.values()))
+    if wrong or unknown_pose:
+        raise ConfigError(
+            f"{args.detector}: the detector's classes {', '.join(wrong) or '(all fine)'} and the pose model's "
+            f"obj_ids {unknown_pose or '(all fine)'} are not parts of {where} (by name and obj_id); pack with "
+            "--catalogue FILE, the catalogue the models were trained with"
+        )
+    if source is None:
+        return {"objects": [{"builtin": n} for n in names]}
+    header = f"Copied by 'sygrid models pack' from {source}: the parts these models were trained for."
+    copy_catalogue(catalogue, names, args.out / Path(CATALOGUE_COPY).parent, Path(CATALOGUE_COPY).name, header)
+    return {"catalogue": CATALOGUE_COPY, "objects": [{"catalogue_part": n} for n in names]}
 
 
 BREAKDOWN_HEADING = "### Where it fails"

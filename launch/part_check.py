@@ -1,6 +1,9 @@
 """The pixels-per-part check (``sygrid.part_pixels``) where a camera meets a detector: a recipe's camera (``sygrid
 generate``, ``sygrid eval``) and a cell's calibrated camera and bin (``sygrid pick``). Each returns the warnings to
 print (empty when every part is resolved, or when the model folder states no ``detector.min_part_px``).
+
+And where a simulated cell's scene meets its model folder: ``check_scene_parts`` refuses a scene whose parts the
+models do not know by obj_id and name (both lists named).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import numpy as np
 
 from perception.detector import YoloSegDetector
 from sygrid.camera import CameraIntrinsics
+from sygrid.errors import ConfigError
 from sygrid.objects.model import ObjectModel
 from sygrid.part_pixels import part_warnings
 from sygrid.scene import SceneSpec
@@ -75,6 +79,23 @@ def cell_warnings(
 
     far = float(np.max(np.asarray(floor_corners_camera, dtype=float)[:, 2]))
     return detector_warnings(detector, load_manifest(models_dir).detector.min_part_px, models, intrinsics, far)
+
+
+def check_scene_parts(scene_models: Iterable[ObjectModel], models: dict[int, ObjectModel], where: str) -> None:
+    """Raises ConfigError, naming both lists, when a part of the scene (``scene_models``) is not a part of the model
+    folder (``models``: obj_id -> model) by obj_id and name: the models would never find it, or call it another
+    part."""
+    scene = {m.obj_id: m.name for m in scene_models}
+    wrong = sorted(i for i, name in scene.items() if i not in models or models[i].name != name)
+    if wrong:
+        listing = "; models: ".join(
+            ", ".join(f"{i} {n}" for i, n in sorted(parts.items()))
+            for parts in (scene, {i: m.name for i, m in models.items()})
+        )
+        raise ConfigError(
+            f"{where}: the scene's parts {wrong} are not the model folder's (by obj_id and name). Scene: {listing}. "
+            "The scene and the models must come from one catalogue"
+        )
 
 
 def log_warnings(warnings: list[str], where: str) -> None:

@@ -7,6 +7,10 @@ timeline of the stage timings, and the first frame with the estimated poses draw
 cell the emulator's log (``emulator.log``).
 On a hardware cell the same code connects to the robot, gripper and camera named in the file (OAK or RealSense).
 
+A simulated cell's scene must hold parts its model folder knows, by obj_id and name (one catalogue for both): the
+run is refused before anything starts otherwise. ``--dry-run`` stops after these checks: it loads the cell file, the
+model folder's pipeline and the scene's parts, and starts no emulator, robot or camera.
+
 SIGINT and SIGTERM stop the run cleanly (``launch.pick_stops``): the arm's motion is stopped, the gripper keeps its
 state, the report is written with every finished cycle and the interrupted one, and the command says where it
 stopped. The report is written whatever ends the run (an error included); a simulated cell's emulator process that
@@ -28,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from launch.part_check import cell_warnings, log_warnings
+from launch.part_check import cell_warnings, check_scene_parts, log_warnings
 from launch.pick_stops import EXIT_CODES, EmulatorWatch, Interrupted, StopSignals, exit_code
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.pick_report import RunReport, Stage, StopReason
@@ -48,6 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/pick"), help="report folder")
     parser.add_argument("--seed", type=int, default=None, help="sim cells: override the drop seed")
     parser.add_argument("--perception", choices=("models", "oracle"), default=None, help="override the file's")
+    parser.add_argument(
+        "--dry-run", action="store_true",
+        help="load the cell file, its models and its scene's parts, check them, and stop (nothing started)",
+    )  # fmt: skip
 
 
 @dataclass
@@ -114,22 +122,14 @@ def open_cell(
             if process is None:
                 raise ConfigError(f"{setup.path}: perception 'oracle' exists only in the simulated cell")
             from sim.oracle_perception import OraclePerception
-            from sygrid.drop import resolve_objects
-            from sygrid.scene import default_scene, load_scene
 
             perception = OraclePerception(process, cell.T_world_base, T_oracle_camera)
-            spec = load_scene(scene) if scene else default_scene()
-            models = {m.obj_id: m for m in resolve_objects(spec, Path("."))}
+            models = {m.obj_id: m for m in scene_models(setup)}
         else:
-            from perception.pipeline import PerceptionPipeline, PipelineOverrides
+            from perception.pipeline import PerceptionPipeline
 
             models_dir = setup.resolve(d.perception.models_dir)
-            overrides = PipelineOverrides(
-                detector_input_size=d.perception.detector_input_size, conf_threshold=d.perception.conf_threshold,
-                detector_scale=d.perception.detector_scale, detector_tile_px=d.perception.detector_tile_px,
-                refine=d.perception.refine, max_refined=d.perception.max_refined, min_fitness=d.perception.min_fitness,
-                mask_erosion_px=d.perception.mask_erosion_px, num_threads=d.perception.num_threads,
-            )  # fmt: skip
+            overrides = cell_overrides(setup)
             region = floor = corners = None
             if planner_config.bin is not None:
                 corners = planner_config.bin.inner_corners_camera(T_base_camera)
@@ -161,6 +161,71 @@ def open_cell(
         yield picker, process
 
 
+def cell_overrides(setup: CellSetup) -> Any:
+    """The pipeline settings the cell file's ``[perception]`` overrides (``PipelineOverrides``)."""
+    from perception.pipeline import PipelineOverrides
+
+    p = setup.data.perception
+    return PipelineOverrides(
+        detector_input_size=p.detector_input_size, conf_threshold=p.conf_threshold, detector_scale=p.detector_scale,
+        detector_tile_px=p.detector_tile_px, refine=p.refine, max_refined=p.max_refined, min_fitness=p.min_fitness,
+        mask_erosion_px=p.mask_erosion_px, num_threads=p.num_threads,
+    )  # fmt: skip
+
+
+def scene_models(setup: CellSetup) -> list[Any]:
+    """The parts of a simulated cell's scene (``[sim] scene``, its catalogue relative to the scene file; the default
+    scene where none is named), as the emulator drops them."""
+    from sygrid.drop import resolve_objects
+    from sygrid.scene import default_scene, load_scene
+
+    scene = setup.resolve(setup.data.sim.scene)
+    if scene is None:
+        return resolve_objects(default_scene(), Path("."))
+    return resolve_objects(load_scene(scene), scene.parent)
+
+
+def check_cell(setup: CellSetup, kind: str) -> dict[int, Any]:
+    """Before anything starts: a "models" cell's model folder has a manifest, and a simulated cell's scene holds
+    only parts of that folder (by obj_id and name). Returns the folder's models (obj_id -> ObjectModel; {} for an
+    oracle cell)."""
+    if kind != "models":
+        return {}
+    from perception.pipeline import load_manifest, manifest_models
+
+    folder = setup.resolve(setup.data.perception.models_dir)
+    if folder is None or not (folder / "manifest.json").is_file():
+        raise ConfigError(
+            f"{setup.path}: perception.models_dir {folder} has no manifest.json (train the built-in models first, "
+            "or run with --perception oracle in the simulated cell)"
+        )
+    models = manifest_models(folder, load_manifest(folder))
+    if setup.is_sim:
+        check_scene_parts(scene_models(setup), models, f"{setup.path}: [sim] scene and [perception] models_dir")
+    return models
+
+
+def dry_run(setup: CellSetup, kind: str) -> int:
+    """``--dry-run``: the checks of ``check_cell``, and the model folder's pipeline loaded; nothing started."""
+    check_cell(setup, kind)
+    d = setup.data
+    print(f"cell {d.cell.name or setup.path} ({d.cell.kind}), perception {kind}")
+    if kind == "models":
+        from perception.pipeline import PerceptionPipeline
+
+        folder = setup.resolve(d.perception.models_dir)
+        pipeline = PerceptionPipeline.from_folder(folder, cell_overrides(setup))
+        parts = ", ".join(f"{i} {m.name}" for i, m in sorted(pipeline.models.items()))
+        print(f"models {folder}: detector {pipeline.detector.path.name} (classes "
+              f"{', '.join(pipeline.detector.class_names)}), parts {parts}")  # fmt: skip
+    if setup.is_sim:
+        scene = scene_models(setup)
+        print(f"scene {setup.resolve(d.sim.scene) or 'default'}: parts "
+              f"{', '.join(f'{m.obj_id} {m.name}' for m in scene)}")  # fmt: skip
+    print("dry run: the cell file, its models and its parts load and agree; nothing was started")
+    return 0
+
+
 def camera_pose(setup: CellSetup, seed: int | None = None) -> tuple[np.ndarray, dict]:
     """``T_base_camera`` from the cell file's ``[calibration]`` and a summary for the report: the hand-eye
     calibration's file ("file"), the ChArUco calibration run in the simulated cell ("sim_handeye", with its error
@@ -183,6 +248,9 @@ def camera_pose(setup: CellSetup, seed: int | None = None) -> tuple[np.ndarray, 
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.dry_run:
+        setup = load_cell_setup(args.config)
+        return dry_run(setup, args.perception or setup.data.perception.kind)
     return run_with_report(args)[0]
 
 
@@ -190,11 +258,7 @@ def run_with_report(args: argparse.Namespace) -> tuple[int, RunReport]:
     """``sygrid pick``: the exit code (``launch.pick_stops.EXIT_CODES``) and the report written."""
     setup = load_cell_setup(args.config)
     kind = args.perception or setup.data.perception.kind
-    if kind == "models" and not (setup.resolve(setup.data.perception.models_dir) / "manifest.json").is_file():
-        raise ConfigError(
-            f"{args.config}: perception.models_dir {setup.resolve(setup.data.perception.models_dir)} has no "
-            "manifest.json (train the built-in models first, or run with --perception oracle in the simulated cell)"
-        )
+    check_cell(setup, kind)
     with StopSignals() as signals:
         return _pick(args, setup, kind, signals)
 

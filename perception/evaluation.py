@@ -17,7 +17,8 @@ plane and the bin's inner corners, from the dataset's ``DatasetBin``), for the d
 depth metrics again after the tare.
 
 A dataset without depth (photos converted by ``sygrid convert``) is evaluated for detection only, and a dataset
-whose parts the models do not know is refused up front (``check_model_classes``), naming both lists.
+whose parts the models do not know, by obj_id and name, is refused up front (``check_model_classes``), naming both
+lists.
 """
 
 from __future__ import annotations
@@ -309,8 +310,11 @@ def dataset_classes(data_dir: str | Path, split: str) -> dict[int, str]:
 
 
 def check_model_classes(data_dir: str | Path, model_classes: dict[int, str], split: str | None = None) -> None:
-    """Raises ConfigError, naming both lists, when the dataset has parts (obj_ids) the models do not know; models
-    that know more parts than the dataset has are fine. ``model_classes``: obj_id -> name of the models' parts."""
+    """Raises ConfigError, naming both lists, when the dataset has parts (obj_ids) the models do not know, or a part
+    the models know by another name (one obj_id, two names: the dataset and the models came from different
+    catalogues); models that know more parts than the dataset has are fine. ``model_classes``: obj_id -> name of the
+    models' parts. A dataset part without a name (``"?"``, or the placeholder ``obj_OOOOOO`` of a BOP model file or a
+    converted label set) is checked by obj_id only."""
     root = Path(data_dir) / "bop"
     if not root.is_dir():
         raise ConfigError(f"{data_dir}: not a generated dataset (no bop/ folder)")
@@ -321,6 +325,13 @@ def check_model_classes(data_dir: str | Path, model_classes: dict[int, str], spl
             f"{data_dir}: the models do not know the dataset's parts {missing}. Dataset: {_listing(dataset)}; "
             f"models: {_listing(model_classes)}. Evaluate models trained for this dataset's parts, or convert the "
             "dataset with an --id-map onto the models' obj_ids"
+        )
+    renamed = sorted(i for i, name in dataset.items() if name not in ("?", f"obj_{i:06d}") and model_classes[i] != name)
+    if renamed:
+        raise ConfigError(
+            f"{data_dir}: the models name the dataset's parts {renamed} differently. Dataset: {_listing(dataset)}; "
+            f"models: {_listing(model_classes)}. The dataset and the models must come from one catalogue (its ids "
+            "and names)"
         )
 
 

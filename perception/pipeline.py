@@ -11,7 +11,11 @@ Loaded from a model folder whose ``manifest.json`` names the files and settings:
      "depth_tare": {"enabled": true},
      "refine": {"enabled": true}}
 
-``objects`` uses the scene description's object entries (paths relative to the folder). The detector gives
+``objects`` uses the scene description's object entries (paths relative to the folder); with a top-level
+``"catalogue"`` (a ``sygrid.catalogue`` file, relative to the folder, as a scene's is to the scene file) they may
+name its parts (``{"catalogue_part": "strap_clamp"}``), so the folder's ids and names come from the catalogue the
+models were trained with (``sygrid models pack --catalogue``). Its parts are resolved where a scene's are
+(``sygrid.drop.resolve_parts``), and the detector's classes must agree with them by obj_id and name. The detector gives
 classes, boxes and masks. With ``pose.strategies`` (a strategy per object name, ``perception.pose_strategies``,
 written by ``sygrid models choose-pose``), each detection's pose comes from its part's strategy: the pose network
 runs only for the detections whose strategy uses it, every pose is verified against the depth and mask
@@ -46,7 +50,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from perception.camera import Frame
 from perception.depth_tare import Tare, TareConfig, tared_depth
@@ -58,7 +62,7 @@ from perception.results import Detection, ObjectPose
 from perception.tiling import DEFAULT_TILE_OVERLAP, ViewSettings
 from perception.verify import PoseVerifier, VerifyConfig
 from sygrid.camera import CameraIntrinsics, project_points
-from sygrid.drop import resolve_object
+from sygrid.drop import resolve_parts
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 from sygrid.objects.model import ObjectModel
@@ -130,6 +134,7 @@ class RefineEntry(_Strict):
 
 class Manifest(_Strict):
     format: Literal["sygrid-models/1"]
+    catalogue: str | None = None  # a parts catalogue (sygrid.catalogue), relative to the model folder
     objects: tuple[ObjectSpec, ...]
     detector: DetectorEntry
     pose: PoseEntry
@@ -137,6 +142,13 @@ class Manifest(_Strict):
     verify: VerifyEntry = VerifyEntry()
     depth_tare: DepthTareEntry = DepthTareEntry()
     min_mask_px: int = Field(default=30, ge=0)
+
+    @model_validator(mode="after")
+    def _catalogue_for_its_parts(self) -> Manifest:
+        named = [f"objects[{k}]" for k, o in enumerate(self.objects) if o.catalogue_part is not None]
+        if named and self.catalogue is None:
+            raise ValueError(f"{', '.join(named)} name(s) a 'catalogue_part': give the manifest's 'catalogue' file")
+        return self
 
 
 @dataclass(frozen=True)
@@ -255,7 +267,7 @@ class PerceptionPipeline:
         folder = Path(folder)
         o = overrides or PipelineOverrides()
         manifest = load_manifest(folder)
-        models = {m.obj_id: m for m in (resolve_object(spec, folder) for spec in manifest.objects)}
+        models = manifest_models(folder, manifest)
         d = manifest.detector
         detector = YoloSegDetector(
             folder / d.onnx,
@@ -265,6 +277,7 @@ class PerceptionPipeline:
             num_threads=o.num_threads,
             view=detector_view(d, o),
         )
+        check_detector_parts(detector, models, folder / d.onnx)
         pose = PoseEstimator(folder / manifest.pose.onnx, models=models, num_threads=o.num_threads)
         refine = manifest.refine.enabled if o.refine is None else o.refine
         strategies, runner = None, None
@@ -544,6 +557,27 @@ def _skipped(detection: Detection, frame: Frame, strategy: str, max_refined: int
     T[:3, 3] = ((0.5 * (x0 + x1) - K.cx) * z / K.fx, (0.5 * (y0 + y1) - K.cy) * z / K.fy, z)
     icp = {"status": "skipped", "reason": f"{max_refined} nearer parts were fitted (max_refined)"}
     return ObjectPose(detection, T, 0.0, strategy, {"strategy": strategy, "icp": icp})
+
+
+def manifest_models(folder: str | Path, manifest: Manifest) -> dict[int, ObjectModel]:
+    """obj_id -> model of each of the manifest's objects (its catalogue's parts resolved relative to ``folder``)."""
+    models = resolve_parts(manifest.objects, manifest.catalogue, Path(folder), str(Path(folder) / MANIFEST_NAME))
+    return {m.obj_id: m for m in models}
+
+
+def check_detector_parts(detector: YoloSegDetector, models: dict[int, ObjectModel], where: str | Path) -> None:
+    """Raises ConfigError when a detector class's obj_id is a part of ``models`` under another name: the detector
+    and the manifest's objects (its catalogue) disagree about which part an id is."""
+    clashes = [
+        f"class {c} {name!r} is obj_id {obj_id}, which the manifest's objects call {models[obj_id].name!r}"
+        for c, (obj_id, name) in enumerate(zip(detector.class_obj_ids, detector.class_names, strict=True))
+        if obj_id in models and models[obj_id].name != name
+    ]
+    if clashes:
+        raise ConfigError(
+            f"{where}: the detector's parts disagree with the manifest's objects: {'; '.join(clashes)}. Pack the "
+            "models with the catalogue they were trained with (sygrid models pack --catalogue)"
+        )
 
 
 def load_manifest(folder: Path) -> Manifest:

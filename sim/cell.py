@@ -36,13 +36,16 @@ def cell_scene(scene: SceneSpec, config: CellConfig) -> SceneSpec:
 def build_cell_world(
     scene: SceneSpec | str | Path | None = None, seed: int = 0, config: CellConfig | None = None
 ) -> CellWorld:
-    """A ``CellWorld`` whose bin holds the parts of ``scene`` (default: 20 built-in parts), dropped with ``seed``."""
+    """A ``CellWorld`` whose bin holds the parts of ``scene`` (default: 20 built-in parts), dropped with ``seed``. A
+    scene file's paths (CAD files, its catalogue) are relative to it; a ``SceneSpec``'s to the working folder."""
     config = config or CellConfig()
+    base_dir = Path(".")
     if scene is None:
         scene = default_scene()
     elif not isinstance(scene, SceneSpec):
+        base_dir = Path(scene).parent
         scene = load_scene(scene)
-    result = drop_scene(cell_scene(scene, config), seed, Path("."))
+    result = drop_scene(cell_scene(scene, config), seed, base_dir)
     if not result.report.ok:
         raise DropError(f"the drop of scene '{scene.name}' (seed {seed}) is unusable: {result.report.to_json()}")
     world = CellWorld(config)

@@ -212,9 +212,23 @@ def merge_polygons(polygons: Sequence[np.ndarray]) -> np.ndarray:
     return merged
 
 
+def mask_holes(mask: np.ndarray) -> list[np.ndarray]:
+    """(h, w) bool -> one (n, 2) float polygon per hole of the mask (background enclosed by it: the inside of a
+    washer or a nut, a strap's loop), as the contours of the mask pixels around each hole; largest first."""
+    contours, hierarchy = cv2.findContours(np.asarray(mask).astype(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    if hierarchy is None:
+        return []
+    holes = [c for c, h in zip(contours, hierarchy[0], strict=True) if h[3] >= 0]  # a parent: an inner contour
+    holes = sorted(holes, key=lambda c: (-cv2.contourArea(c), -len(c)))
+    return [c.reshape(-1, 2).astype(np.float64) for c in holes]
+
+
 def mask_to_polygon(mask: np.ndarray) -> np.ndarray:
-    """(h, w) bool -> one (m, 2) polygon covering every visible part (``merge_polygons`` of the parts)."""
-    return merge_polygons(mask_to_polygons(mask))
+    """(h, w) bool -> one (m, 2) polygon of the whole mask: ``merge_polygons`` of its parts' outlines (largest first)
+    and then of its holes' (``mask_holes``). A hole's outline runs the other way round, so a scanline fill
+    (``polygon_to_mask``; ``cv2.fillPoly``, as ultralytics rasterises labels) leaves the hole out: the fill gives the
+    mask back, plus the one-pixel bridge lines."""
+    return merge_polygons([*mask_to_polygons(mask), *mask_holes(mask)])
 
 
 def polygon_to_mask(polygons: np.ndarray | Sequence[np.ndarray], height: int, width: int) -> np.ndarray:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -224,6 +225,26 @@ def write_catalogue(catalogue: Catalogue, path: str | Path, header: str = "") ->
         return write_json_atomic(path, moved.to_json())
     comments = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines())
     return write_bytes_atomic(path, (comments + to_toml(moved.to_json())).encode())
+
+
+def copy_catalogue(
+    catalogue: Catalogue, names: list[str], folder: str | Path, file_name: str = "parts.toml", header: str = ""
+) -> Path:
+    """Writes the parts ``names`` of ``catalogue`` into ``folder`` as a catalogue of their own (``file_name``, with
+    ``header`` as its comment) with their CAD files copied beside it (``<part name><suffix>``): a copy that moves
+    with the folder it is in (a model folder). Returns the catalogue file's path. Raises ConfigError for a name that
+    is no part of the catalogue."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    parts = []
+    for name in names:
+        part = catalogue.part(name)
+        if part.file is not None:
+            copied = f"{part.name}{Path(part.file).suffix.lower()}"
+            shutil.copyfile(catalogue.base_dir / part.file, folder / copied)
+            part = part.model_copy(update={"file": copied})
+        parts.append(part)
+    return write_catalogue(Catalogue(tuple(parts), folder, catalogue.source), folder / file_name, header)
 
 
 def relocated(catalogue: Catalogue, base_dir: Path) -> Catalogue:

@@ -28,7 +28,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -44,6 +44,9 @@ from sygrid.readers.yolo_seg import SPLITS, open_yolo_seg, read_yolo_item
 from sygrid.train.detector.data import IMAGE_SUFFIXES, read_rgb
 from sygrid.writers import DatasetWriter, create_writer
 
+if TYPE_CHECKING:
+    from sygrid.catalogue import Catalogue
+
 log = logging.getLogger(__name__)
 
 FORMATS = ("bop", "coco", "yolo")
@@ -58,7 +61,9 @@ class ConvertOptions:
     ``box_tolerance_px``: largest accepted difference between a stored box's edge and its mask's. ``depth_scale_mm``:
     millimetres per unit of 16-bit depth PNGs (None: 16-bit depth is refused). ``bop_models``: a BOP ``models/``
     folder with the meshes of the output obj_ids (needed for the bop format). ``depth``: False reads no depth.
-    ``force``: replace a non-empty ``out``.
+    ``force``: replace a non-empty ``out``. ``catalogue``: the parts catalogue (``sygrid.catalogue``): class names
+    map to its ids (``class_obj_ids``'s ``known``), the output parts take its names, and its meshes serve the bop
+    format.
     """
 
     formats: tuple[str, ...] = FORMATS
@@ -69,6 +74,12 @@ class ConvertOptions:
     bop_models: Path | None = None
     depth: bool = True
     force: bool = False
+    catalogue: Catalogue | None = None
+
+    @property
+    def known(self) -> dict[str, int]:
+        """Class name -> obj_id of the catalogue's parts ({} without a catalogue)."""
+        return {p.name: p.id for p in self.catalogue.parts} if self.catalogue is not None else {}
 
     def __post_init__(self) -> None:
         unknown = [f for f in self.formats if f not in FORMATS]
@@ -142,7 +153,7 @@ def convert_sygrid_pickle(
     entries = pickle_entries(pickle_path)
     source_ids = _pickle_obj_ids(entries)
     target = dict(zip(source_ids, class_obj_ids([None] * len(source_ids), str(pickle_path), options.id_map,
-                                                own_ids=source_ids), strict=True))  # fmt: skip
+                                                own_ids=source_ids, known=options.known), strict=True))  # fmt: skip
     models = _output_models(target, {}, options)
     report = ConvertReport(str(pickle_path), options.formats, _classes(target, models))
     with _fresh_folder(Path(out), options.force) as tmp:
@@ -181,7 +192,7 @@ def convert_yolo_seg(
             "choose --formats coco,yolo"
         )
     src = open_yolo_seg(source, names, options.split)
-    ids = class_obj_ids(src.names, str(src.where), options.id_map)
+    ids = class_obj_ids(src.names, str(src.where), options.id_map, known=options.known)
     target = dict(zip(ids, ids, strict=True))
     models = _output_models(target, dict(zip(ids, src.names, strict=True)), options)
     report = ConvertReport(str(src.where), options.formats, _classes(target, models, src.names))
@@ -287,9 +298,14 @@ def _first_dir(folder: Path, names: Sequence[str]) -> Path:
 
 
 def _output_models(target: dict[int, int], names: dict[int, str], options: ConvertOptions) -> list[ObjectModel]:
-    """The writers' models of the output obj_ids: from ``options.bop_models`` when the bop format is written
-    (meshes needed), else name-only placeholders (an empty mesh: the COCO and YOLO writers use ids and names)."""
+    """The writers' models of the output obj_ids: the catalogue's parts where ``options.catalogue`` has every one;
+    else from ``options.bop_models`` when the bop format is written (meshes needed), else name-only placeholders (an
+    empty mesh: the COCO and YOLO writers use ids and names). The catalogue's names win over the labels'."""
     obj_ids = sorted(set(target.values()))
+    in_catalogue = {v: k for k, v in options.known.items()}
+    if options.catalogue is not None and all(i in in_catalogue for i in obj_ids):
+        return [options.catalogue.model(in_catalogue[i]) for i in obj_ids]
+    names = {**names, **{i: n for i, n in in_catalogue.items() if i in obj_ids}}
     if "bop" in options.formats:
         if options.bop_models is None:
             raise ConfigError(

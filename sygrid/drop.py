@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -59,21 +60,33 @@ def resolve_object(spec: ObjectSpec, base_dir: Path, catalogue: Catalogue | None
 
 
 def resolve_objects(scene: SceneSpec, base_dir: Path) -> list[ObjectModel]:
-    """The scene's models, one per entry: the one place a scene's parts (and its catalogue, relative to
-    ``base_dir``, the scene file's folder) are resolved. Raises ConfigError for an unknown catalogue part or two
+    """The scene's models, one per entry (``resolve_parts`` of its objects and catalogue; ``base_dir``: the scene
+    file's folder)."""
+    return resolve_parts(scene.objects, scene.catalogue, Path(base_dir), f"scene {scene.name!r}")
+
+
+def resolve_parts(
+    objects: Sequence[ObjectSpec], catalogue: str | None, base_dir: Path, where: str
+) -> list[ObjectModel]:
+    """The models of object entries (a scene's, a model folder manifest's), one per entry: the one place where parts
+    and their catalogue (a path relative to ``base_dir``, the folder of the file that names it) are resolved.
+    Raises ConfigError, prefixed with ``where``, for an unreadable catalogue, an unknown catalogue part or two
     different parts with one obj_id."""
-    catalogue = load_catalogue(Path(base_dir) / scene.catalogue) if scene.catalogue is not None else None
+    try:
+        parts = load_catalogue(Path(base_dir) / catalogue) if catalogue is not None else None
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: catalogue: {exc}") from None
     models = []
-    for k, spec in enumerate(scene.objects):
+    for k, spec in enumerate(objects):
         try:
-            models.append(resolve_object(spec, Path(base_dir), catalogue))
+            models.append(resolve_object(spec, Path(base_dir), parts))
         except ConfigError as exc:
-            raise ConfigError(f"scene {scene.name!r}: objects[{k}]: {exc}") from None
+            raise ConfigError(f"{where}: objects[{k}]: {exc}") from None
     seen: dict[int, str] = {}
     for k, model in enumerate(models):
         if seen.setdefault(model.obj_id, model.name) != model.name:
             raise ConfigError(
-                f"scene {scene.name!r}: objects[{k}] ({model.name}) has obj_id {model.obj_id}, already taken by "
+                f"{where}: objects[{k}] ({model.name}) has obj_id {model.obj_id}, already taken by "
                 f"{seen[model.obj_id]!r}: every part needs its own obj_id"
             )
     return models

@@ -1,5 +1,6 @@
 """Class -> BOP obj_id: the explicit id map of ``sygrid convert`` and ``sygrid train detector`` (``--id-map FILE``),
-and the one function that decides each class's obj_id.
+and the one function that decides each class's obj_id (a parts catalogue, ``--catalogue FILE``, ties its part names
+to ids through the ``known`` hook).
 
 An id map file is a JSON object ``{key: obj_id}``: a key is a class name (``"clamp"``) or a class index / a label
 file's own id written as a string (``"0"``, ``"12"``); an obj_id is an integer >= 1. Example::
@@ -42,7 +43,7 @@ def class_obj_ids(
 
     1. ``id_map`` by the class's name, else by its own id (``own_ids[i]``) or, without own ids, its index;
     2. ``own_ids[i]``: labels that carry BOP obj_ids themselves (the SyGRID pickle);
-    3. ``known[name]``: names another source ties to ids (a COCO file's categories);
+    3. ``known[name]``: names another source ties to ids (a parts catalogue, a COCO file's categories);
     4. the built-in part of that name (``sygrid.objects.parts``).
 
     Raises:
@@ -73,7 +74,8 @@ def class_obj_ids(
     if missing:
         raise ConfigError(
             f"{where}: no obj_id for classes {', '.join(missing)} (index and name); they are not built-in parts: "
-            "pass --id-map FILE, a JSON object {class name or index: obj_id}"
+            "pass --catalogue FILE (the parts catalogue naming them) or --id-map FILE, a JSON object {class name or "
+            "index: obj_id}"
         )
     found = [int(i) for i in ids if i is not None]
     seen: dict[int, int] = {}

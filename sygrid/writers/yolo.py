@@ -8,7 +8,9 @@ Layout under ``root``::
 
 ``class`` is the index of the instance's ``obj_id`` in the sorted list of the writer's model ids. Coordinates are
 normalised by the image size (``x / width``, ``y / height``). A visible mask split by an occluder becomes one
-polygon through zero-width bridges (``sygrid.annotations.merge_polygons``), as the SyGRID labels did.
+polygon through zero-width bridges (``sygrid.annotations.merge_polygons``), as the SyGRID labels did, and so do its
+holes (a washer's, a strap's loop), bridged in as outlines running the other way round
+(``sygrid.annotations.mask_to_polygon``): the filled polygon leaves them out.
 """
 
 from __future__ import annotations

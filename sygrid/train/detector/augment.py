@@ -4,7 +4,9 @@ Augmentation warps an image and its instance-id map (``sygrid.train.detector.dat
 affine (nearest neighbour for the ids), so masks and boxes stay consistent through scaling, rotation, flips,
 translation and mosaic without clipping polygons; boxes and stride-4 mask targets are then read off the warped id
 map. Mask targets are the fraction of each stride-4 cell the instance covers (soft targets: small parts are only a
-few cells wide).
+few cells wide), except where the instance is thinner than a cell (``thin_cells``): there the target is 1, so that
+the decoded mask (coverage resampled bilinearly, threshold 0.5) keeps a strap, a wire or a sheet seen edge on instead
+of losing it.
 
 Scale: images are scaled as the runtime letterbox into the model's input side (``imgsz``) scales them, times a
 random zoom; the training canvas may be smaller than ``imgsz``, which makes it a crop at the runtime's object
@@ -152,6 +154,7 @@ def targets_from_ids(
         cy1, cx1 = -(-y1 // mask_stride), -(-x1 // mask_stride)
         region = ids[cy0 * mask_stride : cy1 * mask_stride, cx0 * mask_stride : cx1 * mask_stride] == k + 1
         cover = region.reshape(cy1 - cy0, mask_stride, cx1 - cx0, mask_stride).mean(axis=(1, 3), dtype=np.float32)
+        cover[thin_cells(cover)] = 1.0
         mask = np.zeros((mh, mw), dtype=np.float32)
         mask[cy0:cy1, cx0:cx1] = cover
         keep_cls.append(int(classes[k]))
@@ -160,6 +163,16 @@ def targets_from_ids(
     if not keep_cls:
         return np.zeros(0, np.int64), np.zeros((0, 4), np.float32), np.zeros((0, mh, mw), np.float32)
     return np.asarray(keep_cls, np.int64), np.asarray(boxes, np.float32), np.stack(masks)
+
+
+def thin_cells(cover: np.ndarray) -> np.ndarray:
+    """The cells where an instance is thinner than a cell: covered less than half, but no less than by any of its
+    eight neighbours (a ridge of the coverage ``cover``, (h, w) in [0, 1], zero outside the instance's box). A part's
+    edge is never one (the cell inside it is covered more); a strap or a wire one pixel wide, or a part inside one
+    cell, always is. Where the coverage is the target, such a part has no cell above 0.5 and its decoded mask would
+    be empty. Returns (h, w) bool."""
+    neighbours = ndimage.maximum_filter(cover, size=3, mode="constant", cval=0.0)
+    return (cover > 0) & (cover < 0.5) & (cover >= neighbours)
 
 
 def train_example(

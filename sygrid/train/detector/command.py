@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 from dataclasses import fields
+from pathlib import Path
 
 from sygrid.train.detector.config import MODEL_SIZES, PROTO_STRIDES, TrainConfig
 from sygrid.train.device_choice import DEVICE_CHOICES
@@ -66,7 +67,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--labels", default=DEFAULTS["labels"], choices=("auto", "coco", "yolo"), help="where masks come from"
     )
-    parser.add_argument(
+    ids = parser.add_mutually_exclusive_group()
+    ids.add_argument(
+        "--catalogue",
+        default=None,
+        help="parts catalogue (.toml/.json) the dataset was made from: the classes' ids by name, checked against "
+        "the dataset's (default: the ids the dataset itself records)",
+    )
+    ids.add_argument(
         "--id-map",
         default=None,
         help="JSON file: class name or index -> obj_id, for classes that are not built-in "
@@ -111,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
             max_iters=args.max_iters,
             labels=args.labels,
             id_map=load_id_map(args.id_map) if args.id_map else None,
+            catalogue=str(Path(args.catalogue).resolve()) if args.catalogue else None,
             val_every=args.val_every,
             augment=augment,
             resume=args.resume,

@@ -76,8 +76,7 @@ class TrainConfig:
         p2: a stride-4 detection level (``model.ModelConfig.p2``); proto_stride: the mask prototypes' stride, 4 or 2.
         device: ``"auto"`` (CUDA when torch sees it), ``"cpu"`` or ``"cuda"`` (``sygrid.train.device``).
         seed: weights initialisation, data order and augmentation.
-        threads: torch intra-op threads. On the shared 2-core machines of this project one thread trained as fast as
-            two or faster (1.0 s vs 1.3 s per iteration): a second thread mostly waits for a core.
+        threads: torch intra-op threads (on a shared 2-core machine a second thread mostly waits for a core).
         max_iters: at most this many iterations per epoch (smoke runs, quick looks); None for whole epochs.
         lr: peak AdamW learning rate; ``lr_final``: the cosine's end as a fraction of it.
         weight_decay: AdamW decoupled weight decay on convolution weights (not on BatchNorm or biases).
@@ -87,6 +86,8 @@ class TrainConfig:
         labels: ``"auto"``, ``"coco"`` or ``"yolo"`` (see ``data.open_dataset``).
         obj_ids: BOP obj_id per class (None: from the dataset).
         id_map: class name or index -> obj_id, for a dataset whose classes nothing else maps (``sygrid.id_map``).
+        catalogue: a parts catalogue file (``sygrid.catalogue``): the classes' ids by name, checked against the
+            dataset's (``data.catalogue_class_ids``); recorded in the log for ``sygrid models pack``.
         val_every: validate every this many epochs (and always after the last).
         channels_last: NHWC tensors (oneDNN's preferred CPU layout).
         augment: overrides of ``AugmentConfig`` fields.
@@ -123,6 +124,7 @@ class TrainConfig:
     labels: str = "auto"
     obj_ids: tuple[int, ...] | None = None
     id_map: dict[str, int] | None = None
+    catalogue: str | None = None
     val_every: int = 1
     channels_last: bool = True
     augment: dict = field(default_factory=dict)

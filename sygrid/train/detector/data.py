@@ -3,8 +3,8 @@
 Reads the YOLO-seg layout that ``sygrid generate`` writes (``DIR/yolo/data.yaml``, ``images/{train,val}``,
 ``labels/{train,val}`` with normalised polygons). Where the dataset also has its COCO annotations
 (``DIR/coco/annotations/instances_<split>.json``, RLE of the visible masks, as ``sygrid generate`` writes them) the
-masks come from there by default: a YOLO polygon is the outer contour only, so the hole of a nut, a washer or a
-flange is filled in it, while the COCO masks (and the metrics) keep the hole.
+masks come from there by default: they are the exact pixels, where a polygon is a traced outline (holes are kept
+through zero-width bridges, ``sygrid.annotations.mask_to_polygon``, but a one-pixel part becomes a point).
 
 Each image's instances become one instance-id map (0 background, ``k + 1`` instance ``k``) at the image's
 resolution, which ``sygrid.train.detector.augment`` warps together with the image.
@@ -18,6 +18,7 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -26,6 +27,9 @@ from pycocotools import mask as mask_utils
 from sygrid.annotations import polygon_to_mask
 from sygrid.errors import ConfigError, SygridError
 from sygrid.id_map import class_obj_ids
+
+if TYPE_CHECKING:
+    from sygrid.catalogue import Catalogue
 
 log = logging.getLogger(__name__)
 
@@ -124,16 +128,20 @@ def open_dataset(
     obj_ids: Sequence[int] | None = None,
     splits: Sequence[str] = ("train", "val"),
     id_map: Mapping[str, int] | None = None,
+    catalogue: Catalogue | None = None,
 ) -> DetectionDataset:
     """Opens the dataset at ``data_dir`` (a ``sygrid generate`` folder with ``yolo/data.yaml``, a YOLO folder with
     ``data.yaml``, or the ``data.yaml`` itself) and reads every label of ``splits``.
 
     Args:
         labels: ``"coco"`` (masks from ``DIR/coco``), ``"yolo"`` (polygons) or ``"auto"`` (coco where present).
-        obj_ids: BOP obj_id of each class; None: ``id_map`` where given, else ``DIR/bop/models/models_info.json``
-            (class index = position in the sorted ids, as ``sygrid generate`` numbers classes), else by class name
-            from the COCO categories (``DIR/coco``), else from the built-in part names (``sygrid.id_map``).
+        obj_ids: BOP obj_id of each class; None: ``catalogue`` where given, else ``id_map`` where given, else
+            ``DIR/bop/models/models_info.json`` (class index = position in the sorted ids, as ``sygrid generate``
+            numbers classes), else by class name from the COCO categories (``DIR/coco``), else from the built-in part
+            names (``sygrid.id_map``).
         id_map: class name or index -> obj_id (``sygrid.id_map.load_id_map``), for classes no other source names.
+        catalogue: the parts catalogue the dataset was made from: every class must be one of its parts (by name),
+            and takes its id; where the dataset has ``bop/models`` too, their ids must be the same.
 
     Raises:
         DetectorDataError: a missing file or folder, a malformed ``data.yaml`` or label, or classes that cannot be
@@ -148,6 +156,8 @@ def open_dataset(
     names = spec["names"]
     root = yaml_path.parent / spec["path"] if spec.get("path") else yaml_path.parent
     dataset_dir = yaml_path.parent.parent if yaml_path.parent.name == "yolo" else None
+    if catalogue is not None and obj_ids is None:
+        obj_ids = catalogue_class_ids(names, catalogue, yaml_path, dataset_dir)
     ids = _class_obj_ids(names, obj_ids, id_map, dataset_dir, yaml_path, splits)
     images: dict[str, list[Path]] = {}
     for split in splits:
@@ -212,6 +222,29 @@ def _class_obj_ids(
         return class_obj_ids(names, str(yaml_path), id_map, known=_coco_category_ids(dataset_dir, splits))
     except ConfigError as err:
         raise DetectorDataError(str(err)) from err
+
+
+def catalogue_class_ids(
+    names: Sequence[str], catalogue: Catalogue, yaml_path: Path, dataset_dir: Path | None = None
+) -> list[int]:
+    """The catalogue's id of each class (by name). Raises DetectorDataError for a class that is no part of the
+    catalogue, or a dataset whose ``bop/models`` hold other ids (the dataset was made from another catalogue)."""
+    unknown = [n for n in names if n not in catalogue.names]
+    if unknown:
+        raise DetectorDataError(
+            f"{yaml_path}: classes {unknown} are not parts of the catalogue {catalogue.source} (its parts: "
+            f"{', '.join(catalogue.names)})"
+        )
+    ids = [catalogue.part(n).id for n in names]
+    info = dataset_dir / "bop" / "models" / "models_info.json" if dataset_dir else None
+    if info is not None and info.is_file():
+        have = sorted(int(k) for k in json.loads(info.read_text()))
+        if have != sorted(ids) or ids != sorted(ids):
+            raise DetectorDataError(
+                f"{info}: the dataset's obj_ids {have} (classes {list(names)} in that order) are not the catalogue "
+                f"{catalogue.source}'s ids of those classes {ids}: the dataset was made from another catalogue"
+            )
+    return ids
 
 
 def _coco_category_ids(dataset_dir: Path | None, splits: Sequence[str]) -> dict[str, int]:

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from sygrid.catalogue import load_catalogue
 from sygrid.errors import SygridError
 from sygrid.fileio import write_bytes_atomic, write_json_atomic
 from sygrid.metrics import DetectionMetrics
@@ -168,8 +169,9 @@ class _Trainer:
         except ValueError as err:
             raise TrainError(f"--device: {err}") from err
         self.dataset: DetectionDataset = open_dataset(
-            cfg.data, labels=cfg.labels, obj_ids=cfg.obj_ids, id_map=cfg.id_map
-        )
+            cfg.data, labels=cfg.labels, obj_ids=cfg.obj_ids, id_map=cfg.id_map,
+            catalogue=load_catalogue(cfg.catalogue) if cfg.catalogue else None,
+        )  # fmt: skip
         self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz,
                                      p2=cfg.p2, proto_stride=cfg.proto_stride)  # fmt: skip
         torch.manual_seed(cfg.seed)

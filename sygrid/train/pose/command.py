@@ -57,24 +57,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="least visible fraction of a trained instance (%(default)s)",
     )
     parser.add_argument(
-        "--objects", nargs="+", default=None, help="obj_ids or built-in part names to train for (default: all)"
+        "--catalogue",
+        type=Path,
+        default=None,
+        help="parts catalogue (.toml/.json) the dataset was made from: the parts' names and symmetries come from it, "
+        "checked against the dataset's models (default: the dataset's bop/models)",
     )
+    parser.add_argument(
+        "--objects", nargs="+", default=None,
+        help="obj_ids, built-in part names or the catalogue's part names to train for (default: all)",
+    )  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _obj_ids(values: list[str] | None) -> tuple[int, ...] | None:
+def _obj_ids(values: list[str] | None, catalogue: Path | None) -> tuple[int, ...] | None:
     if values is None:
         return None
+    from sygrid.catalogue import load_catalogue
+
+    names = {p.name: p.id for p in load_catalogue(catalogue).parts} if catalogue is not None else {}
     ids = []
     for value in values:
         if value.isdigit():
             ids.append(int(value))
             continue
+        if value in names:
+            ids.append(names[value])
+            continue
         from sygrid.objects.parts import BUILTIN_PARTS, builtin_part
 
         if value not in BUILTIN_PARTS:
             raise ConfigError(
-                f"--objects: {value!r} is neither an obj_id nor a built-in part ({', '.join(BUILTIN_PARTS)})"
+                f"--objects: {value!r} is neither an obj_id, a part of the catalogue nor a built-in part "
+                f"({', '.join([*names, *BUILTIN_PARTS])})"
             )
         ids.append(builtin_part(value).obj_id)
     return tuple(sorted(set(ids)))
@@ -96,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
         threads=args.threads,
         device=args.device,
         max_iters=args.max_iters,
-        objects=_obj_ids(args.objects),
+        objects=_obj_ids(args.objects, args.catalogue),
+        catalogue=args.catalogue.resolve() if args.catalogue is not None else None,
         min_visib_fract=args.min_visib,
         val_max=args.val_max,
         progress=not args.no_progress,

@@ -86,6 +86,7 @@ class TrainConfig:
     device: str = "auto"
     max_iters: int | None = None
     objects: tuple[int, ...] | None = None
+    catalogue: Path | None = None  # the parts catalogue the dataset was made from: the parts' names and symmetries
     min_visib_fract: float = 0.2
     val_max: int = 500
     checkpoint_every: int = 200
@@ -125,5 +126,6 @@ class TrainConfig:
     def as_json(self) -> dict:
         d = asdict(self)
         d["data_dir"], d["out_dir"] = str(self.data_dir), str(self.out_dir)
+        d["catalogue"] = None if self.catalogue is None else str(self.catalogue)
         d["objects"] = None if self.objects is None else list(self.objects)
         return d

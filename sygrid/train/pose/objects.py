@@ -1,5 +1,6 @@
-"""The parts a pose model is trained for: models read from a BOP ``models/`` folder, and the per-part tables the
-losses need (bounds, diameter, symmetry transforms, surface regions, points), in class order.
+"""The parts a pose model is trained for: models read from a BOP ``models/`` folder (or taken from the parts catalogue
+the dataset was made from, for their names), and the per-part tables the losses need (bounds, diameter, symmetry
+transforms, surface regions, points), in class order.
 
 Class index = position of the obj_id in the sorted list of trained obj_ids (the detector's convention).
 """
@@ -7,6 +8,7 @@ Class index = position of the obj_id in the sorted list of trained obj_ids (the 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from sygrid.catalogue import Catalogue
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 from sygrid.objects.cad import load_cad
@@ -53,6 +56,42 @@ def load_bop_models(models_dir: str | Path, obj_ids: Sequence[int] | None = None
             symmetries_continuous=continuous,
             verify_symmetries=False,  # written by our own BOP writer from checked models
         )
+    return models
+
+
+DIAMETER_TOLERANCE = 0.01  # a catalogue part and the dataset's model of its id differ by less: the same part
+
+
+def catalogue_models(
+    catalogue: Catalogue, models_dir: str | Path, obj_ids: Sequence[int] | None = None
+) -> dict[int, ObjectModel]:
+    """The catalogue's models of the dataset's parts (``models_info.json``'s ids; ``obj_ids`` None: all of them), so
+    the pose model carries the catalogue's names and symmetries. Raises ConfigError for a dataset id that is no part
+    of the catalogue, or a part whose diameter differs from the dataset's model of that id by more than
+    ``DIAMETER_TOLERANCE`` (the dataset was made from another catalogue)."""
+    info_path = Path(models_dir) / "models_info.json"
+    if not info_path.is_file():
+        raise ConfigError(f"{info_path}: missing; expected the BOP models folder written by 'sygrid generate'")
+    info = read_json(info_path, "BOP models info")
+    available = sorted(int(k) for k in info)
+    wanted = available if obj_ids is None else sorted({int(i) for i in obj_ids})
+    by_id = {p.id: p.name for p in catalogue.parts}
+    missing = [i for i in wanted if i not in by_id or i not in available]
+    if missing:
+        raise ConfigError(
+            f"{info_path}: obj_ids {missing} are not in both the dataset ({available}) and the catalogue "
+            f"{catalogue.source} ({', '.join(f'{i} {n}' for i, n in sorted(by_id.items()))})"
+        )
+    models = {}
+    for obj_id in wanted:
+        model = catalogue.model(by_id[obj_id])
+        diameter_mm = float(info[str(obj_id)].get("diameter", math.nan))
+        if not abs(model.diameter_m * MM_PER_M - diameter_mm) <= DIAMETER_TOLERANCE * diameter_mm:
+            raise ConfigError(
+                f"{info_path}[{obj_id}]: diameter {diameter_mm:.2f} mm, the catalogue's part {model.name!r} "
+                f"{model.diameter_m * MM_PER_M:.2f} mm: the dataset was made from another catalogue"
+            )
+        models[obj_id] = model
     return models
 
 

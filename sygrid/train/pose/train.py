@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from sygrid.catalogue import load_catalogue
 from sygrid.errors import ConfigError
 from sygrid.fileio import write_bytes_atomic, write_json_atomic
 from sygrid.metrics import pose_errors, pose_metrics_table
@@ -34,7 +35,7 @@ from sygrid.train.pose.data import CoordinateRenderer, InstanceCrop, SampleConfi
 from sygrid.train.pose.export import export_onnx
 from sygrid.train.pose.losses import PoseLoss
 from sygrid.train.pose.model import PoseNet, PoseNetForExport
-from sygrid.train.pose.objects import ObjectTables, build_tables, load_bop_models
+from sygrid.train.pose.objects import ObjectTables, build_tables, catalogue_models, load_bop_models
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +156,10 @@ def train(config: TrainConfig, resume: bool = False) -> TrainResult:
     if not bop.is_dir():
         raise ConfigError(f"{config.data_dir}: no bop/ folder; expected a dataset written by 'sygrid generate'")
 
-    models = load_bop_models(bop / "models", config.objects)
+    if config.catalogue is not None:
+        models = catalogue_models(load_catalogue(config.catalogue), bop / "models", config.objects)
+    else:
+        models = load_bop_models(bop / "models", config.objects)
     tables = build_tables(models, config.num_regions, sym_steps=config.sym_steps, seed=config.seed)
     sample_cfg = SampleConfig(input_size=config.input_size, output_size=config.output_size)
     train_crops = index_split(
