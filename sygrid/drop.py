@@ -109,14 +109,29 @@ def sample_instances(scene: SceneSpec, rng: np.random.Generator) -> list[Instanc
     return instances
 
 
-def drop_scene(scene: SceneSpec, seed: int, base_dir: Path | str = ".") -> DropResult:
-    """Resolves the scene's parts, draws the instance counts and drops them: the same seed gives the same poses."""
+def drop_scene(
+    scene: SceneSpec,
+    seed: int,
+    base_dir: Path | str = ".",
+    clutter: Sequence[tuple[ObjectModel, CollisionModel]] = (),
+) -> DropResult:
+    """Resolves the scene's parts, draws the instance counts and drops them: the same seed gives the same poses.
+
+    ``clutter``: unlabelled pieces (model, collision model) dropped with the parts, one instance each; their
+    models follow the scene's in ``DropResult.models`` and their instances follow the parts' (so the first
+    ``len(instances) - len(clutter)`` instances are the scene's parts). Without clutter the drop is the same as
+    before it existed.
+    """
     rng = np.random.default_rng(seed)
     models = resolve_objects(scene, Path(base_dir))
     instances = sample_instances(scene, rng)
     if not instances:
         raise ConfigError(f"scene '{scene.name}': every object count is 0, nothing to drop")
     coll = collision_models(models, scene.physics.collision_tier)
+    for model, collision in clutter:
+        instances.append(Instance(model_index=len(models), inst_id=len(instances)))
+        models.append(model)
+        coll.append(collision)
     return simulate_drop(models, coll, instances, scene.container, scene.physics, rng)
 
 

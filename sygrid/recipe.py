@@ -12,6 +12,12 @@ of the simulated cell's camera. ``sensor`` names the RGB-D sensor model the item
 the sensed RGB and depth, and the exact depth beside it, ``depth_true/`` in BOP). Errors name the file and the
 field, as the scene's do.
 
+``randomisation`` (``sygrid.randomise.spec``) is the recipe's domain randomisation: knobs for surfaces, part
+finishes, lighting, distractors, camera effects and geometry, and the families they may draw from, all off by
+default. It lives in the recipe, not the scene: a scene describes a cell (its parts, bin and camera), and one scene
+serves a training recipe and a test recipe that differ in what they randomise and in which families they hold
+apart. A recipe whose knobs are all off has the hash (``Recipe.sha256``) it had before the block existed.
+
 The quality gate (``sygrid.dataset_item``): an item is written only when its pile is within the drop's stability
 bounds (the scene's ``physics``) and at least ``min_visible_instances`` instances are visible; otherwise it is drawn
 again, at most ``max_redraws`` times, and then recorded as failed.
@@ -28,6 +34,7 @@ from pydantic import BaseModel, Field, Strict, ValidationError, field_validator
 
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
+from sygrid.randomise.spec import RandomisationSpec
 from sygrid.scene import (
     STRICT_NUMBERS,
     Bool,
@@ -59,6 +66,7 @@ class RecipeSpec(BaseModel):
     max_redraws: Int = Field(default=5, ge=0, le=50)
     # Fewer visible instances (at least one visible pixel each) than this fail the gate; 0 accepts empty items.
     min_visible_instances: Int = Field(default=1, ge=0)
+    randomisation: RandomisationSpec = RandomisationSpec()
 
     @field_validator("formats")
     @classmethod
@@ -86,8 +94,13 @@ class Recipe:
         self.base_dir = base_dir
 
     def to_json(self) -> dict:
-        """The recipe with the scene inlined: what a dataset records, so it can be regenerated without the files."""
-        return {**self.spec.model_dump(mode="json"), "scene": scene_to_json(self.scene)}
+        """The recipe with the scene inlined: what a dataset records, so it can be regenerated without the files.
+        ``randomisation`` is left out when every knob is off and no family is named (the items are then the
+        same as without the block, and so is the hash)."""
+        data = {**self.spec.model_dump(mode="json"), "scene": scene_to_json(self.scene)}
+        if self.spec.randomisation == RandomisationSpec():
+            del data["randomisation"]
+        return data
 
     def sha256(self) -> str:
         return hashlib.sha256(json.dumps(self.to_json(), sort_keys=True).encode()).hexdigest()
@@ -115,8 +128,17 @@ def parse_recipe(data: Any, source: str, base_dir: Path) -> Recipe:
         scene_path = base_dir / spec.scene
         if not scene_path.is_file():
             raise ConfigError(f"{source}: scene: no scene file at {scene_path}")
-        return Recipe(spec, load_scene(scene_path), scene_path.parent)
-    return Recipe(spec, parse_scene(spec.scene, f"{source}: scene"), base_dir)
+        recipe = Recipe(spec, load_scene(scene_path), scene_path.parent)
+    else:
+        recipe = Recipe(spec, parse_scene(spec.scene, f"{source}: scene"), base_dir)
+    labelled = {o.builtin for o in recipe.scene.objects if o.builtin is not None}
+    clash = sorted(labelled & set(spec.randomisation.distractors.builtin_parts))
+    if clash:
+        raise ConfigError(
+            f"{source}: randomisation.distractors.builtin_parts: {clash} are labelled parts of the scene; an "
+            "unlabelled copy of a labelled part would teach a detector to miss it"
+        )
+    return recipe
 
 
 def load_recipe(path: str | Path) -> Recipe:

@@ -126,8 +126,8 @@ def test_redraws_are_deterministic_and_recorded(tmp_path, monkeypatch, caplog):
     }
     real_drop = dataset_item.drop_scene
 
-    def drop(scene, drop_seed, base_dir):
-        result = real_drop(scene, drop_seed, base_dir)
+    def drop(scene, drop_seed, base_dir, clutter=()):
+        result = real_drop(scene, drop_seed, base_dir, clutter)
         if drop_seed in first_seeds:
             result.report = dataclasses.replace(result.report, settled=False)
         return result

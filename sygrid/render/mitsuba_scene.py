@@ -19,16 +19,21 @@ environment map, at infinity, is not stretched).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from sygrid.camera import CameraIntrinsics
 from sygrid.mjspec import open_box_parts
 from sygrid.objects.model import ObjectModel
 from sygrid.physics import Instance
+from sygrid.randomise.clutter import ClutterPiece
+from sygrid.randomise.draws import FinishDraw, ItemDraws
 from sygrid.render.materials import floor_bsdf, material_bsdf
+from sygrid.render.randomised import box_projected_uv, finish_bsdf, finish_needs_uv, surface_bsdf
 from sygrid.scene import ContainerSpec, EnvironmentSpec
 
 _CV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -94,8 +99,11 @@ def _warped(warp: np.ndarray | None, points_m: np.ndarray) -> np.ndarray:
     return points_m if warp is None else points_m @ warp[:3, :3].T + warp[:3, 3]
 
 
-def make_mesh(name: str, vertices_m: np.ndarray, faces: np.ndarray, bsdf: object) -> object:
-    """A Mitsuba mesh from (n, 3) world-frame vertices and (m, 3) faces, with a loaded BSDF object."""
+def make_mesh(
+    name: str, vertices_m: np.ndarray, faces: np.ndarray, bsdf: object, uv: np.ndarray | None = None
+) -> object:
+    """A Mitsuba mesh from (n, 3) world-frame vertices and (m, 3) faces, with a loaded BSDF object and, optionally,
+    (n, 2) texture coordinates."""
     import drjit as dr
     import mitsuba as mi
 
@@ -103,21 +111,21 @@ def make_mesh(name: str, vertices_m: np.ndarray, faces: np.ndarray, bsdf: object
     F = np.ascontiguousarray(faces, dtype=np.uint32)
     props = mi.Properties()
     props["bsdf"] = bsdf
-    mesh = mi.Mesh(name, len(V), len(F), props=props)
+    mesh = mi.Mesh(name, len(V), len(F), props=props, has_vertex_texcoords=uv is not None)
     params = mi.traverse(mesh)
-    if dr.is_jit_v(mi.Float):
-        params["vertex_positions"] = mi.Float(V.ravel())
-        params["faces"] = mi.UInt32(F.ravel())
-    else:
-        params["vertex_positions"] = V.ravel()
-        params["faces"] = F.ravel()
+    arrays = {"vertex_positions": V, "faces": F}
+    if uv is not None:
+        arrays["vertex_texcoords"] = np.ascontiguousarray(uv, dtype=np.float32)
+    for key, array in arrays.items():
+        if dr.is_jit_v(mi.Float):
+            params[key] = (mi.UInt32 if key == "faces" else mi.Float)(array.ravel())
+        else:
+            params[key] = array.ravel()
     params.update()
     return mesh
 
 
 def _box_mesh(name: str, centre: np.ndarray, half: np.ndarray, bsdf: object, warp: np.ndarray | None) -> object:
-    import trimesh
-
     box = trimesh.creation.box(extents=2.0 * np.asarray(half))
     return make_mesh(name, _warped(warp, box.vertices + np.asarray(centre)), box.faces, bsdf)
 
@@ -129,11 +137,16 @@ def build_shapes(
     container: ContainerSpec,
     rng: np.random.Generator,
     warp: np.ndarray | None = None,
+    draws: ItemDraws | None = None,
+    clutter: Sequence[ClutterPiece] = (),
 ) -> MitsubaShapes:
-    """Floor, the bin (5 boxes, frame = world origin at the inner floor centre) and one mesh per part instance;
-    ``warp``: ``anamorphic_warp``'s stretch of every vertex, or None.
+    """Floor, the bin (5 boxes, frame = world origin at the inner floor centre), one mesh per part instance and one
+    per distractor (``clutter``, named ``clutter_{k:04d}``); ``warp``: ``anamorphic_warp``'s stretch of every
+    vertex, or None.
 
-    Materials are drawn from ``rng`` once per model (all instances of a part share a finish) and once for the bin.
+    Materials are drawn from ``rng`` once per model (all instances of a part share a finish) and once for the bin,
+    whatever ``draws`` holds (so the renderer's later draws never depend on the randomisation); the randomisation's
+    ``surfaces`` (textured floor and bin) and ``parts`` (one finish per instance) then replace them when drawn.
     """
     import mitsuba as mi
 
@@ -141,24 +154,53 @@ def build_shapes(
         raise ValueError(f"T_world_obj has {len(T_world_obj)} poses for {len(instances)} instances")
     out = MitsubaShapes()
     f = BIN_FLOOR_THICKNESS_M
-    floor = mi.load_dict(floor_bsdf(rng))
-    out.shapes["floor"] = make_mesh(
-        "floor",
-        _warped(warp, np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * FLOOR_HALF_SIZE_M + [0, 0, -f]),
-        np.array([[0, 1, 2], [0, 2, 3]]),
-        floor,
-    )
-    bin_bsdf = mi.load_dict(material_bsdf(container.material, rng))
+    floor_dict, bin_dict = floor_bsdf(rng), material_bsdf(container.material, rng)
+    model_dicts = [material_bsdf(m.material, rng) for m in models]
+    surfaces = draws.surfaces if draws is not None else None
+    finishes = draws.parts if draws is not None else None
+    quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * FLOOR_HALF_SIZE_M + [0, 0, -f]
+    quad_faces = np.array([[0, 1, 2], [0, 2, 3]])
+    if surfaces is None:
+        out.shapes["floor"] = make_mesh("floor", _warped(warp, quad), quad_faces, mi.load_dict(floor_dict))
+        bin_bsdf = mi.load_dict(bin_dict)
+    else:
+        V, F, uv = box_projected_uv(quad, quad_faces, surfaces["floor"].tile_m)
+        out.shapes["floor"] = make_mesh("floor", _warped(warp, V), F, mi.load_dict(surface_bsdf(surfaces["floor"])), uv)
+        bin_bsdf = mi.load_dict(surface_bsdf(surfaces["bin"]))
     for part, (centre, half) in open_box_parts(container.inner_size_m, container.wall_thickness_m, f).items():
-        out.shapes[f"bin_{part}"] = _box_mesh(f"bin_{part}", np.array(centre), np.array(half), bin_bsdf, warp)
-    bsdfs = [mi.load_dict(material_bsdf(m.material, rng)) for m in models]
+        name = f"bin_{part}"
+        if surfaces is None:
+            out.shapes[name] = _box_mesh(name, np.array(centre), np.array(half), bin_bsdf, warp)
+        else:
+            box = trimesh.creation.box(extents=2.0 * np.asarray(half))
+            V, F, uv = box_projected_uv(box.vertices + np.asarray(centre), box.faces, surfaces["bin"].tile_m)
+            out.shapes[name] = make_mesh(name, _warped(warp, V), F, bin_bsdf, uv)
+    bsdfs = [mi.load_dict(d) for d in model_dicts] if finishes is None else []
     for k, (inst, T) in enumerate(zip(instances, np.asarray(T_world_obj, dtype=float), strict=True)):
         model = models[inst.model_index]
-        V = _warped(warp, model.mesh.vertices @ T[:3, :3].T + T[:3, 3])
         name = f"part_{k:04d}"
-        out.shapes[name] = make_mesh(name, V, model.mesh.faces, bsdfs[inst.model_index])
+        if finishes is None:
+            V = _warped(warp, model.mesh.vertices @ T[:3, :3].T + T[:3, 3])
+            out.shapes[name] = make_mesh(name, V, model.mesh.faces, bsdfs[inst.model_index])
+        else:
+            out.shapes[name] = _finished_mesh(name, model, T, finishes[k], warp)
         out.part_names.append(name)
+    for k, piece in enumerate(clutter):
+        name = f"clutter_{k:04d}"
+        out.shapes[name] = _finished_mesh(name, piece.model, piece.T_world_obj, piece.finish, warp)
     return out
+
+
+def _finished_mesh(name: str, model: ObjectModel, T: np.ndarray, finish: FinishDraw, warp: np.ndarray | None) -> object:
+    """A mesh of ``model`` at ``T`` with ``finish``; texture coordinates (box-projected in the object frame, one
+    tile per model diameter) when the finish needs them."""
+    import mitsuba as mi
+
+    V, F, uv = model.mesh.vertices, model.mesh.faces, None
+    if finish_needs_uv(finish):
+        V, F, uv = box_projected_uv(V, F, max(model.diameter_m, 1e-3))
+    V = _warped(warp, np.asarray(V) @ T[:3, :3].T + T[:3, 3])
+    return make_mesh(name, V, F, mi.load_dict(finish_bsdf(finish)), uv)
 
 
 def environment_emitters(

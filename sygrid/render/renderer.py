@@ -15,8 +15,12 @@ pinhole intrinsics (``fx != fy``, an off-centre principal point): MuJoCo's camer
 (``sygrid.mjspec.add_camera``), Mitsuba's through the anamorphic warp of ``sygrid.render.mitsuba_scene``. The
 OpenGL backend is ``MUJOCO_GL`` (``egl`` when unset; ``osmesa`` works where EGL does not).
 
-Determinism: Mitsuba's sampler seed and every material/light draw come from ``rng``; the same rng state gives the
-same bytes on the same machine and variant.
+Randomisation (``render_item``'s ``draws`` and ``clutter``): textured floor and bin, a finish per part instance,
+drawn skies and lamps, and distractors that occlude the parts without an id of their own; in raster mode the
+textures, the finishes' flat colours and the lamps.
+
+Determinism: Mitsuba's sampler seed and every material/light draw come from ``rng`` (the randomisation's draws
+carry their own seeds); the same rng state and draws give the same bytes on the same machine and variant.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import importlib
 import logging
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +38,8 @@ import numpy as np
 from sygrid.camera import CameraIntrinsics
 from sygrid.objects.model import ObjectModel
 from sygrid.physics import Instance
+from sygrid.randomise.clutter import ClutterPiece
+from sygrid.randomise.draws import ItemDraws
 from sygrid.render.mitsuba_scene import (
     MitsubaShapes,
     anamorphic_warp,
@@ -41,6 +48,7 @@ from sygrid.render.mitsuba_scene import (
     sensor_dict,
     shape_index_values,
 )
+from sygrid.render.randomised import RASTER_METAL_RGB, finish_rgba, lighting_emitters, surface_texture_u8
 from sygrid.render.variant import choose_variant
 from sygrid.scene import SceneSpec
 
@@ -128,6 +136,8 @@ def render_item(
     variant: str | None = None,
     base_dir: Path | str = ".",
     full_masks: bool = True,
+    draws: ItemDraws | None = None,
+    clutter: Sequence[ClutterPiece] = (),
 ) -> RenderResult:
     """Renders one item of ``scene`` with the parts at ``T_world_obj`` ((n, 4, 4), one per instance).
 
@@ -140,9 +150,16 @@ def render_item(
         variant: a Mitsuba variant to force; None chooses automatically.
         base_dir: folder that relative paths in the scene (environment map) are relative to.
         full_masks: render each instance alone for ``masks_full``; False leaves them equal to the visible masks.
+        draws: the randomisation's draws of the item (``sygrid.randomise.draws``): textured surfaces, finishes per
+            instance, lighting; None (or knobs off) keeps the scene's own look. They replace the renderer's own
+            draws from ``rng`` but never change them (nor the sampler seeds).
+        clutter: distractors to render: they occlude the parts (ids and depth see them) but have no id of their
+            own (0, as the background) and never enter a full mask.
     """
     if scene.render.mode == "raster":
-        return _render_raster(scene, models, instances, T_world_obj, T_world_camera, intrinsics, rng, full_masks)
+        return _render_raster(
+            scene, models, instances, T_world_obj, T_world_camera, intrinsics, rng, full_masks, draws, clutter
+        )
     import mitsuba as mi
 
     t0 = time.perf_counter()
@@ -150,8 +167,10 @@ def render_item(
     used = choose_variant(variant)
     T_world_obj = np.asarray(T_world_obj, dtype=float).reshape(-1, 4, 4)
     warp = anamorphic_warp(T_world_camera, intrinsics)  # None unless fx != fy
-    built: MitsubaShapes = build_shapes(models, instances, T_world_obj, scene.container, rng, warp)
+    built: MitsubaShapes = build_shapes(models, instances, T_world_obj, scene.container, rng, warp, draws, clutter)
     emitters = environment_emitters(scene.environment, rng, base_dir, warp)
+    if draws is not None and draws.lighting is not None:
+        emitters = lighting_emitters(draws.lighting, scene.environment, base_dir, warp)
     seed_rgb, seed_ids = _seed(rng), _seed(rng)
     rs = scene.render
     colour_sensor = sensor_dict(T_world_camera, intrinsics, rs.spp, rs.reconstruction_filter)
@@ -215,10 +234,7 @@ def _oidn(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndar
 # ---------------------------------------------------------------------------------------------- raster mode
 
 _GL_BACKENDS = {"egl": "mujoco.egl", "osmesa": "mujoco.osmesa", "glfw": "mujoco.glfw"}
-_RASTER_RGB = {  # base colours of the materials in raster mode
-    "steel": (0.62, 0.63, 0.65), "zinc": (0.70, 0.72, 0.76), "brass": (0.78, 0.62, 0.30),
-    "aluminium": (0.80, 0.81, 0.83), "painted": None, "plastic": None,
-}  # fmt: skip
+_RASTER_RGB = {**RASTER_METAL_RGB, "painted": None, "plastic": None}  # base colours of the materials in raster mode
 _FAR_AWAY_M = 1000.0
 
 
@@ -226,6 +242,19 @@ def _raster_rgba(material: str, rng: np.random.Generator) -> list[float]:
     base = _RASTER_RGB.get(material)
     rgb = rng.uniform(0.1, 0.9, 3) if base is None else np.clip(np.array(base) * rng.uniform(0.9, 1.1), 0, 1)
     return [*np.asarray(rgb, dtype=float).tolist(), 1.0]
+
+
+def _raster_texture(spec: object, name: str, texture: np.ndarray, repeat_per_m: float) -> str:
+    """Adds a 2D texture (``(n, n, 3)`` uint8 display values) and a material showing it uniformly in space,
+    ``repeat_per_m`` tiles per metre; returns the material's name."""
+    import mujoco
+
+    h, w = texture.shape[:2]
+    tex = spec.add_texture(name=f"{name}_tex", type=mujoco.mjtTexture.mjTEXTURE_2D, width=w, height=h, nchannel=3)
+    tex.data = np.ascontiguousarray(texture, dtype=np.uint8).tobytes()
+    mat = spec.add_material(name=f"{name}_mat", texuniform=True, texrepeat=[repeat_per_m, repeat_per_m])
+    mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = f"{name}_tex"
+    return f"{name}_mat"
 
 
 def _render_raster(
@@ -237,10 +266,14 @@ def _render_raster(
     intrinsics: CameraIntrinsics,
     rng: np.random.Generator,
     full_masks: bool,
+    draws: ItemDraws | None = None,
+    clutter: Sequence[ClutterPiece] = (),
 ) -> RenderResult:
+    """The rasterised item; the randomisation's draws (``render_item``) as textures of the floor and bin, flat
+    colours of the finishes, and lamps (the sky's strength scales the headlight)."""
     import mujoco
 
-    from sygrid.mjspec import add_camera, add_mesh_asset, add_open_box, quat_wxyz
+    from sygrid.mjspec import add_camera, add_mesh_asset, add_open_box, open_box_parts, quat_wxyz
     from sygrid.render.mitsuba_scene import BIN_FLOOR_THICKNESS_M
 
     t0 = time.perf_counter()
@@ -248,6 +281,7 @@ def _render_raster(
     T_world_obj = np.asarray(T_world_obj, dtype=float).reshape(-1, 4, 4)
     if len(T_world_obj) != len(instances):
         raise ValueError(f"T_world_obj has {len(T_world_obj)} poses for {len(instances)} instances")
+    draws = draws or ItemDraws()
     spec = mujoco.MjSpec()
     spec.visual.global_.offwidth, spec.visual.global_.offheight = K.width, K.height
     spec.visual.quality.offsamples = 0
@@ -255,7 +289,7 @@ def _render_raster(
     spec.stat.extent = 1.0
     c = scene.container
     grey = float(rng.uniform(0.15, 0.6))
-    spec.worldbody.add_geom(
+    floor = spec.worldbody.add_geom(
         name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.1], pos=[0, 0, -BIN_FLOOR_THICKNESS_M],
         rgba=[grey, grey, grey, 1.0],
     )  # fmt: skip
@@ -263,20 +297,41 @@ def _render_raster(
         spec.worldbody, "bin", np.eye(4), c.inner_size_m, c.wall_thickness_m, BIN_FLOOR_THICKNESS_M,
         [0.02, 1.0], [0.5, 0.005, 0.0001], tuple(_raster_rgba(c.material, rng)),
     )  # fmt: skip
+    if draws.surfaces is not None:
+        f, b = draws.surfaces["floor"], draws.surfaces["bin"]
+        floor.material = _raster_texture(spec, "floor", surface_texture_u8(f), 1.0 / f.tile_m)
+        floor.rgba = [1.0, 1.0, 1.0, 1.0]
+        bin_material = _raster_texture(spec, "bin", surface_texture_u8(b), 1.0 / b.tile_m)
+        for part in open_box_parts(c.inner_size_m, c.wall_thickness_m, BIN_FLOOR_THICKNESS_M):
+            geom = spec.geom(f"bin_{part}")
+            geom.material, geom.rgba = bin_material, [1.0, 1.0, 1.0, 1.0]
     rgba = [_raster_rgba(m.material, rng) for m in models]
     part_geoms: list[str] = []
     for k, (inst, T) in enumerate(zip(instances, T_world_obj, strict=True)):
         model = models[inst.model_index]
         mesh = add_mesh_asset(spec, f"mesh_{inst.model_index}", model.mesh.vertices, model.mesh.faces)
         body = spec.worldbody.add_body(name=f"part_{k}", pos=T[:3, 3].tolist(), quat=quat_wxyz(T[:3, :3]).tolist())
-        body.add_geom(name=f"part_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh, rgba=rgba[inst.model_index])
+        colour = rgba[inst.model_index] if draws.parts is None else finish_rgba(draws.parts[k])
+        body.add_geom(name=f"part_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh, rgba=colour)
         part_geoms.append(f"part_{k}")
+    for k, piece in enumerate(clutter):
+        mesh = add_mesh_asset(spec, f"clutter_mesh_{k}", piece.model.mesh.vertices, piece.model.mesh.faces)
+        T = np.asarray(piece.T_world_obj, dtype=float)
+        body = spec.worldbody.add_body(name=f"clutter_{k}", pos=T[:3, 3].tolist(), quat=quat_wxyz(T[:3, :3]).tolist())
+        body.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh, rgba=finish_rgba(piece.finish))
     lo, hi = scene.environment.random_lights
-    for i in range(int(rng.integers(lo, hi + 1))):
-        pos = [*rng.uniform(-0.6, 0.6, 2).tolist(), float(rng.uniform(0.7, 1.5))]
+    lamps = []  # (position, diffuse) of each lamp
+    for _ in range(int(rng.integers(lo, hi + 1))):
+        lamps.append(([*rng.uniform(-0.6, 0.6, 2).tolist(), float(rng.uniform(0.7, 1.5))], [0.5] * 3))
+    if draws.lighting is not None:
+        level = draws.lighting.strength
+        spec.visual.headlight.ambient = [0.1 * level] * 3
+        spec.visual.headlight.diffuse = [0.4 * level] * 3
+        lamps = [(list(d.position_m), (0.5 * d.irradiance * np.asarray(d.tint)).tolist()) for d in draws.lighting.lamps]
+    for i, (pos, diffuse) in enumerate(lamps):
         spec.worldbody.add_light(
             name=f"lamp_{i}", pos=pos, dir=(-np.asarray(pos) / np.linalg.norm(pos)).tolist(),
-            diffuse=[0.5 * scene.environment.strength] * 3, castshadow=False,
+            diffuse=(np.asarray(diffuse) * scene.environment.strength).tolist(), castshadow=False,
         )  # fmt: skip
     add_camera(spec.worldbody, "cam", np.asarray(T_world_camera, dtype=float), K)
     mj_model = spec.compile()
@@ -339,7 +394,9 @@ def _render_raster(
         n = len(part_geoms)
         masks = ids_visib[None, :, :] == np.arange(1, n + 1)[:, None, None]
         if full_masks and n:
+            # Every part and distractor is moved away but the one whose full mask is drawn.
             body_ids = [mj_model.body(f"part_{k}").id for k in range(n)]
+            body_ids += [mj_model.body(f"clutter_{k}").id for k in range(len(clutter))]
             pos0 = mj_model.body_pos[body_ids].copy()
             for k in range(n):
                 mj_model.body_pos[body_ids] = pos0 + np.array([0.0, 0.0, _FAR_AWAY_M])
