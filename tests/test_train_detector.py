@@ -364,7 +364,7 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     assert json.loads(meta["imgsz"]) == [128, 128] and meta["stride"] == "32" and meta["task"] == "segment"
     assert json.loads(meta["sygrid_class_obj_ids"]) == [1, 3, 4] == json.loads(meta["obj_ids"])
     output0, output1 = session.run(["output0", "output1"], {"images": np.zeros((1, 3, 96, 128), np.float32)})
-    assert output0.shape == (1, 4 + 3 + 32, 12 * 16 + 6 * 8 + 3 * 4) and output1.shape == (1, 32, 24, 32)
+    assert output0.shape == (1, 4 + 3 + 32, 12 * 16 + 6 * 8 + 3 * 4) and output1.shape == (1, 32, 48, 64)  # stride 2
     assert max(result.export.max_abs_diff[k] for k in ("scores", "coefficients", "protos")) <= 1e-4
     assert result.export.size_bytes < 6_000_000
 
