@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from launch.model_card import replace_card_section
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 
@@ -32,6 +33,7 @@ if TYPE_CHECKING:
     from perception.strategy_eval import StrategyRecord
 
 RESULTS_NAME = "pose_strategies.json"
+CARD_HEADING = "### Pose strategies per part"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -95,7 +97,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
     write_json_atomic(args.models / RESULTS_NAME, report)
     write_choice(args.models, report["choice"], threshold)
-    print(f"wrote {args.models / RESULTS_NAME} and the choice into {args.models / 'manifest.json'}")
+    replace_card_section(args.models / "pose.card.md", CARD_HEADING, [
+        CARD_HEADING, "",
+        f"`{report['command']}`: ground-truth masks, every strategy on every instance at least 10 % visible; the "
+        "chosen strategy per part marked `*` (the cheapest whose accepted recall reaches the bar, else the most "
+        f"accurate). Full figures: `{RESULTS_NAME}`.", "",
+        "```", format_choice(records, choice, threshold, names), "```",
+    ])  # fmt: skip
+    print(f"wrote {args.models / RESULTS_NAME}, the choice into {args.models / 'manifest.json'} and the table into "
+          f"{args.models / 'pose.card.md'}")  # fmt: skip
     return 0
 
 

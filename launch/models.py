@@ -28,6 +28,7 @@ import math
 import shutil
 from pathlib import Path
 
+from launch.model_card import replace_card_section
 from sygrid.catalogue import copy_catalogue, load_catalogue
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
@@ -170,11 +171,9 @@ def run_breakdown(args: argparse.Namespace) -> int:
         data["detector"]["min_part_px"] = min_px
     write_json_atomic(args.models / "manifest.json", data)
     card_path = args.models / "detector.card.md"
-    card = card_path.read_text() if card_path.is_file() else "# Model card: detector\n"
-    card = card.split(BREAKDOWN_HEADING)[0].rstrip("\n") + "\n\n"
     section = [f"Test set {_dataset_line(args.test_data)}, {report['n_images']} images, region {report['region']}, "
                f"detector scale {report['scale']:.2f}.", ""]  # fmt: skip
-    card_path.write_text(card + "\n".join(breakdown_section(report["breakdown"], section)) + "\n")
+    replace_card_section(card_path, BREAKDOWN_HEADING, breakdown_section(report["breakdown"], section))
     print(f"wrote {args.models / 'eval_detector.json'}, {card_path} and manifest.json (min_part_px "
           f"{min_px if math.isfinite(min_px) else 'none'})")  # fmt: skip
     return 0

@@ -227,3 +227,17 @@ def test_the_verification_verdicts_of_an_evaluation(scene):
     verdicts = _verdicts(ann, poses, models)
     assert verdicts == [(True, True), (True, False), (False, True), (False, False)]
     assert _verification_summary(verdicts) == {"accepted": 2, "refused": 2, "false_accept": 0.5, "false_refuse": 0.5}
+
+
+def test_a_card_section_is_replaced_not_repeated(tmp_path: Path):
+    from launch.model_card import replace_card_section
+
+    card = tmp_path / "pose.card.md"
+    card.write_text("# Model card: pose\n\nkept text\n")
+    replace_card_section(card, "### Pose strategies per part", ["### Pose strategies per part", "", "first run"])
+    replace_card_section(card, "### Pose strategies per part", ["### Pose strategies per part", "", "second run"])
+    text = card.read_text()
+    assert text.count("### Pose strategies per part") == 1 and "second run" in text and "first run" not in text
+    assert text.startswith("# Model card: pose\n\nkept text\n")
+    replace_card_section(tmp_path / "new.card.md", "### A", ["### A", "x"])
+    assert (tmp_path / "new.card.md").read_text() == "# Model card: new\n\n### A\nx\n"
