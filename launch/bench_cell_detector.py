@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     from perception.detector import YoloSegDetector
-    from perception.pipeline import load_manifest
+    from perception.manifest import load_manifest
 
     setup = load_cell_setup(args.config)
     if not setup.is_sim:

@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from perception.evaluation import EvalSettings, frames_sensor
-    from perception.pipeline import load_manifest, manifest_models, tare_config
+    from perception.manifest import load_manifest, manifest_models, tare_config
     from perception.pose import PoseEstimator
     from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
     from perception.strategy_eval import choose_all, evaluate_strategies, summarize
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
 def write_choice(folder: Path, choice: dict[str, str], min_confidence: float) -> None:
     """Writes ``pose.strategies`` and ``verify.min_confidence`` into the folder's manifest (atomically), keeping
     everything else in it; the result must load."""
-    from perception.pipeline import MANIFEST_NAME, load_manifest
+    from perception.manifest import MANIFEST_NAME, load_manifest
 
     path = folder / MANIFEST_NAME
     data = read_json(path, "model manifest")

@@ -154,7 +154,8 @@ def run_breakdown(args: argparse.Namespace) -> int:
     smallest nominal size recalled reliably at the operating threshold; left out when none is)."""
     from perception.detector import YoloSegDetector
     from perception.evaluation import EvalSettings, evaluate_detector
-    from perception.pipeline import PipelineOverrides, detector_view, load_manifest
+    from perception.manifest import load_manifest
+    from perception.pipeline import PipelineOverrides, detector_view
 
     manifest = load_manifest(args.models)
     d = manifest.detector

@@ -40,7 +40,8 @@ def detector_warnings(
 
 def folder_detector(models_dir: Path) -> tuple[YoloSegDetector, float | None]:
     """A model folder's detector as its manifest configures it, and its ``min_part_px``."""
-    from perception.pipeline import PipelineOverrides, detector_view, load_manifest
+    from perception.manifest import load_manifest
+    from perception.pipeline import PipelineOverrides, detector_view
 
     d = load_manifest(models_dir).detector
     view = detector_view(d, PipelineOverrides())
@@ -75,7 +76,7 @@ def cell_warnings(
 ) -> list[str]:
     """Warnings for a cell's running ``detector`` (``models_dir``: its model folder, for ``min_part_px``): parts on
     the bin's floor, as far as its farthest floor corner (camera frame, metres)."""
-    from perception.pipeline import load_manifest
+    from perception.manifest import load_manifest
 
     far = float(np.max(np.asarray(floor_corners_camera, dtype=float)[:, 2]))
     return detector_warnings(detector, load_manifest(models_dir).detector.min_part_px, models, intrinsics, far)

@@ -191,7 +191,7 @@ def check_cell(setup: CellSetup, kind: str) -> dict[int, Any]:
     oracle cell)."""
     if kind != "models":
         return {}
-    from perception.pipeline import load_manifest, manifest_models
+    from perception.manifest import load_manifest, manifest_models
 
     folder = setup.resolve(setup.data.perception.models_dir)
     if folder is None or not (folder / "manifest.json").is_file():

@@ -37,7 +37,8 @@ import matplotlib.pyplot as plt
 from matplotlib.ticker import FixedLocator, FormatStrFormatter, NullFormatter
 
 from perception.evaluation import EvalSettings, dataset_sensor, evaluate, frames_sensor
-from perception.pipeline import PerceptionPipeline, PipelineOverrides, load_manifest
+from perception.manifest import load_manifest
+from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
 from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize
 from perception.verify import PoseVerifier, VerifyConfig

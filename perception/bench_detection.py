@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt
 from perception.detector import YoloSegDetector
 from perception.detector_eval import COCO_CONF, detector_report, region_box, run_detector
 from perception.evaluation import EvalSettings, eval_items
-from perception.pipeline import load_manifest
+from perception.manifest import load_manifest
 from perception.tiling import ViewSettings
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, save_chart, save_results
 from sygrid.dataset import DatasetBin

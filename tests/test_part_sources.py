@@ -12,7 +12,7 @@ import trimesh
 
 from launch.part_check import check_scene_parts
 from perception.evaluation import check_model_classes
-from perception.pipeline import check_detector_parts, load_manifest, manifest_models
+from perception.manifest import check_detector_parts, load_manifest, manifest_models
 from sygrid.catalogue import copy_catalogue, load_catalogue, parse_catalogue
 from sygrid.errors import ConfigError
 from sygrid.objects.model import ObjectModel

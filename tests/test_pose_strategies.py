@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from launch.choose_pose import write_choice
+from perception.manifest import load_manifest
 from perception.mask_cleanup import clean_mask, support_plane
 from perception.observation import Observation
-from perception.pipeline import PerceptionPipeline, load_manifest
+from perception.pipeline import PerceptionPipeline
 from perception.pose_strategies import STRATEGIES, StrategyRunner, axis_rotations
 from perception.results import ObjectPose
 from perception.strategy_eval import StrategyRecord, choose, choose_all, choose_threshold, summarize

@@ -64,13 +64,13 @@ class PerceptionStack:
 
     @cached_property
     def min_confidence(self) -> float:
-        from perception.pipeline import load_manifest
+        from perception.manifest import load_manifest
 
         return float(load_manifest(self.models_dir).verify.min_confidence)
 
     @cached_property
     def runner(self):
-        from perception.pipeline import load_manifest
+        from perception.manifest import load_manifest
         from perception.pose_strategies import StrategyRunner
         from perception.verify import PoseVerifier, VerifyConfig
 
