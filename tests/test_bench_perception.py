@@ -149,10 +149,12 @@ def test_the_command_on_the_shipped_models(tiny_dataset: Path, noisy_dataset: Pa
     args = build_parser("bench").parse_args(argv)
     assert run(args, out_dir=args.out_dir) == 0
     results = json.loads((tmp_path / "perception.json").read_text())
-    assert list(results["conditions"]) == ["ideal", "noisy"] and results["strategies"] == ["rgb", "depth"]
+    chosen = json.loads((ROOT / "models" / "builtin" / "manifest.json").read_text())["pose"].get("strategies", {})
+    measured = list(dict.fromkeys(["rgb", "depth", *chosen.values()]))  # the manifest's choices are always measured
+    assert list(results["conditions"]) == ["ideal", "noisy"] and results["strategies"] == measured
     for condition in results["conditions"].values():
         assert condition["n_images"] == 1 and set(condition["depth"]) >= {"abs_rel", "delta1", "fill_rate"}
-        assert list(condition["gt_masks"]["strategies"]) == ["rgb", "depth"]
+        assert list(condition["gt_masks"]["strategies"]) == measured
         _check_consistent(condition)
     assert all(set(c) == {"target", "condition", "value", "op", "bound", "met"} for c in results["target_checks"])
     (tmp_path / "perception.png").unlink()  # --replot redraws the chart from the saved JSON alone
