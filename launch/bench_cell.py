@@ -37,7 +37,7 @@ import numpy as np
 
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.pick_report import Outcome
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, save_chart, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, replot, save_results
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 
@@ -237,8 +237,7 @@ def _from_saved(args: argparse.Namespace, out_dir: Path) -> int:
     """``--replot`` and ``--merge``: charts from saved results, no bins run."""
     name_out = args.name or "cell"
     if not args.merge:
-        saved = read_json(out_dir / f"{name_out}.json", "cell benchmark results")
-        print(f"redrew {save_chart(name_out, chart(saved), out_dir)} from {out_dir / f'{name_out}.json'}")
+        replot(name_out, chart, out_dir)
         return 0
     sources = [n.strip() for n in args.merge.split(",") if n.strip()]
     merged = merge_results({n: read_json(out_dir / f"{n}.json", "cell benchmark results") for n in sources})

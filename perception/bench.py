@@ -42,9 +42,8 @@ from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
 from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize
 from perception.verify import PoseVerifier, VerifyConfig
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, save_chart, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, replot, save_results
 from sygrid.errors import ConfigError
-from sygrid.fileio import read_json
 
 # issue 21's targets on builtin_test and its noisy twin; recall as fractions, time per object in milliseconds
 TARGETS = {
@@ -361,8 +360,7 @@ def parse_strategies(value: str | None) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     if args.replot:
-        saved = read_json(out_dir / "perception.json", "perception benchmark results")
-        print(f"redrew {save_chart('perception', chart(saved), out_dir)} from {out_dir / 'perception.json'}")
+        replot("perception", chart, out_dir)
         return 0
     results = run_benchmark(
         args.models,

@@ -26,11 +26,10 @@ from perception.detector_eval import COCO_CONF, detector_report, region_box, run
 from perception.evaluation import EvalSettings, eval_items
 from perception.manifest import load_manifest
 from perception.tiling import ViewSettings
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, save_chart, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, replot, save_results
 from sygrid.dataset import DatasetBin
 from sygrid.detection_breakdown import SIZE_BINS
 from sygrid.errors import ConfigError
-from sygrid.fileio import read_json
 from sygrid.writers import load_bop_item
 
 
@@ -180,8 +179,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     if args.replot:
-        saved = read_json(out_dir / "detection.json", "detection benchmark results")
-        print(f"redrew {save_chart('detection', chart(saved), out_dir)} from {out_dir / 'detection.json'}")
+        replot("detection", chart, out_dir)
         return 0
     results = run_benchmark(
         args.models,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sygrid.fileio import write_json_atomic
+from sygrid.fileio import read_json, write_json_atomic
 
 DEFAULT_RESULTS_DIR = Path("bench/results")
 
@@ -38,3 +38,12 @@ def save_chart(name: str, figure, out_dir: Path = DEFAULT_RESULTS_DIR) -> Path:
     png_path = out_dir / f"{name}.png"
     figure.savefig(png_path, dpi=110, bbox_inches="tight")
     return png_path
+
+
+def replot(name: str, chart, out_dir: Path = DEFAULT_RESULTS_DIR) -> Path:
+    """Redraws ``<name>.png`` from the saved ``<name>.json`` alone (``chart``: results dict -> figure), with no
+    measurement run; prints and returns the chart's path."""
+    saved = read_json(out_dir / f"{name}.json", f"{name} benchmark results")
+    path = save_chart(name, chart(saved), out_dir)
+    print(f"redrew {path} from {out_dir / f'{name}.json'}")
+    return path
