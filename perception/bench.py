@@ -41,7 +41,7 @@ from perception.manifest import load_manifest
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
 from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize
-from perception.verify import PoseVerifier, VerifyConfig
+from perception.verify import PoseVerifier
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, replot, save_results
 from sygrid.errors import ConfigError
 
@@ -74,7 +74,7 @@ def run_benchmark(
     manifest = load_manifest(models_dir)
     pipeline = PerceptionPipeline.from_folder(models_dir, PipelineOverrides(num_threads=threads))
     min_confidence = manifest.verify.min_confidence
-    verify = VerifyConfig(min_confidence=min_confidence, depth_noise_m=manifest.verify.depth_noise_m)
+    verify = manifest.verify.config()
     measured = tuple(dict.fromkeys([*strategies, *(pipeline.strategies or {}).values()]))
     settings = EvalSettings(max_images=max_images)
     conditions = {}

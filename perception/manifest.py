@@ -68,6 +68,10 @@ class VerifyEntry(_Strict):
     min_confidence: float = Field(default=VerifyConfig().min_confidence, ge=0, le=1)
     depth_noise_m: float = Field(default=0.0, ge=0, lt=0.1)
 
+    def config(self) -> VerifyConfig:
+        """The verifier's settings these entries set (the rest at VerifyConfig's defaults)."""
+        return VerifyConfig(min_confidence=self.min_confidence, depth_noise_m=self.depth_noise_m)
+
 
 class DepthTareEntry(_Strict):
     """The depth tare on the bin's floor (perception.depth_tare.TareConfig), used where a floor plane is given."""

@@ -67,7 +67,7 @@ from perception.pose_strategies import NETWORK_STRATEGIES, StrategyRunner
 from perception.refine import DepthRefiner, RefineConfig
 from perception.results import Detection, ObjectPose
 from perception.tiling import ViewSettings
-from perception.verify import PoseVerifier, VerifyConfig
+from perception.verify import PoseVerifier
 from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.errors import ConfigError
 from sygrid.objects.model import ObjectModel
@@ -214,10 +214,7 @@ class PerceptionPipeline:
         strategies, runner = None, None
         if manifest.pose.strategies is not None and o.pose_method is None and o.refine is None:
             strategies = strategy_ids(manifest.pose.strategies, models, folder / MANIFEST_NAME)
-            verify = VerifyConfig(
-                min_confidence=manifest.verify.min_confidence, depth_noise_m=manifest.verify.depth_noise_m
-            )
-            runner = StrategyRunner(verifier=PoseVerifier(verify))
+            runner = StrategyRunner(verifier=PoseVerifier(manifest.verify.config()))
         pipeline = cls(
             detector,
             pose,

@@ -72,13 +72,11 @@ class PerceptionStack:
     def runner(self):
         from perception.manifest import load_manifest
         from perception.pose_strategies import StrategyRunner
-        from perception.verify import PoseVerifier, VerifyConfig
+        from perception.verify import PoseVerifier
 
         if self.pipeline.runner is not None:
             return self.pipeline.runner
-        v = load_manifest(self.models_dir).verify
-        return StrategyRunner(verifier=PoseVerifier(VerifyConfig(min_confidence=v.min_confidence,
-                                                                 depth_noise_m=v.depth_noise_m)))  # fmt: skip
+        return StrategyRunner(verifier=PoseVerifier(load_manifest(self.models_dir).verify.config()))
 
     @cached_property
     def families(self) -> dict[int, str]:
