@@ -7,6 +7,12 @@ has its origin at the centre of the bin's inner floor, z up.
 Contact parameters are chosen for small steel parts: with MuJoCo's default ``solref`` (0.02 s time constant) a
 20 g nut sinks 10-17 mm into the floor on impact and can tunnel through a wall. A time constant of two timesteps,
 critically damped, set on every geom, keeps penetration at rest well under 0.5 mm (platform notes).
+
+Thin walls are the exception: a part whose wall is thinner than the distance it falls in one step can pass into
+another's wall between two steps and settle interlocked. ``physics.speculative_contacts`` turns on MuJoCo's
+speculative contacts (contacts predicted over the coming step) for such scenes: always, never, or ("auto") when
+the thinnest wall of the scene's parts (``sygrid.objects.thickness``) is under the step's travel at the impact
+speed of the highest spawned part. They cost solver time, so scenes of thick parts go without.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from sygrid.errors import DropError
 from sygrid.mjspec import add_open_box, add_part_body
 from sygrid.objects.collision.geometry import CollisionModel
 from sygrid.objects.model import ObjectModel
+from sygrid.objects.thickness import wall_thickness_m
 from sygrid.scene import ContainerSpec, PhysicsSpec
 
 log = logging.getLogger(__name__)
@@ -38,6 +45,7 @@ _SETTLE_HOLD_S = 0.1
 _MIN_SIM_TIME_S = 0.2
 _FLOOR_THICKNESS_M = 0.02
 _INSIDE_TOLERANCE_M = 0.002
+_GRAVITY_M_S2 = 9.81  # MuJoCo's default gravity, which the drop keeps
 
 
 @dataclass(frozen=True)
@@ -69,6 +77,7 @@ class StabilityReport:
     rest_drift_m: float | None = None  # largest move of any part when the pile, awake, runs on (if measured)
     penetration_bound_m: float = math.inf
     max_time_s: float = math.inf
+    speculative_contacts: bool = False  # whether the drop ran with MuJoCo's speculative contacts
 
     @property
     def ok(self) -> bool:
@@ -105,6 +114,7 @@ class StabilityReport:
             "max_linear_speed_m_s": self.max_linear_speed_m_s,
             "rest_drift_m": self.rest_drift_m,
             "penetration_bound_m": self.penetration_bound_m,
+            "speculative_contacts": self.speculative_contacts,
             "max_time_s": self.max_time_s,
             "within_bounds": self.within_bounds,
         }
@@ -163,13 +173,16 @@ def build_drop_spec(
     T_world_obj: np.ndarray,
     container: ContainerSpec,
     physics: PhysicsSpec,
+    speculative: bool = False,
 ) -> mujoco.MjSpec:
     """An MjSpec with the bin (static boxes) and one free body per instance, its geoms from the collision model
     and its mass and inertia from the repaired solid (``ObjectModel.solid``; a collision hull would fill the holes
-    and overstate both)."""
+    and overstate both). ``speculative``: MuJoCo's speculative contacts on (see the module's docstring)."""
     spec = mujoco.MjSpec()
     spec.option.timestep = physics.timestep_s
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    if speculative:
+        spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_SPECULATIVE
     # Island sleeping: parts at rest stop costing collision and solver time while the rest of the pile settles.
     if physics.sleep_tolerance > 0:
         spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
@@ -205,7 +218,8 @@ def simulate_drop(
     bounding = [bounding_radius_m(m, c) for m, c in zip(models, collision, strict=True)]
     radii = np.array([bounding[i.model_index] for i in instances])
     T_spawn = sample_spawn_poses(radii, container, physics.spawn_clearance_m, rng)
-    spec = build_drop_spec(models, collision, instances, T_spawn, container, physics)
+    speculative = use_speculative_contacts(physics, [models[i.model_index] for i in instances], T_spawn)
+    spec = build_drop_spec(models, collision, instances, T_spawn, container, physics, speculative)
     mj_model = spec.compile()
     data = mujoco.MjData(mj_model)
     mujoco.mj_forward(mj_model, data)
@@ -253,6 +267,7 @@ def simulate_drop(
         rest_drift_m=rest_drift_m,
         penetration_bound_m=physics.max_penetration_m,
         max_time_s=physics.max_time_s,
+        speculative_contacts=speculative,
     )
     for failure in report.failures:
         log.warning("%s", failure)
@@ -260,6 +275,19 @@ def simulate_drop(
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+
+
+def use_speculative_contacts(physics: PhysicsSpec, models: list[ObjectModel], T_spawn: np.ndarray) -> bool:
+    """``physics.speculative_contacts`` resolved for one drop: "on" / "off" as given; "auto": on when the thinnest
+    wall among ``models`` is under the distance the highest instance of ``T_spawn`` ((n, 4, 4), world) travels in
+    one step when it reaches the floor."""
+    if physics.speculative_contacts != "auto":
+        return physics.speculative_contacts == "on"
+    if not models:
+        return False
+    impact_speed = math.sqrt(2 * _GRAVITY_M_S2 * max(float(T_spawn[:, 2, 3].max()), 0.0))
+    thinnest = min(wall_thickness_m(m.solid) for m in models)
+    return thinnest < impact_speed * physics.timestep_s
 
 
 def bounding_radius_m(model: ObjectModel, collision: CollisionModel) -> float:

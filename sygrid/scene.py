@@ -317,6 +317,10 @@ class PhysicsSpec(_Strict):
     # MuJoCo island sleeping: an island whose velocities stay below this (MuJoCo's size-scaled threshold) stops
     # being simulated; 0 turns sleeping off. `sygrid bench physics` charts its speed gain against rest drift.
     sleep_tolerance: Annotated[float, Strict(), Field(ge=0, le=1)] = 0.03
+    # MuJoCo's speculative contacts, against thin walls passing into each other in one step (sygrid.physics):
+    # "auto" turns them on when a part's wall is thinner than a step's travel at impact. "off" by default: the
+    # built-in parts do not need them, and scenes that leave it off keep their content hash.
+    speculative_contacts: Literal["off", "on", "auto"] = "off"
 
 
 class SceneSpec(_Strict):
@@ -388,12 +392,14 @@ def load_scene(path: str | Path) -> SceneSpec:
 
 
 def scene_to_json(scene: SceneSpec) -> dict:
-    """The scene as plain data. The catalogue keys are left out where unused, so a scene that uses no catalogue
-    keeps the content hash (``sygrid.drop.scene_sha256``, the dataset ledger's recipe hash) it had before they
-    existed."""
+    """The scene as plain data. The catalogue keys and speculative contacts are left out where unused, so a scene
+    that uses neither keeps the content hash (``sygrid.drop.scene_sha256``, the dataset ledger's recipe hash) it
+    had before they existed."""
     data = scene.model_dump(mode="json")
     if data["catalogue"] is None:
         del data["catalogue"]
+    if data["physics"]["speculative_contacts"] == "off":
+        del data["physics"]["speculative_contacts"]
     for obj in data["objects"]:
         if obj["catalogue_part"] is None:
             del obj["catalogue_part"]

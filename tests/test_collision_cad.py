@@ -206,10 +206,13 @@ def test_bench_parts_runs_on_a_small_folder(tmp_path: Path) -> None:
     folder = tmp_path / "parts"
     folder.mkdir()
     shutil.copy(FIXTURES / "duct_cover.stl", folder)
-    args = argparse.Namespace(folder=folder, unit="mm", seeds=1, count=3, items=0)
+    args = argparse.Namespace(folder=folder, unit="mm", seeds=1, count=3, items=0, contacts=["off", "on"])
     assert bench_parts.run(args, out_dir=tmp_path / "results") == 0
     data = json.loads((tmp_path / "results" / "parts.json").read_text())
     (row,) = data["parts"]
     assert row["part"] == "duct_cover" and row["pieces"] <= 64 and row["cache_hit"]
-    assert [p["pile"] for p in data["piles"]] == ["duct_cover", "mixed"]
+    assert row["wall_thickness_mm"] == pytest.approx(1.0, abs=0.05)
+    piles = [(p["pile"], p["contacts"], p["speculative_fraction"]) for p in data["piles"]]
+    assert piles == [("duct_cover", "off", 0.0), ("duct_cover", "on", 1.0), ("mixed", "off", 0.0), ("mixed", "on", 1.0)]
+    assert data["summary"]["contacts"] == "on"
     assert (tmp_path / "results" / "parts.png").stat().st_size > 0

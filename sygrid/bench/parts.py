@@ -5,9 +5,12 @@ was made, its volume, the mass from it against the old rule's: an open mesh's co
 selection in an empty cache (wall time, tier, pieces, fidelity against the solid) and a second, cached call; then a
 pile of that part over several seeds (settled, largest penetration at rest, escapes); then a mixed pile of all the
 parts over the same seeds, and the generation time per item of a small rasterised dataset of that mixed pile.
+Each pile runs once per speculative-contacts setting (``--contacts``, default "off" and "auto": what thin walls
+gain from them and what they cost in wall time, seed for seed); the part table gives each part's wall thickness.
 
 Targets: every part within ``TARGETS["first_use_s"]`` on first use and ``TARGETS["pieces"]`` pieces; piles settle
-with penetration under the scene's bound in at least ``TARGETS["settled_fraction"]`` of the seeds.
+with penetration under the scene's bound in at least ``TARGETS["settled_fraction"]`` of the seeds, checked on the
+last ``--contacts`` setting (the one a recipe for these parts uses).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from sygrid.errors import ConfigError
 from sygrid.fileio import CACHE_ENV
 from sygrid.objects import load_cad, select_collision_model
 from sygrid.objects.collision.solid import repaired_solid, solid_method
+from sygrid.objects.thickness import wall_thickness_m
 from sygrid.physics import Instance, simulate_drop
 from sygrid.scene import parse_scene
 
@@ -62,7 +66,7 @@ def _part_rows(paths: list[Path], unit: str) -> tuple[list, list, list[dict]]:
                 "first_use_s": first_use_s, "cached_s": cached_s, "cache_hit": bool(again.from_cache),
                 "collision": chosen.description, "tier": chosen.tier.value, "pieces": chosen.n_pieces,
                 "excess_volume_ratio": fid.excess_volume_ratio, "missed_volume_ratio": fid.missed_volume_ratio,
-                "concavity_kept": fid.concavity_kept,
+                "concavity_kept": fid.concavity_kept, "wall_thickness_mm": wall_thickness_m(solid.mesh) * 1e3,
             }
         )  # fmt: skip
         models.append(model)
@@ -72,6 +76,7 @@ def _part_rows(paths: list[Path], unit: str) -> tuple[list, list, list[dict]]:
 
 def _drop_rows(label: str, models: list, collisions: list, count: int, seeds: int, scene) -> list[dict]:
     rows = []
+    contacts = scene.physics.speculative_contacts
     for seed in range(seeds):
         instances = [Instance(model_index=i % len(models), inst_id=i) for i in range(count)]
         report = simulate_drop(
@@ -79,7 +84,8 @@ def _drop_rows(label: str, models: list, collisions: list, count: int, seeds: in
         ).report
         rows.append(
             {
-                "pile": label, "seed": seed, "parts": count, "settled": report.settled, "ok": report.within_bounds,
+                "pile": label, "contacts": contacts, "speculative": report.speculative_contacts, "seed": seed,
+                "parts": count, "settled": report.settled, "ok": report.within_bounds,
                 "max_penetration_mm": report.max_penetration_m * 1e3, "escaped": len(report.escaped),
                 "non_finite": len(report.non_finite), "wall_s": report.wall_time_s, "sim_s": report.sim_time_s,
             }
@@ -87,7 +93,7 @@ def _drop_rows(label: str, models: list, collisions: list, count: int, seeds: in
     return rows
 
 
-def _generation(paths: list[Path], unit: str, count: int, items: int, out_dir: Path) -> dict:
+def _generation(paths: list[Path], unit: str, count: int, items: int, contacts: str, out_dir: Path) -> dict:
     """Seconds per item of a rasterised dataset of the mixed pile (``items`` items, 640 x 480)."""
     from sygrid.dataset import generate  # the renderers load only for this part of the benchmark
     from sygrid.recipe import parse_recipe
@@ -98,7 +104,10 @@ def _generation(paths: list[Path], unit: str, count: int, items: int, out_dir: P
         for k, (p, n) in enumerate(zip(paths, per_part, strict=True))
     ]
     recipe = parse_recipe(
-        {"name": "bench_parts", "scene": {"name": "bench_parts", "objects": objects}, "raster_fraction": 1.0},
+        {
+            "name": "bench_parts", "raster_fraction": 1.0,
+            "scene": {"name": "bench_parts", "objects": objects, "physics": {"speculative_contacts": contacts}},
+        },
         "bench parts recipe", out_dir,
     )  # fmt: skip
     summary = generate(recipe, out_dir / "dataset", count=items, seed=0, progress=False)
@@ -133,13 +142,18 @@ def chart(parts: list[dict], drops: list[dict]):
     ax.legend(fontsize=8)
     ax = axes[3]
     piles = list(dict.fromkeys(d["pile"] for d in drops))
+    contacts = list(dict.fromkeys(d["contacts"] for d in drops))
     for i, pile in enumerate(piles):
-        sel = [d for d in drops if d["pile"] == pile]
-        ax.scatter([i] * len(sel), [d["max_penetration_mm"] for d in sel],
-                   c=["tab:green" if d["ok"] else "tab:red" for d in sel], s=25)  # fmt: skip
+        for j, setting in enumerate(contacts):
+            sel = [d for d in drops if d["pile"] == pile and d["contacts"] == setting]
+            offset = (j - (len(contacts) - 1) / 2) * 0.3
+            ax.scatter([i + offset] * len(sel), [d["max_penetration_mm"] for d in sel], marker="ox^"[j % 3],
+                       c=["tab:green" if d["ok"] else "tab:red" for d in sel], s=25,
+                       label=f"speculative contacts {setting}" if i == 0 else None)  # fmt: skip
     ax.axhline(0.5, color="grey", ls=":", lw=1)
     ax.set_xticks(range(len(piles)), piles, rotation=30, ha="right", fontsize=8)
     ax.set(ylabel="penetration at rest, max [mm]", title="Piles (green: settled within the bounds)")
+    ax.legend(fontsize=8)
     for ax in axes[:3]:
         ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
     for ax in axes:
@@ -155,6 +169,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--count", type=int, default=20, help="parts per pile")
     parser.add_argument("--items", type=int, default=5, help="dataset items for the generation time (0: skip)")
+    parser.add_argument(
+        "--contacts", nargs="+", choices=["off", "on", "auto"], default=["off", "auto"],
+        help="physics.speculative_contacts settings to run every pile with; the last is checked against the target",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
@@ -163,47 +181,69 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         raise ConfigError(f"--folder: no .stl, .ply or .obj file in {args.folder}")
     logging.getLogger("sygrid.physics").setLevel(logging.ERROR)  # per-drop warnings are in the table
     logging.getLogger("sygrid.objects.cad").setLevel(logging.ERROR)  # the repairs are in the table
-    scene = parse_scene({"name": "bench_parts", "objects": [{"builtin": "hex_nut"}]})  # the default bin and physics
+    scenes = [  # the default bin and physics, but for the contacts
+        parse_scene({"name": "bench", "objects": [{"builtin": "hex_nut"}], "physics": {"speculative_contacts": c}})
+        for c in args.contacts
+    ]
     saved_env = os.environ.get(CACHE_ENV)
     with tempfile.TemporaryDirectory(prefix="sygrid-bench-parts-") as tmp:
         os.environ[CACHE_ENV] = tmp  # first use: an empty cache, shared by every step below
         try:
             models, collisions, parts = _part_rows(paths, args.unit)
             drops = []
-            for model, coll in zip(tqdm(models, desc="bench parts: piles", unit="part"), collisions, strict=True):
-                drops += _drop_rows(model.name, [model], [coll], args.count, args.seeds, scene)
-            drops += _drop_rows("mixed", models, collisions, args.count, args.seeds, scene)
-            generation = _generation(paths, args.unit, args.count, args.items, Path(tmp)) if args.items else None
+            pile_sets = [(m.name, [m], [c]) for m, c in zip(models, collisions, strict=True)]
+            pile_sets.append(("mixed", models, collisions))
+            for label, pile_models, pile_colls in tqdm(pile_sets, desc="bench parts: piles", unit="pile"):
+                for scene in scenes:
+                    drops += _drop_rows(label, pile_models, pile_colls, args.count, args.seeds, scene)
+            generation = None
+            if args.items:
+                generation = _generation(paths, args.unit, args.count, args.items, args.contacts[-1], Path(tmp))
         finally:
             if saved_env is None:
                 os.environ.pop(CACHE_ENV, None)
             else:
                 os.environ[CACHE_ENV] = saved_env
     piles = []
-    for pile in dict.fromkeys(d["pile"] for d in drops):
-        sel = [d for d in drops if d["pile"] == pile]
+    for pile, contacts in dict.fromkeys((d["pile"], d["contacts"]) for d in drops):
+        sel = [d for d in drops if d["pile"] == pile and d["contacts"] == contacts]
         piles.append({
-            "pile": pile, "seeds": len(sel), "ok_fraction": float(np.mean([d["ok"] for d in sel])),
+            "pile": pile, "contacts": contacts, "speculative_fraction": float(np.mean([d["speculative"] for d in sel])),
+            "seeds": len(sel), "ok_fraction": float(np.mean([d["ok"] for d in sel])),
             "settled_fraction": float(np.mean([d["settled"] for d in sel])),
             "max_penetration_mm": max(d["max_penetration_mm"] for d in sel),
             "escaped_total": sum(d["escaped"] for d in sel),
             "median_wall_s": float(np.median([d["wall_s"] for d in sel])),
         })  # fmt: skip
     print(f"{'part':<15}{'faces':>6}{'solid':>7}{'first s':>9}{'cached s':>9}  {'collision':<17}{'excess':>8}"
-          f"{'missed':>8}{'mass g':>8}{'old g':>8}")  # fmt: skip
+          f"{'missed':>8}{'mass g':>8}{'old g':>8}{'wall mm':>9}")  # fmt: skip
     for p in parts:
         print(f"{p['part']:<15}{p['faces']:>6}{p['solid_method']:>7}{p['first_use_s']:>9.1f}{p['cached_s']:>9.2f}  "
               f"{p['collision']:<17}{p['excess_volume_ratio']:>8.3f}{p['missed_volume_ratio']:>8.3f}"
-              f"{p['mass_g']:>8.1f}{p['mass_g_old_rule']:>8.1f}")  # fmt: skip
-    print(f"\n{'pile':<15}{'seeds':>6}{'ok':>6}{'settled':>9}{'pen. mm max':>13}{'escaped':>9}{'wall s':>8}")
+              f"{p['mass_g']:>8.1f}{p['mass_g_old_rule']:>8.1f}{p['wall_thickness_mm']:>9.2f}")  # fmt: skip
+    print(f"\n{'pile':<15}{'contacts':>9}{'on':>5}{'seeds':>6}{'ok':>6}{'settled':>9}{'pen. mm max':>13}"
+          f"{'escaped':>9}{'wall s':>8}")  # fmt: skip
     for s in piles:
-        print(f"{s['pile']:<15}{s['seeds']:>6}{s['ok_fraction']:>6.0%}{s['settled_fraction']:>9.0%}"
-              f"{s['max_penetration_mm']:>13.3f}{s['escaped_total']:>9}{s['median_wall_s']:>8.2f}")  # fmt: skip
+        print(f"{s['pile']:<15}{s['contacts']:>9}{s['speculative_fraction']:>5.0%}{s['seeds']:>6}"
+              f"{s['ok_fraction']:>6.0%}{s['settled_fraction']:>9.0%}{s['max_penetration_mm']:>13.3f}"
+              f"{s['escaped_total']:>9}{s['median_wall_s']:>8.2f}")  # fmt: skip
+    checked = [d for d in drops if d["contacts"] == args.contacts[-1]]
+    summary = {
+        "contacts": args.contacts[-1],
+        "within_bounds_fraction": float(np.mean([d["ok"] for d in checked])),
+        "first_use_s_max": max(p["first_use_s"] for p in parts),
+        "pieces_max": max(p["pieces"] for p in parts),
+    }
+    print(f"\ntargets: first use {summary['first_use_s_max']:.1f} s max (<= {TARGETS['first_use_s']}), pieces "
+          f"{summary['pieces_max']} max (<= {TARGETS['pieces']}), piles within the bounds "
+          f"{summary['within_bounds_fraction']:.1%} with contacts {summary['contacts']} "
+          f"(>= {TARGETS['settled_fraction']:.0%})")  # fmt: skip
     if generation:
         print(f"\ngeneration: {generation['seconds_per_item']:.2f} s per item ({generation['mode']}, "
               f"{generation['written']} written, {generation['failed']} failed)")  # fmt: skip
     data = {
-        "folder": str(args.folder), "unit": args.unit, "targets": TARGETS, "parts": parts, "piles": piles,
+        "folder": str(args.folder), "unit": args.unit, "targets": TARGETS, "summary": summary, "parts": parts,
+        "piles": piles,
         "drops": drops, "generation": generation,
     }  # fmt: skip
     json_path, png_path = save_results("parts", data, chart(parts, drops), out_dir)
