@@ -123,8 +123,9 @@ def open_cell(
                 raise ConfigError(f"{setup.path}: perception 'oracle' exists only in the simulated cell")
             from sim.oracle_perception import OraclePerception
 
-            perception = OraclePerception(process, cell.T_world_base, T_oracle_camera)
-            models = {m.obj_id: m for m in scene_models(setup)}
+            parts = scene_models(setup)
+            perception = OraclePerception(process, cell.T_world_base, T_oracle_camera, parts)
+            models = {m.obj_id: m for m in parts}
         else:
             from perception.pipeline import PerceptionPipeline
 

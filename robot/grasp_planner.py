@@ -5,8 +5,9 @@ For each estimated part, in the robot base frame (``T_base_obj = T_base_camera @
 candidates (``robot.grasp_candidates``) go through these checks, cheapest first; the first one a candidate fails is its
 rejection cause (``REJECTION_CAUSES``):
 
-1. part level: a model for its id (``no_model``), inside the bin (``outside_bin``: its origin outside the bin's
-   inner footprint or below its floor; the camera may also see the place tray, whose walls the planner does not
+1. part level: a model for its id (``no_model``), inside the bin (``outside_bin``: its centre, the middle of its
+   bounding box, outside the bin's inner footprint or below its floor; not its origin, which a CAD file may put
+   anywhere; the camera may also see the place tray, whose walls the planner does not
    know), a pose confidence of at least ``min_pose_score`` (``low_confidence``), a pose that depth refinement
    confirmed where refinement ran (``unrefined``, with ``require_refined``), candidates at all
    (``no_candidates``), nothing lying on it (``covered``: the share of its upward surface with a depth point or a
@@ -295,7 +296,8 @@ class GraspPlanner:
         data = self._models.get(part.obj_id)
         if data is None:
             return part_level("no_model", 1)
-        if cfg.bin is not None and not cfg.bin.holds(part.T_base_obj[:3, 3]):
+        centre_obj = data.model.bounds_m.mean(axis=0)
+        if cfg.bin is not None and not cfg.bin.holds(part.T_base_obj[:3, :3] @ centre_obj + part.T_base_obj[:3, 3]):
             return part_level("outside_bin", max(len(data.grasps), 1))
         n = len(data.grasps)
         report["n_candidates"] = n

@@ -93,7 +93,7 @@ class BinGeometry:
         return (np.asarray(points_base) - self.floor_point) @ self.floor_normal
 
     def holds(self, point_base: np.ndarray) -> bool:
-        """Whether a point (a part's origin, base frame) is in the bin: inside its inner footprint and above its
+        """Whether a point (a part's centre, base frame) is in the bin: inside its inner footprint and above its
         floor, at any height (a part above the bin, held or falling, is still the bin's)."""
         p = transform_points(invert(self.T_base_bin), np.asarray(point_base, dtype=float).reshape(1, 3))[0]
         return bool(abs(p[0]) < self.inner_size_m[0] / 2 and abs(p[1]) < self.inner_size_m[1] / 2 and p[2] > 0.0)

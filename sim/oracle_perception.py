@@ -10,6 +10,7 @@ corners of its bounding box; no masks; score 1.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -17,8 +18,9 @@ import numpy as np
 
 from perception.camera import Frame
 from perception.results import Detection, ObjectPose
+from sim.world import safe_name
 from sygrid.camera import project_points
-from sygrid.objects import builtin_part
+from sygrid.objects import BUILTIN_PARTS, ObjectModel, builtin_part
 from sygrid.transforms import invert, transform_points
 from sygrid.visualize import bounds_from_extents, box_corners_m
 
@@ -36,12 +38,26 @@ class OraclePerception:
     """Ground-truth poses of the emulated cell's parts (``process``: a ``ControllerProcess``, MuJoCo backend).
 
     ``T_world_base``: the robot base in the world (``CellConfig.T_world_base``); ``T_base_camera``: the camera's
-    true pose (the sim camera's known pose)."""
+    true pose (the sim camera's known pose). ``models``: the scene's parts (the cell's parts are matched to them by
+    name); default: the built-in parts."""
 
-    def __init__(self, process: Any, T_world_base: np.ndarray, T_base_camera: np.ndarray) -> None:
+    def __init__(
+        self,
+        process: Any,
+        T_world_base: np.ndarray,
+        T_base_camera: np.ndarray,
+        models: Sequence[ObjectModel] | None = None,
+    ) -> None:
         self.process = process
         self.T_camera_world = invert(np.asarray(T_world_base) @ np.asarray(T_base_camera))
-        self._models = [builtin_part(name.split("_", 1)[1]) for name in process.part_names()]
+        if models is None:
+            models = [builtin_part(name) for name in BUILTIN_PARTS]
+        by_name = {safe_name(m.name): m for m in models}
+        names = [name.split("_", 1)[1] for name in process.part_names()]  # bodies are part{k}_{name}
+        unknown = sorted(set(names) - set(by_name))
+        if unknown:
+            raise ValueError(f"oracle perception: the cell's parts {unknown} are not among {sorted(by_name)}")
+        self._models = [by_name[n] for n in names]
 
     def run(self, frame: Frame) -> OracleResult:
         K, h, w = frame.intrinsics.K, frame.intrinsics.height, frame.intrinsics.width

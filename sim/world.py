@@ -282,7 +282,7 @@ class CellWorld:
             solref, friction = [2.0 * self.config.timestep_s, 1.0], list(_PART_FRICTION)
             try:
                 for model, T, coll in zip(models, T_world_obj, collision, strict=True):
-                    name = f"part{len(self._part_names) + len(added)}_{_safe(model.name)}"
+                    name = f"part{len(self._part_names) + len(added)}_{safe_name(model.name)}"
                     added.append(add_part_body(self._spec, name, model, coll, T, solref, friction, _PART_RGBA))
                 self.model, self.data = self._recompile()
             except Exception:  # leave the spec as it was, so the world stays usable
@@ -417,7 +417,9 @@ def _check_vector(name: str, v: np.ndarray) -> np.ndarray:
     return v
 
 
-def _safe(name: str) -> str:
+def safe_name(name: str) -> str:
+    """``name`` with every character MuJoCo names should not hold replaced by ``_`` (part bodies are
+    ``part{k}_{safe_name(model.name)}``)."""
     return "".join(c if c.isalnum() or c in "_-" else "_" for c in name)
 
 

@@ -712,3 +712,17 @@ def test_the_covered_area_of_the_bin_tells_an_empty_bin_from_unseen_parts(planne
     with_gear = _render_depth([(gear, _flat("spur_gear", -0.52, 0.01))], K, T_base_camera)
     disc_m2 = np.pi * (max(gear.mesh.extents) / 2) ** 2  # lying flat, its outline is about its tip circle
     assert planner.pile_area_m2(with_gear, K, T_base_camera) == pytest.approx(disc_m2, rel=0.15)  # 7.8 / 8.5 cm2
+
+
+def test_a_part_whose_origin_is_not_its_centre_is_judged_in_the_bin_by_its_centre(cache_dir):
+    """A CAD file may put the origin anywhere: here at the bottom of a nut (as a duct cover's file puts it at one
+    end), resting on the floor with its origin a hair below it. The bin test uses the middle of its bounding box."""
+    nut = builtin_part("hex_nut")
+    mesh = nut.mesh.copy()
+    mesh.apply_translation([0.0, 0.0, -mesh.bounds[0, 2]])  # origin at the bottom face
+    based = ObjectModel(obj_id=1, name="nut_origin_at_base", mesh=mesh)
+    planner = GraspPlanner([based], PlannerConfig(grasp_params=PARAMS), cache_dir=cache_dir)
+    resting = make_T(t=(-0.5, 0.0, FLOOR_Z - 0.2 * MM))
+    assert planner.plan_parts([PartEstimate(1, resting, 0.9)]).parts[0].status != "outside_bin"
+    in_tray = make_T(t=(-0.2, -0.40, 0.01))
+    assert planner.plan_parts([PartEstimate(1, in_tray, 0.9)]).parts[0].status == "outside_bin"
