@@ -40,6 +40,7 @@ from perception.pipeline import PerceptionPipeline, region_of_interest
 from perception.results import ObjectPose
 from sygrid.annotations import ImageAnnotation
 from sygrid.dataset import LEDGER_NAME, DatasetBin
+from sygrid.detection_breakdown import match_instances
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
 from sygrid.metrics import (
@@ -138,26 +139,23 @@ def bin_floor_camera(dataset_bin: DatasetBin, ann: ImageAnnotation) -> tuple[np.
     return np.append(normal, -normal @ T[:3, 3]), bin_region_camera(dataset_bin, ann)
 
 
+@dataclass(frozen=True)
+class _RankedByPose:
+    """A pose seen by the matching rule as a detection ranked by the pose's score (``sygrid.metrics.DetectionLike``)."""
+
+    pose: ObjectPose
+
+    obj_id = property(lambda self: self.pose.obj_id)
+    score = property(lambda self: self.pose.score)
+    bbox_xyxy = property(lambda self: self.pose.detection.bbox_xyxy)
+    mask = property(lambda self: self.pose.detection.mask)
+
+
 def match_poses(ann: ImageAnnotation, poses: list[ObjectPose], min_visib: float, min_iou: float) -> list:
-    """Per evaluated GT instance: (instance, matched ObjectPose or None)."""
-    free = sorted(poses, key=lambda p: -p.score)
-    out = []
-    for inst in ann.instances:
-        if inst.visib_fract < min_visib:
-            continue
-        best, best_iou = None, min_iou
-        for p in free:
-            mask = p.detection.mask
-            if p.obj_id != inst.obj_id or mask is None:
-                continue
-            union = np.count_nonzero(mask | inst.mask_visib)
-            iou = np.count_nonzero(mask & inst.mask_visib) / union if union else 0.0
-            if iou >= best_iou:
-                best, best_iou = p, iou
-        if best is not None:
-            free.remove(best)
-        out.append((inst, best))
-    return out
+    """Per evaluated GT instance: (instance, matched ObjectPose or None), by the detection metrics' matching rule
+    (``sygrid.detection_breakdown.match_instances``) with the poses ranked by their own score."""
+    matched = match_instances(ann, [_RankedByPose(p) for p in poses], min_visib, min_iou)
+    return [(inst, ranked.pose if ranked is not None else None) for inst, ranked in matched]
 
 
 def evaluate(

@@ -8,7 +8,8 @@ image pixel), ``z`` the part's distance from the camera.
 
 - Recall: instances matched by a detection of the same part with mask IoU >= ``match_iou`` (box IoU for a
   detection-only model), each detection used once, instances in annotation order taking their best-overlapping
-  free detection (the rule of ``perception.evaluation.match_poses``), among the detections at or above a threshold.
+  free detection (``match_instances``, which ``perception.evaluation.match_poses`` uses too), among the detections
+  at or above a threshold.
 - AP: pycocotools' COCOeval over the same ground truth. Size bins are COCO area ranges with an instance's (and a
   detection's) "area" set to the square of its box's longer side, so an unmatched detection counts against the bin
   its own size falls in, as COCO does; a visibility bin marks the instances outside it ``iscrowd`` (neither needed
