@@ -18,6 +18,12 @@ trained with, ``sygrid train detector --catalogue``). The catalogue is copied in
 the networks are bound to the ids and meshes they were trained on, so the folder keeps them when the catalogue is
 edited later or the folder is moved to the cell's machine. The detector's classes and the pose model's parts must
 be the catalogue's by name and obj_id.
+
+``--pose`` may also name a model folder (one with ``manifest.json``): a new detector is then packed beside that
+folder's pose network, which keeps its manifest entry (method, per-part strategies), its verification settings and
+its card (training lines and the strategy table), and the stages after it (refinement, verification, depth tare);
+only the card's held-out evaluation is measured again. It may be
+the ``--out`` folder itself.
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ from pathlib import Path
 from launch.model_card import replace_card_section
 from sygrid.catalogue import copy_catalogue, load_catalogue
 from sygrid.errors import ConfigError
-from sygrid.fileio import read_json, write_json_atomic
+from sygrid.fileio import read_json, write_bytes_atomic, write_json_atomic
 
 COCO_CONF = 0.001  # the detection benchmarks' convention for mAP (the pipeline runs at the manifest's threshold)
 
@@ -40,7 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
     pack = sub.add_parser("pack", help="model folder + model cards from a detector run and a pose run")
     pack.add_argument("--detector", type=Path, required=True, help="'sygrid train detector' output folder")
-    pack.add_argument("--pose", type=Path, required=True, help="'sygrid train pose' output folder")
+    pack.add_argument(
+        "--pose", type=Path, required=True,
+        help="'sygrid train pose' output folder, or a model folder whose pose network (and its choices) to keep",
+    )  # fmt: skip
     pack.add_argument("--out", type=Path, required=True, help="model folder to write (e.g. models/builtin)")
     pack.add_argument(
         "--catalogue", type=Path, default=None,
@@ -81,9 +90,12 @@ def run(args: argparse.Namespace) -> int:
 
 def pack(args: argparse.Namespace) -> int:
     det_log = _train_log(args.detector, "detector.onnx")
-    pose_log = _train_log(args.pose, "pose.onnx")
+    kept = _kept_pose(args.pose)
+    pose_log = _train_log(args.pose, "pose.onnx") if kept is None else {"obj_ids": kept["obj_ids"]}
     args.out.mkdir(parents=True, exist_ok=True)
     for run_dir, name in ((args.detector, "detector.onnx"), (args.pose, "pose.onnx")):
+        if (run_dir / name).resolve() == (args.out / name).resolve():
+            continue  # the pose network kept in place
         tmp = args.out / f".{name}.tmp"
         shutil.copyfile(run_dir / name, tmp)
         tmp.replace(args.out / name)
@@ -96,6 +108,9 @@ def pack(args: argparse.Namespace) -> int:
         "pose": {"onnx": "pose.onnx", "method": args.method},
         "refine": {"enabled": True},
     }
+    if kept is not None:
+        manifest["pose"] = {**kept["manifest"]["pose"], "onnx": "pose.onnx"}
+        manifest.update({k: v for k, v in kept["manifest"].items() if k in KEPT_WITH_POSE})
     write_json_atomic(args.out / "manifest.json", manifest)
     evals = _evaluate(args) if args.test_data else {}
     if evals:  # the pixels-per-part threshold, from the measured recall curve at the operating threshold
@@ -104,7 +119,11 @@ def pack(args: argparse.Namespace) -> int:
             manifest["detector"]["min_part_px"] = min_px
             write_json_atomic(args.out / "manifest.json", manifest)
     (args.out / "detector.card.md").write_text(detector_card(det_log, args, evals))
-    (args.out / "pose.card.md").write_text(pose_card(pose_log, args, evals))
+    if kept is None:
+        (args.out / "pose.card.md").write_text(pose_card(pose_log, args, evals))
+    else:
+        card = kept_pose_card(kept["card"], _pose_section(evals) if evals else None)
+        write_bytes_atomic(args.out / "pose.card.md", card.encode())
     print(
         f"wrote {args.out}: manifest.json, detector.onnx, pose.onnx, model cards" + (", evaluations" if evals else "")
     )
@@ -146,6 +165,9 @@ def pack_parts(args: argparse.Namespace, det_log: dict, pose_log: dict) -> dict:
 
 
 BREAKDOWN_HEADING = "### Where it fails"
+HELD_OUT_HEADING = "## Held-out test set: "
+# What a kept pose network keeps of its folder's manifest besides its own entry: the stages after the detector.
+KEPT_WITH_POSE = ("refine", "verify", "depth_tare", "min_mask_px")
 
 
 def run_breakdown(args: argparse.Namespace) -> int:
@@ -178,6 +200,32 @@ def run_breakdown(args: argparse.Namespace) -> int:
     print(f"wrote {args.models / 'eval_detector.json'}, {card_path} and manifest.json (min_part_px "
           f"{min_px if math.isfinite(min_px) else 'none'})")  # fmt: skip
     return 0
+
+
+def _kept_pose(folder: Path) -> dict | None:
+    """For ``--pose`` naming a model folder: its manifest, pose card and the pose network's obj_ids (the folder's
+    parts); None for a training run's folder."""
+    if not (folder / "manifest.json").is_file():
+        return None
+    from perception.manifest import load_manifest, manifest_models
+
+    for name in ("pose.onnx", "pose.card.md"):
+        if not (folder / name).is_file():
+            raise ConfigError(f"{folder}: --pose names a model folder without {name}")
+    manifest = read_json(folder / "manifest.json", "model folder manifest")
+    obj_ids = sorted(manifest_models(folder, load_manifest(folder)))
+    return {"manifest": manifest, "card": (folder / "pose.card.md").read_text(), "obj_ids": obj_ids}
+
+
+def kept_pose_card(card: str, evaluation: list[str] | None) -> str:
+    """A kept pose card with its held-out evaluation section (``HELD_OUT_HEADING`` up to the next section of the
+    same or a higher level, or the end) replaced by ``evaluation``; None keeps the card as it is."""
+    if evaluation is None or HELD_OUT_HEADING not in card:
+        return card if evaluation is None else card.rstrip("\n") + "\n\n" + "\n".join(evaluation) + "\n"
+    head, rest = card.split(HELD_OUT_HEADING, 1)
+    tail = rest.split("\n### ", 1)[1] if "\n### " in rest else ""
+    tail = "\n### " + tail if tail else ""
+    return head.rstrip("\n") + "\n\n" + "\n".join(evaluation).rstrip("\n") + "\n" + tail
 
 
 def _train_log(run_dir: Path, onnx_name: str) -> dict:
@@ -367,7 +415,7 @@ def _num(x: float) -> str:
 def _pose_section(evals: dict[str, dict]) -> list[str]:
     direct, refined = evals["direct"], evals["refined"]
     lines = [
-        f"## Held-out test set: {_dataset_line(Path(direct['data']))}, {direct['n_images']} images",
+        f"{HELD_OUT_HEADING}{_dataset_line(Path(direct['data']))}, {direct['n_images']} images",
         "",
         "ADD(-S) < 0.1 d recall over every instance at least 10 % visible (a missed detection counts as a failure); "
         "re and te are medians over the estimated instances. Direct = the network's own pose; refined = + "

@@ -31,8 +31,8 @@ MANIFEST = {
 
 
 @pytest.fixture(scope="module")
-def model_dir(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A model folder with a detector and a pose model trained for a few iterations (untrained in effect: the
+def runs(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A detector run (``det``) and a pose run (``pose``) trained for a few iterations (untrained in effect: the
     tests check the plumbing and the error handling, not accuracy)."""
     pytest.importorskip("torch")
     from sygrid.train.detector.config import TrainConfig as DetectorConfig
@@ -40,21 +40,31 @@ def model_dir(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> P
     from sygrid.train.pose.train import TrainConfig as PoseConfig
     from sygrid.train.pose.train import train as train_pose
 
-    runs = tmp_path_factory.mktemp("runs")
-    det = train_detector(
-        DetectorConfig(data=str(tiny_dataset), out=str(runs / "det"), imgsz=128, batch=2, size="p", seed=0,
+    out = tmp_path_factory.mktemp("runs")
+    train_detector(
+        DetectorConfig(data=str(tiny_dataset), out=str(out / "det"), imgsz=128, batch=2, size="p", seed=0,
                        threads=1, epochs=1, max_iters=1, progress=False)
     )  # fmt: skip
     train_pose(
-        PoseConfig(data_dir=tiny_dataset, out_dir=runs / "pose", epochs=1, batch_size=4, input_size=32,
+        PoseConfig(data_dir=tiny_dataset, out_dir=out / "pose", epochs=1, batch_size=4, input_size=32,
                    output_stride=4, width=8, num_regions=8, max_iters=1, threads=1, progress=False, val_max=4)
     )  # fmt: skip
-    folder = tmp_path_factory.mktemp("models") / "tiny"
+    return out
+
+
+def _pack(detector: Path, pose: Path, out: Path, tiny_dataset: Path) -> None:
     pack = build_parser("models").parse_args(
-        ["models", "pack", "--detector", str(det.out), "--pose", str(runs / "pose"), "--out", str(folder),
+        ["models", "pack", "--detector", str(detector), "--pose", str(pose), "--out", str(out),
          "--conf-threshold", "0.01", "--test-data", str(tiny_dataset), "--max-images", "2"]
     )  # fmt: skip
     assert pack._run(pack) == 0
+
+
+@pytest.fixture(scope="module")
+def model_dir(runs: Path, tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A model folder packed from ``runs``."""
+    folder = tmp_path_factory.mktemp("models") / "tiny"
+    _pack(runs / "det", runs / "pose", folder, tiny_dataset)
     return folder
 
 
@@ -73,6 +83,32 @@ def test_pack_writes_the_manifest_and_model_cards_from_the_runs(model_dir: Path,
     detector = json.loads((model_dir / "eval_detector.json").read_text())
     assert detector["conf_threshold"] == 0.001 and detector["n_images"] == 2 and "box_map50" in detector
     assert "confidence threshold 0.001" in card and "operating threshold 0.01" in card
+
+
+def test_pack_keeps_a_model_folders_pose_network_and_its_choices(
+    runs: Path, model_dir: Path, tiny_dataset: Path, tmp_path: Path
+):
+    """A new detector beside a shipped pose network: --pose names the model folder (here the output folder itself);
+    the pose entry (strategies), verification and the card's training and strategy sections stay, the held-out
+    evaluation is measured again."""
+    folder = tmp_path / "tiny"
+    shutil.copytree(model_dir, folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    manifest["pose"]["strategies"] = {"hex_nut": "depth+icp"}
+    manifest["verify"] = {"min_confidence": 0.8}
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    card = (folder / "pose.card.md").read_text().replace("| all | ", "| all (old) | ")
+    (folder / "pose.card.md").write_text(card + "\n### Pose strategies per part\n\nthe chosen table\n")
+    pose_bytes = (folder / "pose.onnx").read_bytes()
+    _pack(runs / "det", folder, folder, tiny_dataset)
+    kept = json.loads((folder / "manifest.json").read_text())
+    assert kept["pose"] == {"onnx": "pose.onnx", "method": "direct", "strategies": {"hex_nut": "depth+icp"}}
+    assert kept["verify"] == {"min_confidence": 0.8} and (folder / "pose.onnx").read_bytes() == pose_bytes
+    new_card = (folder / "pose.card.md").read_text()
+    assert "--input-size 32 --output-stride 4 --width 8" in new_card  # the training lines
+    assert "| all (old) | " not in new_card and "| all | " in new_card  # the evaluation measured again
+    assert new_card.rstrip().endswith("### Pose strategies per part\n\nthe chosen table")
+    assert new_card.count("## Held-out test set: ") == 1
 
 
 def test_pipeline_turns_a_frame_into_poses(model_dir: Path, tiny_dataset: Path):
