@@ -17,6 +17,7 @@ BENCHMARKS = {
     "cell-detector": "launch.bench_cell_detector",
     "detection": "perception.bench_detection",
     "training": "sygrid.bench.training",
+    "transfer": "perception.bench_transfer",
     "stability": "launch.stability.bench",
 }
 

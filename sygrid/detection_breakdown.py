@@ -14,16 +14,21 @@ image pixel), ``z`` the part's distance from the camera.
   detection's) "area" set to the square of its box's longer side, so an unmatched detection counts against the bin
   its own size falls in, as COCO does; a visibility bin marks the instances outside it ``iscrowd`` (neither needed
   nor penalised; detections outside every bin count as false positives in each).
+
+Views of a run for other questions, fed to the same metrics: ``only_parts`` keeps the ground truth and detections of
+some parts (a class-aware evaluation on the parts two label sets share); ``class_agnostic`` puts every instance and
+detection under one category (``AGNOSTIC_ID``), so a right box under the wrong part name counts as found.
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import io
 import itertools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +46,7 @@ NOMINAL_BINS_PX = (0.0, 8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0, 24.0, 28.0, 32.
 RELIABLE_RELATIVE = 0.8
 WELL_SEEN = 0.5  # the nominal-size curve counts instances at least this visible (occlusion is not a size effect)
 MIN_CURVE_COUNT = 20  # a bin of the nominal-size curve with fewer instances is not trusted
+AGNOSTIC_ID = 0  # the one category of a class-agnostic evaluation (no BOP obj_id is 0)
 
 
 @dataclass(frozen=True)
@@ -151,6 +157,51 @@ def instance_records(
                                     "input_box_px": box_side_px(inst) * scale if scale else math.nan}  # fmt: skip
                 records[key]["found"][float(t)] = det is not None
     return [InstanceRecord(**r) for r in records.values()]
+
+
+@dataclass(frozen=True, eq=False)
+class _Relabelled:
+    """A detection under another obj_id; score, box and mask read through from the original (whose mask may be
+    built on each access)."""
+
+    original: DetectionLike
+    obj_id: int
+
+    @property
+    def score(self) -> float:
+        return self.original.score
+
+    @property
+    def bbox_xyxy(self) -> np.ndarray:
+        return self.original.bbox_xyxy
+
+    @property
+    def mask(self) -> np.ndarray | None:
+        return self.original.mask
+
+
+def only_parts(
+    images: Sequence[ImageAnnotation], detections: Sequence[Sequence[DetectionLike]], obj_ids: Collection[int]
+) -> tuple[list[ImageAnnotation], list[list[DetectionLike]]]:
+    """The ground truth and detections of the parts ``obj_ids`` alone (new annotation objects; the detections are
+    the same objects)."""
+    keep = {int(i) for i in obj_ids}
+    kept_images = [dataclasses.replace(im, instances=tuple(i for i in im.instances if i.obj_id in keep))
+                   for im in images]  # fmt: skip
+    return kept_images, [[d for d in dets if int(d.obj_id) in keep] for dets in detections]
+
+
+def class_agnostic(
+    images: Sequence[ImageAnnotation], detections: Sequence[Sequence[DetectionLike]]
+) -> tuple[list[ImageAnnotation], list[list[DetectionLike]]]:
+    """The ground truth and detections with every obj_id replaced by ``AGNOSTIC_ID``: matched and scored as one
+    category, a detection counts for any part whatever part it names (COCO's 100 detections per image then apply
+    to all parts together)."""
+    relabelled = [
+        dataclasses.replace(im, instances=tuple(dataclasses.replace(i, obj_id=AGNOSTIC_ID) for i in im.instances))
+        for im in images
+    ]
+    return relabelled, [[_Relabelled(d, AGNOSTIC_ID) for d in dets] for dets in detections]
 
 
 def _recall(records: Sequence[InstanceRecord], t: float) -> float:
