@@ -324,13 +324,21 @@ def check_model_classes(data_dir: str | Path, model_classes: dict[int, str], spl
             f"models: {_listing(model_classes)}. Evaluate models trained for this dataset's parts, or convert the "
             "dataset with an --id-map onto the models' obj_ids"
         )
-    renamed = sorted(i for i, name in dataset.items() if name not in ("?", f"obj_{i:06d}") and model_classes[i] != name)
+    renamed = sorted(i for i in dataset if not same_part(i, dataset[i], model_classes))
     if renamed:
         raise ConfigError(
             f"{data_dir}: the models name the dataset's parts {renamed} differently. Dataset: {_listing(dataset)}; "
             f"models: {_listing(model_classes)}. The dataset and the models must come from one catalogue (its ids "
             "and names)"
         )
+
+
+def same_part(obj_id: int, dataset_name: str, model_classes: dict[int, str]) -> bool:
+    """Whether the models know the dataset's part ``obj_id`` as the same part: by obj_id, and by name unless the
+    dataset leaves it unnamed (``"?"`` or the placeholder ``obj_OOOOOO``)."""
+    if obj_id not in model_classes:
+        return False
+    return dataset_name in ("?", f"obj_{obj_id:06d}") or model_classes[obj_id] == dataset_name
 
 
 def _listing(classes: dict[int, str]) -> str:

@@ -35,7 +35,7 @@ import numpy as np
 
 from perception.detector import YoloSegDetector
 from perception.detector_eval import COCO_CONF, detector_report, run_detector
-from perception.evaluation import EvalSettings, check_model_classes, dataset_classes, eval_items
+from perception.evaluation import EvalSettings, check_model_classes, dataset_classes, eval_items, same_part
 from perception.manifest import MANIFEST_NAME, DetectorEntry, load_manifest
 from perception.pipeline import PipelineOverrides, detector_view
 from sygrid.detection_breakdown import SIZE_BINS, class_agnostic, instance_records, only_parts, recall_table
@@ -133,8 +133,7 @@ def shared_parts(model: dict[int, str], data_dir: Path, split: str) -> tuple[lis
         return sorted(dataset_classes(data_dir, split)), None
     except ConfigError as exc:
         source = dataset_classes(data_dir, split)
-        shared = sorted(i for i, n in source.items()
-                        if i in model and (n in ("?", f"obj_{i:06d}") or model[i] == n))  # fmt: skip
+        shared = sorted(i for i, n in source.items() if same_part(i, n, model))
         left = sorted(set(source) - set(shared))
         how = f"on the shared obj_ids {shared} alone" if shared else "class-agnostic only (no obj_id shared)"
         return shared, f"class-aware metrics {how}; the source's parts {left} left out ({exc})"
