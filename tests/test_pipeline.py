@@ -94,7 +94,7 @@ def test_pack_keeps_a_model_folders_pose_network_and_its_choices(
     folder = tmp_path / "tiny"
     shutil.copytree(model_dir, folder)
     manifest = json.loads((folder / "manifest.json").read_text())
-    manifest["pose"]["strategies"] = {"hex_nut": "depth+icp"}
+    manifest["pose"]["strategies"] = {"hex_nut": "depth+icp", "washer": "depth+icp", "l_bracket": "depth+search"}
     manifest["verify"] = {"min_confidence": 0.8}
     (folder / "manifest.json").write_text(json.dumps(manifest))
     card = (folder / "pose.card.md").read_text().replace("| all | ", "| all (old) | ")
@@ -102,13 +102,14 @@ def test_pack_keeps_a_model_folders_pose_network_and_its_choices(
     pose_bytes = (folder / "pose.onnx").read_bytes()
     _pack(runs / "det", folder, folder, tiny_dataset)
     kept = json.loads((folder / "manifest.json").read_text())
-    assert kept["pose"] == {"onnx": "pose.onnx", "method": "direct", "strategies": {"hex_nut": "depth+icp"}}
+    assert kept["pose"] == {"onnx": "pose.onnx", "method": "direct", "strategies": manifest["pose"]["strategies"]}
     assert kept["verify"] == {"min_confidence": 0.8} and (folder / "pose.onnx").read_bytes() == pose_bytes
     new_card = (folder / "pose.card.md").read_text()
     assert "--input-size 32 --output-stride 4 --width 8" in new_card  # the training lines
     assert "| all (old) | " not in new_card and "| all | " in new_card  # the evaluation measured again
     assert new_card.rstrip().endswith("### Pose strategies per part\n\nthe chosen table")
-    assert new_card.count("## Held-out test set: ") == 1
+    assert new_card.count("## Held-out test set: ") == 1 and "| ADD(-S) strategies |" in new_card
+    assert (folder / "eval_strategies.json").is_file() and not (folder / "eval_refined.json").exists()
 
 
 def test_pipeline_turns_a_frame_into_poses(model_dir: Path, tiny_dataset: Path):
