@@ -4,7 +4,7 @@ VENV := .venv
 export MUJOCO_GL ?= egl
 export RAY_AUTH_MODE ?= disabled
 
-.PHONY: setup lock demo test lint bench models models-sim-cell
+.PHONY: setup lock demo test lint bench models models-sim-cell transfer
 
 setup:
 	@bash scripts/setup.sh
@@ -44,3 +44,12 @@ models-sim-cell: setup
 	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_test.json --out datasets/sim_cell_test --count 100 --seed 1000 --workers 2
 	$(VENV)/bin/sygrid train detector --data datasets/sim_cell_train --out runs/sim_cell_detector --init runs/detector/best.pt --imgsz 800 --epochs 12 --lr 0.002 --threads 2 --seed 0 $(if $(wildcard runs/sim_cell_detector/last.pt),--resume)
 	$(VENV)/bin/sygrid models pack --detector runs/sim_cell_detector --pose runs/pose --out models/sim_cell --test-data datasets/sim_cell_test
+
+# The transfer matrix (docs/bench/transfer.md): the shipped detector on the test sources of the transfer issue,
+# the same-recipe test set, the rasteriser's, the randomised recipe's and the held-apart families'.
+TRANSFER_SOURCES := builtin_test builtin_test_raster builtin_test_random builtin_test_heldout
+transfer: setup
+	for s in $(TRANSFER_SOURCES); do $(VENV)/bin/sygrid generate launch/recipes/$$s.json --out datasets/$$s --count 200 --seed 1000 --workers 2 || exit 1; done
+	$(VENV)/bin/sygrid bench transfer --detector builtin=models/builtin --source builtin=datasets/builtin_test \
+		--source raster=datasets/builtin_test_raster --source random=datasets/builtin_test_random \
+		--source heldout=datasets/builtin_test_heldout --held-apart heldout
