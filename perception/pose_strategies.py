@@ -17,6 +17,14 @@ A strategy is a source of hypotheses, optionally refined by ICP (``perception.ic
 - ``+search``: as ``+icp``, but every hypothesis is ranked by its verification after a short ICP (dearer, for
   parts whose coarse scores mislead, such as a bolt seen end-on or a bracket's legs).
 
+Where the surface the part lies on is known (the bin's floor, else the plane found around the mask; the cleaned
+observation's ``support``), every refined strategy (``+icp``, ``+search``) also offers its best fit put back on
+that surface in the nearest stable pose and slid and turned in its plane (``perception.resting``): it replaces the
+free fit when that needed a tilt of at most ``rest_max_tilt_deg`` and the verification rates it within
+``rest_slack`` of the free fit (a free fit of a small part tilts and floats with the depth noise; a part leaning on
+a neighbour is no stable pose and keeps its free fit). Where too little of the part stands out of the support to
+fit, the part is placed from its mask at rest on the support (``resting.mask_hypotheses``).
+
 The mask is cleaned with depth first (``perception.mask_cleanup``). Every estimate carries the verification of the
 chosen hypothesis in ``details["verify"]``, its confidence as the pose's ``score`` and the verdict as ``verified``.
 """
@@ -34,6 +42,7 @@ from perception.icp import IcpConfig, icp
 from perception.mask_cleanup import MaskCleanupConfig, clean_mask
 from perception.observation import Observation
 from perception.refine import model_surface, principal_axes, visible_model_points
+from perception.resting import mask_hypotheses, planar_search, rest_on_support
 from perception.results import Detection, ObjectPose
 from perception.verify import PoseVerifier, Verification, raycaster
 from sygrid.camera import CameraIntrinsics
@@ -62,6 +71,11 @@ class StrategyConfig:
     polish_steps: step sizes (x diameter) of the slide search on a fit short of ``good_confidence`` (``_polish``).
     slide_fractions: the turns (``_turns``) also take the fit slid by these (x diameter) along its longest axis.
     min_points: fewer depth points than this in the cleaned mask: the network's pose (or none) with confidence 0.
+    rest: offer the best fit at rest on the observation's support (``perception.resting``).
+    rest_max_tilt_deg: the fit at rest replaces the free fit only when levelling it turned it by at most this ...
+    rest_slack: ... and its verification confidence is at least the free fit's minus this.
+    rest_steps: the in-plane search's steps: (fraction of the diameter, degrees), coarse to fine.
+    rest_settled_deg, rest_settled_m: a fit that levelling turns and moves no more than this is left as it is.
     """
 
     icp_hypotheses: int = 3
@@ -73,8 +87,22 @@ class StrategyConfig:
     polish_steps: tuple[float, ...] = (0.08, 0.04, 0.02)
     slide_fractions: tuple[float, ...] = (0.25, 0.5)
     min_points: int = 10
+    rest: bool = True
+    rest_max_tilt_deg: float = 45.0
+    rest_slack: float = 0.05
+    rest_steps: tuple[tuple[float, float], ...] = ((0.08, 8.0), (0.04, 4.0), (0.02, 2.0), (0.01, 1.0))
+    rest_settled_deg: float = 3.0
+    rest_settled_m: float = 0.0015
 
     def __post_init__(self) -> None:
+        steps_ok = all(f > 0 and deg > 0 for f, deg in self.rest_steps)
+        settled_ok = self.rest_settled_deg >= 0 and self.rest_settled_m >= 0
+        if not 0 <= self.rest_max_tilt_deg <= 180 or self.rest_slack < 0 or not steps_ok or not settled_ok:
+            raise ValueError(
+                "StrategyConfig: need rest_max_tilt_deg in [0, 180], rest_slack, rest_settled_deg and rest_settled_m"
+                f" >= 0 and positive rest_steps, got {self.rest_max_tilt_deg}, {self.rest_slack}, "
+                f"{self.rest_settled_deg}, {self.rest_settled_m}, {self.rest_steps}"
+            )
         if self.icp_hypotheses < 1 or self.escape_rounds < 0 or self.min_points < 3 or self.align_steps < 0:
             raise ValueError(
                 "StrategyConfig: need icp_hypotheses >= 1, escape_rounds >= 0, min_points >= 3 and align_steps >= 0,"
@@ -208,12 +236,18 @@ class StrategyRunner:
             raise ValueError(f"strategy {strategy!r} needs the pose network's estimate (network_pose)")
         if detection.mask is None:
             return self._unverified(network_pose, strategy, "the detection has no mask", t0)
-        obs, cleanup = clean_mask(Observation.of_detection(depth_m, detection, intrinsics), self.cleanup,
-                                  floor_plane_camera)  # fmt: skip
+        raw = Observation.of_detection(depth_m, detection, intrinsics)
+        obs, cleanup = clean_mask(raw, self.cleanup, floor_plane_camera)
         scene = obs.points
         if len(scene) < self.config.min_points:
             reason = f"{len(scene)} depth points in the cleaned mask, fewer than {self.config.min_points}"
-            return self._unverified(network_pose, strategy, reason, t0, cleanup)
+            if not (refine and self.config.rest and obs.support is not None):
+                return self._unverified(network_pose, strategy, reason, t0, cleanup)
+            candidates = self._from_mask(raw.with_mask(raw.mask, obs.support), model, network_pose)
+            if not candidates:
+                return self._unverified(network_pose, strategy, reason, t0, cleanup)
+            best = max(candidates, key=lambda c: c.verification.confidence)
+            return self._result(best, detection, strategy, network_pose, len(candidates), cleanup, t0, c0)
         # the part's rough position (for the visibility of its surface): the network's, else the depth's
         t_hint = network_pose.T_camera_object[:3, 3] if network_pose is not None else np.median(scene, axis=0)
         hypotheses: list[tuple[np.ndarray, str]] = []
@@ -242,11 +276,27 @@ class StrategyRunner:
                 T_aligned, _ = self._aligned(T, model, obs)
                 candidates.append(_Candidate(T_aligned, src, self.verifier.verify(T_aligned, model, obs)))
         best = max(candidates, key=lambda c: c.verification.confidence)
+        if refine and self.config.rest and obs.support is not None:
+            best = self._rested(best, model, obs)
+        return self._result(best, detection, strategy, network_pose, len(hypotheses), cleanup, t0, c0)
+
+    def _result(
+        self,
+        best: _Candidate,
+        detection: Detection,
+        strategy: str,
+        network_pose: ObjectPose | None,
+        n_hypotheses: int,
+        cleanup: dict,
+        t0: float,
+        c0: float,
+    ) -> ObjectPose:
+        """The chosen candidate as a verified pose, with the diagnostics in its details."""
         details = {
             **(network_pose.details if network_pose is not None else {}),
             "strategy": strategy,
             "hypothesis": best.source,
-            "hypotheses": len(hypotheses),
+            "hypotheses": n_hypotheses,
             "cleanup": cleanup,
             "verify": best.verification.as_dict(),
             "time_ms": (time.perf_counter() - t0) * 1e3,
@@ -284,6 +334,32 @@ class StrategyRunner:
         if cfg.polish_steps and best.verification.confidence < cfg.good_confidence:
             candidates.append(self._polish(best, scene, model, obs))
         return candidates
+
+    def _from_mask(self, obs: Observation, model: ObjectModel, network_pose: ObjectPose | None) -> list[_Candidate]:
+        """Too little of the part stands out of its support to fit (``obs``: the whole mask, with the support): it
+        is placed from its mask at rest on the support (``mask_hypotheses``, and the network's pose levelled onto
+        it where given), each slid and turned in the plane, verified."""
+        hypotheses = [(T, "mask_rest") for T in mask_hypotheses(model, obs, obs.support)]
+        if network_pose is not None:
+            hypotheses.append((rest_on_support(network_pose.T_camera_object, model, obs.support)[0], "network_rest"))
+        out = []
+        for T, source in hypotheses:
+            T, v = planar_search(T, model, obs, obs.support, self.verifier, self.config.rest_steps)
+            out.append(_Candidate(T, source, v))
+        return out
+
+    def _rested(self, best: _Candidate, model: ObjectModel, obs: Observation) -> _Candidate:
+        """The best fit at rest on the observation's support where the verification agrees, else the fit itself."""
+        cfg = self.config
+        T, tilt = rest_on_support(best.T, model, obs.support)
+        if tilt > cfg.rest_max_tilt_deg:
+            return best
+        if tilt <= cfg.rest_settled_deg and np.linalg.norm(T[:3, 3] - best.T[:3, 3]) <= cfg.rest_settled_m:
+            return best  # already at rest: nothing to gain, and the search is the dearer part
+        T, v = planar_search(T, model, obs, obs.support, self.verifier, cfg.rest_steps)
+        if v.confidence < best.verification.confidence - cfg.rest_slack:
+            return best
+        return _Candidate(T, f"{best.source}+rest", v, best.icp)
 
     def _aligned(self, T: np.ndarray, model: ObjectModel, obs: Observation) -> tuple[np.ndarray, Verification]:
         """A hypothesis moved along its viewing ray onto the observed surface (``align_steps`` times: the centroid

@@ -1,0 +1,104 @@
+"""perception.resting and its use by the pose strategies, on ray-cast scenes with known answers: stable poses, a fit
+levelled back onto the floor, a washer the depth cannot see placed from its mask, a leaning part left as fitted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from perception.pose_strategies import StrategyConfig, StrategyRunner
+from perception.resting import height_above, rest_on_support, stable_poses
+from perception.verify import PoseVerifier, VerifyConfig
+from sygrid.metrics import pose_errors
+from sygrid.objects.parts import builtin_part
+from sygrid.sensor import sensor_preset
+from sygrid.transforms import make_T, rotation_about
+from tests.raycast_scene import CAMERA, T_CAMERA_FLOOR, detection, on_floor, render
+
+NUT, WASHER = builtin_part("hex_nut"), builtin_part("washer")
+NORMAL = T_CAMERA_FLOOR[:3, 2]
+FLOOR = np.append(NORMAL, -NORMAL @ T_CAMERA_FLOOR[:3, 3])  # the floor plane, normal towards the camera
+
+
+def test_a_washer_rests_on_either_face_most_often():
+    poses = stable_poses(WASHER)
+    z = np.asarray(WASHER.mesh.vertices)[:, 2]
+    assert len(poses.up) >= 3  # both faces, and on its rim
+    for k in (0, 1):  # the two faces are the likely ones, the origin half the thickness up
+        assert abs(abs(poses.up[k][2]) - 1.0) < 1e-6
+        assert poses.height_m[k] == pytest.approx((z.max() - z.min()) / 2, abs=1e-5)
+    assert poses.probability[0] + poses.probability[1] > 0.8
+    np.testing.assert_allclose(np.linalg.norm(poses.up, axis=1), 1.0)
+
+
+def test_a_tilted_floating_fit_is_put_back_on_the_floor():
+    T_true = on_floor(NUT, 0.01, -0.02, 25.0)
+    tilted = T_true @ make_T(rotation_about(np.array([1.0, 0.3, 0.0]), np.radians(12.0)))
+    tilted[:3, 3] += 0.003 * NORMAL  # and 3 mm above the floor
+    T, tilt = rest_on_support(tilted, NUT, FLOOR)
+    err = pose_errors(T, T_true, NUT)
+    assert tilt == pytest.approx(12.0, abs=0.1)
+    assert err.re_deg < 0.1 and err.te_m < 1e-5, err
+    assert height_above(T, NUT, FLOOR) == pytest.approx(0.0, abs=1e-6)
+
+
+def _noisy_runner(**config) -> StrategyRunner:
+    """The strategies with a verification that allows the OAK-D model's depth noise at a bin 0.75 m away, here where
+    the fixture's camera is (0.32 m from the floor): a washer's thickness is within that noise."""
+    sigma_at_bin = float(sensor_preset("oak-d").depth_noise_sigma_m(0.75))
+    verifier = PoseVerifier(VerifyConfig(depth_noise_m=sigma_at_bin / 0.32**2))
+    return StrategyRunner(verifier=verifier, config=StrategyConfig(**config))
+
+
+def test_a_washer_the_depth_cannot_see_is_placed_from_its_mask():
+    T_true = on_floor(WASHER, 0.01, 0.005, 0.0)
+    seen = render([(WASHER, T_true)])
+    floor_only = render([])  # the depth as a stereo camera whose step exceeds the washer's thickness reports it
+    det = detection(WASHER, seen.masks[0])
+    pose = _noisy_runner().estimate("depth+icp", det, floor_only.depth, CAMERA, WASHER, None, FLOOR)
+    err = pose_errors(pose.T_camera_object, T_true, WASHER)
+    assert pose.details["hypothesis"] == "mask_rest"
+    assert err.correct() and err.te_m < 0.001, err
+    assert pose.verified, pose.details["verify"]
+    # without the resting hypotheses there is nothing to fit
+    assert _noisy_runner(rest=False).estimate("depth+icp", det, floor_only.depth, CAMERA, WASHER, None, FLOOR) is None
+
+
+def test_a_part_leaning_out_of_any_stable_pose_keeps_its_free_fit():
+    leaning = on_floor(WASHER, 0.0, 0.0, 0.0, rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(60.0)))
+    seen = render([(WASHER, leaning)])
+    pose = StrategyRunner().estimate(
+        "depth+icp", detection(WASHER, seen.masks[0]), seen.depth, CAMERA, WASHER, None, FLOOR
+    )
+    assert not pose.details["hypothesis"].endswith("+rest")
+    assert pose_errors(pose.T_camera_object, leaning, WASHER).correct()
+
+
+def test_a_fit_already_at_rest_is_left_as_it_is():
+    T_true = on_floor(NUT, -0.01, 0.01, 10.0)
+    seen = render([(NUT, T_true)])
+    pose = StrategyRunner().estimate("depth+icp", detection(NUT, seen.masks[0]), seen.depth, CAMERA, NUT, None, FLOOR)
+    err = pose_errors(pose.T_camera_object, T_true, NUT)
+    assert not pose.details["hypothesis"].endswith("+rest") and err.te_m < 5e-4 and err.re_deg < 1.0, err
+
+
+def test_a_fit_to_noisy_depth_is_levelled_onto_the_floor():
+    T_true = on_floor(NUT, 0.0, 0.0, 20.0)
+    seen = render([(NUT, T_true)])
+    noise = np.random.default_rng(3).normal(0.0, 0.0015, seen.depth.shape)  # a stereo camera's noise, per pixel
+    noisy = np.where(seen.depth > 0, seen.depth + noise, 0.0).astype(np.float32)
+    det = detection(NUT, seen.masks[0])
+    free = _noisy_runner(rest=False).estimate("depth+icp", det, noisy, CAMERA, NUT, None, FLOOR)
+    rested = _noisy_runner().estimate("depth+icp", det, noisy, CAMERA, NUT, None, FLOOR)
+    err_free, err = (pose_errors(p.T_camera_object, T_true, NUT) for p in (free, rested))
+    assert rested.details["hypothesis"].endswith("+rest")
+    assert height_above(rested.T_camera_object, NUT, FLOOR) == pytest.approx(0.0, abs=1e-6)
+    assert err_free.re_deg > 3.0 and err.re_deg < 0.3 * err_free.re_deg, (err, err_free)  # the tilt is gone
+    assert err.add_m < err_free.add_m and err.correct(), (err, err_free)
+
+
+def test_bad_rest_settings_are_refused():
+    with pytest.raises(ValueError, match="rest_max_tilt_deg"):
+        StrategyConfig(rest_max_tilt_deg=200.0)
+    with pytest.raises(ValueError, match="rest_steps"):
+        StrategyConfig(rest_steps=((0.0, 1.0),))
