@@ -8,7 +8,8 @@ through a stereo sensor model, e.g. ``launch/recipes/builtin_test_noisy.json``),
   refused estimates count as failures), median re and te, median wall and CPU milliseconds per object (the
   network's share where used, mask clean-up, hypotheses, refinement, verification), false accepts (wrong among the
   accepted) and false refusals (refused among the correct). The reference row is the manifest's per-part choice
-  (``sygrid models choose-pose``), or without one the most accurate strategy per part;
+  (``sygrid models choose-pose``), or without one the most accurate strategy per part; with a choice, it is also
+  measured without the resting search (``perception.resting``), the ablation row;
 - end to end (``perception.evaluation.evaluate``): the model folder's detector and per-part strategies, ADD(-S)
   recall over every instance seen at least 10 % (missed or refused counts as a failure), per part, false accepts
   and false refusals of the verified estimates, median milliseconds per object (strategy, refinement and
@@ -28,6 +29,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import matplotlib
@@ -130,6 +132,12 @@ def measure(
     records = evaluate_strategies(runner, pipeline.pose, pipeline.models, data_dir, strategies, settings,
                                   wrong_class=wrong_class, progress=progress,
                                   tare=pipeline.depth_tare)  # fmt: skip
+    gt_masks = gt_mask_summary(records, min_confidence, names, pipeline.strategies)
+    if pipeline.strategies is not None:  # the same choice without the resting search (perception.resting)
+        no_rest = StrategyRunner(runner.icp_config, runner.verifier, runner.cleanup, replace(runner.config, rest=False))
+        off = evaluate_strategies(no_rest, pipeline.pose, pipeline.models, data_dir, (), settings, progress=progress,
+                                  tare=pipeline.depth_tare, per_part=pipeline.strategies)  # fmt: skip
+        gt_masks["reference_without_rest"] = summary_by_part(off, lambda o, s: True, min_confidence, names)
     report = evaluate(pipeline, data_dir, settings, progress=progress)
     return {
         "data": str(data_dir),
@@ -138,7 +146,7 @@ def measure(
         "depth": report["depth"],
         "depth_tared": report["depth_tared"],
         "depth_tare": report["depth_tare"],
-        "gt_masks": gt_mask_summary(records, min_confidence, names, pipeline.strategies),
+        "gt_masks": gt_masks,
         "end_to_end": end_to_end_summary(report),
     }
 
@@ -295,6 +303,8 @@ def _gt_mask_lines(g: dict) -> list[str]:
     head = (f"{'GT masks':<24}{'n':>5}{'ADD(-S)':>9}{'accepted':>10}{'re deg':>8}{'te mm':>8}{'ms':>7}{'CPU ms':>8}"
             f"{'false acc':>10}{'false ref':>10}")  # fmt: skip
     rows = {**{s: r["all"] for s, r in g["strategies"].items()}, g["reference"]["label"]: g["reference"]["all"]}
+    if "reference_without_rest" in g:
+        rows["  the same, no resting"] = g["reference_without_rest"]["all"]
     lines = [head] + [_row(s, r) for s, r in rows.items()]
     parts = list(next(iter(g["strategies"].values()))["per_part"]) if g["strategies"] else []
     lines.append(f"{'accepted recall per part':<24}" + "".join(f"{s:>14}" for s in g["strategies"]))

@@ -111,9 +111,11 @@ def evaluate_strategies(
     sense: SenseFn | None = None,  # (annotation, rgb, depth) -> (rgb, depth) as a sensor sees them; None: as stored
     progress: bool = True,
     tare: TareConfig | None = None,
+    per_part: dict[int, str] | None = None,
 ) -> dict[tuple[int, str], list[StrategyRecord]]:
     """Runs every strategy on every evaluated instance; (obj_id, strategy) -> records. ``tare``: the depth tare's
-    settings (the pipeline's, ``PerceptionPipeline.depth_tare``); None: the depth as stored."""
+    settings (the pipeline's, ``PerceptionPipeline.depth_tare``); None: the depth as stored. ``per_part``: obj_id ->
+    the one strategy to run on that part's instances (``strategies`` is then not used)."""
     s = settings or EvalSettings()
     root, split, items = eval_items(data_dir, s)
     if not items:
@@ -144,7 +146,7 @@ def evaluate_strategies(
         by_det = {id(p.detection): p for p in net}
         for inst, det, bad in zip(instances, detections, wrong, strict=True):
             model = models[inst.obj_id]
-            for strategy in strategies:
+            for strategy in strategies if per_part is None else (per_part[inst.obj_id],):
                 uses_net = strategy in NETWORK_STRATEGIES
                 pose = _run(runner, strategy, det, depth, ann.intrinsics, model, by_det.get(id(det)), uses_net, floor)
                 ms = pose.details.get("time_ms", 0.0) + (net_ms if uses_net else 0.0) if pose else math.nan

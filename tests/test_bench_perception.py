@@ -156,6 +156,9 @@ def test_the_command_on_the_shipped_models(tiny_dataset: Path, noisy_dataset: Pa
         assert condition["n_images"] == 1 and set(condition["depth"]) >= {"abs_rel", "delta1", "fill_rate"}
         assert list(condition["gt_masks"]["strategies"]) == measured
         _check_consistent(condition)
+        # the choice measured again without the resting search: the same instances
+        ablation, reference = condition["gt_masks"]["reference_without_rest"], condition["gt_masks"]["reference"]
+        assert ablation["all"]["n"] == reference["all"]["n"] and set(ablation["per_part"]) == set(reference["per_part"])
     assert all(set(c) == {"target", "condition", "value", "op", "bound", "met"} for c in results["target_checks"])
     (tmp_path / "perception.png").unlink()  # --replot redraws the chart from the saved JSON alone
     assert run(build_parser("bench").parse_args(["bench", "perception", "--replot"]), out_dir=tmp_path) == 0
