@@ -216,7 +216,8 @@ def test_region_of_interest_is_the_box_of_the_projected_points():
 
 def test_the_bin_box_finds_what_the_whole_frame_finds():
     """The shipped detector on the simulated cell's first frame (seed 0): looking only at the bin's box at the same
-    scale finds the same parts, in the same places, with about the same scores."""
+    scale finds the same parts, in the same places, with about the same scores (the network sees a different
+    neighbourhood around the crop, so a score may move; the median one does not)."""
     from launch.bench_cell_detector import first_frame
     from perception.detector import YoloSegDetector
     from robot.cell_setup import load_cell_setup
@@ -229,11 +230,13 @@ def test_the_bin_box_finds_what_the_whole_frame_finds():
     detector = YoloSegDetector(ROOT / "models" / "builtin" / "detector.onnx", conf_threshold=0.4, input_size=800)
     whole, in_bin = detector.detect(rgb), detector.detect(rgb, roi)
     assert len(in_bin) >= 6 and abs(len(in_bin) - len(whole)) <= 1
-    matched = 0
+    score_changes = []
     for d in whole:
         twins = [b for b in in_bin if b.obj_id == d.obj_id and np.abs(b.bbox_xyxy - d.bbox_xyxy).max() < 3.0]
-        matched += bool(twins) and abs(twins[0].score - d.score) < 0.15
-    assert matched >= len(whole) - 1
+        if twins:
+            score_changes.append(abs(twins[0].score - d.score))
+    assert len(score_changes) >= len(whole) - 1
+    assert np.median(score_changes) < 0.1, score_changes
     for d in in_bin:
         ys, xs = np.nonzero(d.mask)
         assert xs.min() >= x0 and xs.max() < x1 and ys.min() >= y0 and ys.max() < y1
