@@ -26,13 +26,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
-import cv2
 import numpy as np
 import trimesh
 
 from perception.observation import Observation
 from perception.verify import PoseVerifier, Verification
 from sygrid.objects.model import ObjectModel
+from sygrid.transforms import rotation_about
 
 SAME_UP_DEG = 1.0  # stable poses whose up directions and heights agree this closely are one
 
@@ -67,10 +67,10 @@ def stable_poses(model: ObjectModel) -> StablePoses:
     return StablePoses(up[keep], height[keep], probability[keep])
 
 
-def height_above(T_camera_object: np.ndarray, model: ObjectModel, plane: np.ndarray) -> float:
-    """The lowest point of ``model`` at the pose above ``plane`` ``(a, b, c, d)`` [m] (negative: through it)."""
-    hull = np.asarray(model.mesh.convex_hull.vertices)
-    return float(((hull @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]) @ plane[:3] + plane[3]).min())
+def _perpendicular(v: np.ndarray) -> np.ndarray:
+    """A unit vector perpendicular to the unit vector ``v``."""
+    p = np.cross(v, (1.0, 0.0, 0.0) if abs(v[0]) < 0.9 else (0.0, 1.0, 0.0))
+    return p / np.linalg.norm(p)
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -78,11 +78,8 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     axis = np.cross(a, b)
     s, c = float(np.linalg.norm(axis)), float(np.clip(a @ b, -1.0, 1.0))
     if s < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        perpendicular = np.cross(a, (1.0, 0.0, 0.0) if abs(a[0]) < 0.9 else (0.0, 1.0, 0.0))
-        return cv2.Rodrigues(np.pi * perpendicular / np.linalg.norm(perpendicular))[0]
-    return cv2.Rodrigues(axis / s * np.arctan2(s, c))[0]
+        return np.eye(3) if c > 0 else rotation_about(_perpendicular(a), np.pi)
+    return rotation_about(axis, np.arctan2(s, c))
 
 
 def rest_on_support(T_camera_object: np.ndarray, model: ObjectModel, plane: np.ndarray) -> tuple[np.ndarray, float]:
@@ -118,14 +115,14 @@ def mask_hypotheses(
         return []
     K = obs.intrinsics.K
     rays = np.column_stack([(xs + obs.x0 - K[0, 2]) / K[0, 0], (ys + obs.y0 - K[1, 2]) / K[1, 1], np.ones(len(xs))])
+    denominator = rays @ n
+    if (np.abs(denominator) < 1e-9).any():
+        return []
     poses = stable_poses(model)
     hull = np.asarray(model.mesh.convex_hull.vertices)
     out = []
     for k in np.flatnonzero(poses.probability >= min_probability)[:max_poses]:
         height = float(poses.height_m[k])
-        denominator = rays @ n
-        if (np.abs(denominator) < 1e-9).any():
-            return []
         on_plane = rays * ((height - d) / denominator)[:, None]  # where each ray meets the plane raised by height
         if (on_plane[:, 2] <= 0).any():
             return []
@@ -136,7 +133,7 @@ def mask_hypotheses(
         for sign in (1.0, -1.0):
             angle = np.arctan2(np.cross(model_axis, sign * mask_axis) @ n, model_axis @ (sign * mask_axis))
             T = np.eye(4)
-            T[:3, :3] = cv2.Rodrigues(n * angle)[0] @ R0
+            T[:3, :3] = rotation_about(n, angle) @ R0
             T[:3, 3] = centre
             out.append(T)
     return out
@@ -162,13 +159,12 @@ def planar_search(
     verification improves: steps of (fraction of the diameter, degrees) from ``steps``, coarse to fine,
     the best of the six moves taken while it improves the confidence. The height and tilt stay as given."""
     n = np.asarray(plane[:3], dtype=float)
-    e1 = np.cross(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
-    e1 /= np.linalg.norm(e1)
+    e1 = _perpendicular(n)
     e2 = np.cross(n, e1)
     T, v = np.array(T_camera_object, dtype=float), verifier.verify(T_camera_object, model, obs)
     for fraction, degrees in steps:
         shift = fraction * float(model.diameter_m)
-        turns = [cv2.Rodrigues(n * np.radians(s * degrees))[0] for s in (1.0, -1.0)]
+        turns = [rotation_about(n, np.radians(s * degrees)) for s in (1.0, -1.0)]
         while True:  # steepest ascent: the best of the moves, while it improves
             tries = []
             for sign in (1.0, -1.0):

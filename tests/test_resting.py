@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from perception.pose_strategies import StrategyConfig, StrategyRunner
-from perception.resting import height_above, rest_on_support, stable_poses
+from perception.resting import rest_on_support, stable_poses
 from perception.verify import PoseVerifier, VerifyConfig
 from sygrid.metrics import pose_errors
 from sygrid.objects.parts import builtin_part
@@ -18,6 +18,12 @@ from tests.raycast_scene import CAMERA, T_CAMERA_FLOOR, detection, on_floor, ren
 NUT, WASHER = builtin_part("hex_nut"), builtin_part("washer")
 NORMAL = T_CAMERA_FLOOR[:3, 2]
 FLOOR = np.append(NORMAL, -NORMAL @ T_CAMERA_FLOOR[:3, 3])  # the floor plane, normal towards the camera
+
+
+def height_above(T_camera_object: np.ndarray, model, plane: np.ndarray) -> float:
+    """The lowest point of ``model`` at the pose above ``plane`` [m] (negative: through it)."""
+    hull = np.asarray(model.mesh.convex_hull.vertices)
+    return float(((hull @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]) @ plane[:3] + plane[3]).min())
 
 
 def test_a_washer_rests_on_either_face_most_often():
