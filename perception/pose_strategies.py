@@ -76,6 +76,7 @@ class StrategyConfig:
     rest_slack: ... and its verification confidence is at least the free fit's minus this.
     rest_steps: the in-plane search's steps: (fraction of the diameter, degrees), coarse to fine.
     rest_settled_deg, rest_settled_m: a fit that levelling turns and moves no more than this is left as it is.
+    rest_confident: a free fit whose verification confidence reaches this is left as it is (above 1: never).
     """
 
     icp_hypotheses: int = 3
@@ -93,15 +94,17 @@ class StrategyConfig:
     rest_steps: tuple[tuple[float, float], ...] = ((0.08, 8.0), (0.04, 4.0), (0.02, 2.0), (0.01, 1.0))
     rest_settled_deg: float = 3.0
     rest_settled_m: float = 0.0015
+    rest_confident: float = 0.99
 
     def __post_init__(self) -> None:
         steps_ok = all(f > 0 and deg > 0 for f, deg in self.rest_steps)
-        settled_ok = self.rest_settled_deg >= 0 and self.rest_settled_m >= 0
+        settled_ok = self.rest_settled_deg >= 0 and self.rest_settled_m >= 0 and self.rest_confident > 0
         if not 0 <= self.rest_max_tilt_deg <= 180 or self.rest_slack < 0 or not steps_ok or not settled_ok:
             raise ValueError(
                 "StrategyConfig: need rest_max_tilt_deg in [0, 180], rest_slack, rest_settled_deg and rest_settled_m"
-                f" >= 0 and positive rest_steps, got {self.rest_max_tilt_deg}, {self.rest_slack}, "
-                f"{self.rest_settled_deg}, {self.rest_settled_m}, {self.rest_steps}"
+                " >= 0, rest_confident > 0 and positive rest_steps, got "
+                f"{self.rest_max_tilt_deg}, {self.rest_slack}, {self.rest_settled_deg}, {self.rest_settled_m}, "
+                f"{self.rest_confident}, {self.rest_steps}"
             )
         if self.icp_hypotheses < 1 or self.escape_rounds < 0 or self.min_points < 3 or self.align_steps < 0:
             raise ValueError(
@@ -356,6 +359,8 @@ class StrategyRunner:
             return best
         if tilt <= cfg.rest_settled_deg and np.linalg.norm(T[:3, 3] - best.T[:3, 3]) <= cfg.rest_settled_m:
             return best  # already at rest: nothing to gain, and the search is the dearer part
+        if best.verification.confidence >= cfg.rest_confident:
+            return best  # the depth confirms the free fit: a part leaning on a neighbour, or exact depth
         T, v = planar_search(T, model, obs, obs.support, self.verifier, cfg.rest_steps)
         if v.confidence < best.verification.confidence - cfg.rest_slack:
             return best

@@ -101,6 +101,8 @@ def test_a_fit_to_noisy_depth_is_levelled_onto_the_floor():
     assert height_above(rested.T_camera_object, NUT, FLOOR) == pytest.approx(0.0, abs=1e-6)
     assert err_free.re_deg > 3.0 and err.re_deg < 0.3 * err_free.re_deg, (err, err_free)  # the tilt is gone
     assert err.add_m < err_free.add_m and err.correct(), (err, err_free)
+    trusting = _noisy_runner(rest_confident=free.score).estimate("depth+icp", det, noisy, CAMERA, NUT, None, FLOOR)
+    assert not trusting.details["hypothesis"].endswith("+rest")  # a free fit this confident is left as it is
 
 
 def test_bad_rest_settings_are_refused():
@@ -108,3 +110,5 @@ def test_bad_rest_settings_are_refused():
         StrategyConfig(rest_max_tilt_deg=200.0)
     with pytest.raises(ValueError, match="rest_steps"):
         StrategyConfig(rest_steps=((0.0, 1.0),))
+    with pytest.raises(ValueError, match="rest_confident"):
+        StrategyConfig(rest_confident=0.0)
