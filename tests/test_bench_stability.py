@@ -25,7 +25,7 @@ from launch.stability.failure import (
     failure_point,
 )
 from launch.stability.generated import point_recipe_json, spread_counts
-from launch.stability.perception_pass import part_family
+from launch.stability.perception_pass import models_digest, part_family
 from launch.stability.report import axis_result, summary_markdown
 from launch.stability.sweep import Axis, Measurement, Method, Point, point_path, run_axis
 from sygrid.camera import CameraIntrinsics
@@ -127,6 +127,15 @@ def test_the_sweep_saves_each_point_and_resumes_without_measuring_it_again(tmp_p
     m = result["methods"]["oak-d"]
     assert [p["n"] for p in m["curve"]] == [3072, 3072] and m["groups"]["family all"]["curve"][1]["k"] == noisy * 3072
     assert result["points_measured"] == 2 and result["seconds"] >= 0
+
+
+def test_a_repacked_model_folder_is_a_new_pass_key(tmp_path):
+    (tmp_path / "manifest.json").write_text("{}")
+    (tmp_path / "pose.onnx").write_bytes(b"one")
+    before = models_digest(tmp_path)
+    assert models_digest(tmp_path) == before
+    (tmp_path / "pose.onnx").write_bytes(b"two")
+    assert models_digest(tmp_path) != before
 
 
 def test_the_seeds_of_a_point_are_pooled():

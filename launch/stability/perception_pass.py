@@ -118,9 +118,18 @@ def cache_path(cache_dir: Path, key: dict[str, Any]) -> Path:
     return Path(cache_dir) / "passes" / f"{digest}.json"
 
 
-# Bumped when what a pass measures changes (2: the depth tare and the sensor's noise allowance), so that cached
-# passes of the old measurement are not reused.
-PASS_VERSION = 2
+# Bumped when what a pass measures changes (2: the depth tare and the sensor's noise allowance; 3: parts at rest on
+# their support), so that cached passes of the old measurement are not reused.
+PASS_VERSION = 3
+
+
+def models_digest(models_dir: Path) -> str:
+    """A digest of the model folder's files (manifest, networks, cards): a repacked folder is a new key."""
+    h = hashlib.sha256()
+    for path in sorted(p for p in Path(models_dir).iterdir() if p.is_file()):
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def measure_set(
@@ -136,6 +145,7 @@ def measure_set(
     """The pass's rows (see the module docstring), read from the cache when it was measured before. ``sensor``: a
     ``SensorModel`` the frames go through (None: as stored); ``detection`` False leaves the detectors out."""
     key = {"data": str(Path(data_dir).resolve()), "max_images": max_images, "models": str(stack.models_dir.resolve()),
+           "models_digest": models_digest(stack.models_dir),
            "strategies": list(stack.strategies), "detection": detection,
            "sensor": None if sensor is None else repr(sensor), "sensor_seed": sensor_seed,
            "pipeline": PASS_VERSION}  # fmt: skip
