@@ -41,13 +41,10 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def default_region(args: argparse.Namespace) -> str:
-    """``--region``, or by default ``bin`` where the dataset knows its bin (a ledger of 'sygrid generate'), else
-    ``full`` (a converted dataset: no bin pose)."""
-    from sygrid.dataset import LEDGER_NAME
+    """``--region``, or by default the dataset's (``perception.detector_eval.dataset_region``)."""
+    from perception.detector_eval import dataset_region
 
-    if args.region is not None:
-        return args.region
-    return "bin" if (args.data / LEDGER_NAME).is_file() else "full"
+    return args.region if args.region is not None else dataset_region(args.data)
 
 
 def detector_overrides(args: argparse.Namespace) -> dict:

@@ -65,12 +65,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--scale", type=float, default=None, help="the manifest's detector scale (network px per image px)"
     )
     pack.add_argument("--tile-px", type=int, default=None, help="the manifest's detector tiles (network px)")
-    pack.add_argument("--region", choices=["full", "bin"], default="full", help="where the card's evaluation looks")
+    pack.add_argument(
+        "--region", choices=["full", "bin"], default=None,
+        help="where the card's evaluation looks (default: the bin's box where the test set knows its bin)",
+    )  # fmt: skip
     fails = sub.add_parser("breakdown", help="where a model folder's detector fails: card section, min_part_px")
     fails.add_argument("--models", type=Path, required=True, help="model folder (manifest.json, detector.card.md)")
     fails.add_argument("--test-data", type=Path, required=True, help="held-out dataset")
     fails.add_argument("--max-images", type=int, default=None, help="evaluate on the first N test images")
-    fails.add_argument("--region", choices=["full", "bin"], default="full", help="where the detector looks")
+    fails.add_argument(
+        "--region", choices=["full", "bin"], default=None,
+        help="where the detector looks (default: the bin's box where the test set knows its bin)",
+    )  # fmt: skip
 
     choose = sub.add_parser(
         "choose-pose", help="measure every pose strategy per part on a test set, write the choice into the manifest"
@@ -177,6 +183,7 @@ def run_breakdown(args: argparse.Namespace) -> int:
     ``eval_detector.json``, the card's "Where it fails" section and the manifest's ``detector.min_part_px`` (the
     smallest nominal size recalled reliably at the operating threshold; left out when none is)."""
     from perception.detector import YoloSegDetector
+    from perception.detector_eval import dataset_region
     from perception.evaluation import EvalSettings, evaluate_detector
     from perception.manifest import load_manifest
     from perception.pipeline import PipelineOverrides, detector_view
@@ -185,7 +192,7 @@ def run_breakdown(args: argparse.Namespace) -> int:
     d = manifest.detector
     detector = YoloSegDetector(args.models / d.onnx, conf_threshold=COCO_CONF, iou_threshold=d.iou_threshold,
                                input_size=d.input_size, view=detector_view(d, PipelineOverrides()))  # fmt: skip
-    settings = EvalSettings(max_images=args.max_images, region=args.region)
+    settings = EvalSettings(max_images=args.max_images, region=args.region or dataset_region(args.test_data))
     report = evaluate_detector(detector, args.test_data, settings, operating_threshold=d.conf_threshold)
     report["data"] = str(args.test_data)
     write_json_atomic(args.models / "eval_detector.json", report)
@@ -238,11 +245,12 @@ def _train_log(run_dir: Path, onnx_name: str) -> dict:
 
 def _evaluate(args: argparse.Namespace) -> dict[str, dict]:
     from perception.detector import YoloSegDetector
+    from perception.detector_eval import dataset_region
     from perception.evaluation import EvalSettings, evaluate, evaluate_detector, format_table
     from perception.pipeline import PerceptionPipeline, PipelineOverrides
     from perception.tiling import ViewSettings
 
-    settings = EvalSettings(max_images=args.max_images, region=args.region)
+    settings = EvalSettings(max_images=args.max_images, region=args.region or dataset_region(args.test_data))
     detector = YoloSegDetector(args.out / "detector.onnx", conf_threshold=COCO_CONF,
                                view=ViewSettings(args.scale, args.tile_px))  # fmt: skip
     report = evaluate_detector(detector, args.test_data, settings, operating_threshold=args.conf_threshold)

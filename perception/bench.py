@@ -38,6 +38,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.ticker import FixedLocator, FormatStrFormatter, NullFormatter
 
+from perception.detector_eval import dataset_region
 from perception.evaluation import EvalSettings, dataset_sensor, evaluate, frames_sensor
 from perception.manifest import load_manifest
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
@@ -78,17 +79,18 @@ def run_benchmark(
     min_confidence = manifest.verify.min_confidence
     verify = manifest.verify.config()
     measured = tuple(dict.fromkeys([*strategies, *(pipeline.strategies or {}).values()]))
-    settings = EvalSettings(max_images=max_images)
     conditions = {}
     for name, path in datasets.items():
         if progress:
             print(f"-- {name}: {path}")
+        settings = EvalSettings(max_images=max_images, region=dataset_region(path))  # as the cell: the bin's box
         sensor = frames_sensor(path, settings)
         pipeline.use_sensor(sensor)  # evaluate does it too; the ground-truth pass shares the pipeline's runner
         runner = pipeline.runner if pipeline.runner is not None else StrategyRunner(verifier=PoseVerifier(
             verify.for_sensor(sensor)))  # fmt: skip
         conditions[name] = {
             "dataset_sensor": sensors[name],
+            "region": settings.region,
             **measure(pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress),
         }
     return {

@@ -25,7 +25,7 @@ from perception.detector import YoloSegDetector
 from perception.pipeline import region_of_interest
 from perception.results import Detection
 from sygrid.annotations import ImageAnnotation
-from sygrid.dataset import DatasetBin
+from sygrid.dataset import LEDGER_NAME, DatasetBin
 from sygrid.detection_breakdown import SIZE_BINS, VISIB_BINS, breakdown
 from sygrid.metrics import detection_metrics
 from sygrid.scene import bin_inner_corners
@@ -77,6 +77,12 @@ class StoredDetection:
 def bin_region_camera(dataset_bin: DatasetBin, ann: ImageAnnotation) -> np.ndarray:
     """(8, 3) the corners of the bin's inner volume in the camera frame of ``ann``'s image, metres."""
     return transform_points(dataset_bin.T_camera_bin(ann), bin_inner_corners(dataset_bin.inner_size_m))
+
+
+def dataset_region(data_dir: Path) -> Region:
+    """Where a cell's detector looks in this dataset's images: ``"bin"`` where the dataset knows its bin (a ledger of
+    ``sygrid generate``), as the cell's pipeline is given the bin's box, else ``"full"`` (a converted dataset)."""
+    return "bin" if (Path(data_dir) / LEDGER_NAME).is_file() else "full"
 
 
 def region_box(region: Region, dataset_bin: DatasetBin | None, ann: ImageAnnotation) -> tuple[int, ...] | None:
