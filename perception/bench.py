@@ -13,15 +13,17 @@ through a stereo sensor model, e.g. ``launch/recipes/builtin_test_noisy.json``),
 - end to end (``perception.evaluation.evaluate``): the model folder's detector and per-part strategies, ADD(-S)
   recall over every instance seen at least 10 % (missed or refused counts as a failure), per part, false accepts
   and false refusals of the verified estimates, median milliseconds per object (strategy, refinement and
-  verification; the network's batch time is in the per-frame timings);
+  verification; the network's batch time is in the per-frame timings); with ``--thresholds``, the same again at
+  each detector confidence threshold given (the manifest's is the main row): found parts against time per frame;
 - the dataset's depth against the exact depth: AbsRel, delta1 and fill rate (0, 1 and 1 for a noise-free set), and
   after the depth tare on the bin's floor (``perception.depth_tare``, both passes), with the tare's offsets.
 
 The verification allows the depth noise of each dataset's sensor (``VerifyConfig.for_sensor``).
 
 Writes ``bench/results/perception.{json,png}``: accuracy against median milliseconds per object, one point per
-strategy, one panel per dataset, the targets (``TARGETS``) drawn; the printed table ends with every target and its
-measured value.
+strategy, one panel per dataset, the targets (``TARGETS``) drawn, and with ``--thresholds`` a second row: end-to-end
+accuracy against the pipeline's median milliseconds per frame, one point per detector threshold; the printed table
+ends with every target and its measured value.
 """
 
 from __future__ import annotations
@@ -67,11 +69,12 @@ def run_benchmark(
     max_images: int | None = None,
     threads: int = 2,
     wrong_class: bool = False,
+    thresholds: tuple[float, ...] = (),
     progress: bool = True,
 ) -> dict:
     """Measures ``strategies`` (and the manifest's chosen ones) with ground-truth masks and the folder's pipeline end
-    to end on each dataset; returns the results as a JSON-able dict (``conditions`` "ideal" and, with
-    ``noisy_dir``, "noisy")."""
+    to end on each dataset, also at each detector confidence threshold of ``thresholds``; returns the results as a
+    JSON-able dict (``conditions`` "ideal" and, with ``noisy_dir``, "noisy")."""
     datasets = {"ideal": Path(data_dir), **({"noisy": Path(noisy_dir)} if noisy_dir is not None else {})}
     sensors = {name: checked_sensor(name, path) for name, path in datasets.items()}
     manifest = load_manifest(models_dir)
@@ -92,7 +95,9 @@ def run_benchmark(
             "dataset_sensor": sensors[name],
             "region": settings.region,
             **measure(pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress),
-        }
+            "end_to_end_thresholds": {f"{t:g}": end_to_end_at(pipeline, t, path, settings, progress) for t in thresholds
+                                      if t != pipeline.detector.conf_threshold},
+        }  # fmt: skip
     return {
         "models": str(models_dir),
         "threads": threads,
@@ -153,6 +158,18 @@ def measure(
     }
 
 
+def end_to_end_at(
+    pipeline: PerceptionPipeline, threshold: float, data_dir: Path, settings: EvalSettings, progress: bool = True
+) -> dict:
+    """``end_to_end_summary`` with the pipeline's detector at the confidence ``threshold`` (restored after)."""
+    own = pipeline.detector.conf_threshold
+    pipeline.detector.conf_threshold = threshold
+    try:
+        return end_to_end_summary(evaluate(pipeline, data_dir, settings, progress=progress))
+    finally:
+        pipeline.detector.conf_threshold = own
+
+
 def part_key(obj_id: int, names: dict[int, str]) -> str:
     """How a part is named in the results (as ``perception.evaluation`` names it): ``"<obj_id> <name>"``."""
     return f"{obj_id} {names.get(obj_id, '?')}"
@@ -205,6 +222,7 @@ def end_to_end_summary(report: dict) -> dict:
         "detections_per_image_median": report["detections_per_image_median"],
         "box_map50": report["detection"]["box_map50"],
         "mask_map50_95": report["detection"]["mask_map50_95"],
+        "conf_threshold": report["conf_threshold"],
     }
 
 
@@ -245,13 +263,40 @@ def _check(target: str, condition: str, value: float | None, op: str, bound: flo
 
 def chart(results: dict):
     conditions = results["conditions"]
-    fig, axes = plt.subplots(1, len(conditions), figsize=(6 * len(conditions) + 2.5, 5.2), sharex=True, sharey=True,
+    by_threshold = any(c.get("end_to_end_thresholds") for c in conditions.values())
+    rows = 2 if by_threshold else 1
+    fig, axes = plt.subplots(rows, len(conditions), figsize=(6 * len(conditions) + 2.5, 5.2 * rows), sharey=True,
                              squeeze=False)  # fmt: skip
     for ax, (name, c) in zip(axes[0], conditions.items(), strict=True):
         _panel(ax, name, c, results["strategies"])
     axes[0][-1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    if by_threshold:
+        for ax, (name, c) in zip(axes[1], conditions.items(), strict=True):
+            _threshold_panel(ax, name, c)
+        axes[1][-1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.tight_layout()
     return fig
+
+
+def threshold_rows(c: dict) -> list[dict]:
+    """A condition's end-to-end summaries, the manifest's threshold among the others, by rising threshold."""
+    rows = [c["end_to_end"], *c.get("end_to_end_thresholds", {}).values()]
+    return sorted(rows, key=lambda e: e["conf_threshold"])
+
+
+def _threshold_panel(ax, name: str, c: dict) -> None:
+    """End to end, one point per detector threshold: ADD(-S) recall against the pipeline's time per frame."""
+    rows = threshold_rows(c)
+    ms = [e["timings_ms_median"]["total"] for e in rows]
+    ax.plot(ms, [e["all"]["add_recall"] for e in rows], "k*-", ms=10, label="end to end, per detector threshold")
+    for x, e in zip(ms, rows, strict=True):
+        own = e is c["end_to_end"]
+        ax.annotate(f"{e['conf_threshold']:g}{' (manifest)' if own else ''}", (x, e["all"]["add_recall"]),
+                    textcoords="offset points", xytext=(4, -12), fontsize=8)  # fmt: skip
+    ax.axhline(TARGETS["end_to_end_recall"][name], color="grey", ls=":", lw=0.8, label="target, end to end")
+    ax.set(xlabel="pipeline time per frame, median [ms] (detector, pose, verification, refinement)",
+           ylabel="ADD(-S) < 0.1 d recall, end to end", ylim=(0, 1.02),
+           title=f"{name}: the detector's confidence threshold")  # fmt: skip
 
 
 def _panel(ax, name: str, c: dict, strategies: list[str]) -> None:
@@ -292,6 +337,8 @@ def format_results(results: dict) -> str:
                          f"|median| {t['offset_mm_at_1m_abs_median']:.2f} mm at 1 m; depth AbsRel after it "
                          f"{dt.get('abs_rel', math.nan):.4f}")  # fmt: skip
         lines += _gt_mask_lines(c["gt_masks"]) + _end_to_end_lines(c["end_to_end"])
+        if c.get("end_to_end_thresholds"):
+            lines += _threshold_lines(c)
     lines += ["", "targets:"]
     for t in results["target_checks"]:
         verdict = {True: "met", False: "NOT MET", None: "n/a"}[t["met"]]
@@ -335,6 +382,18 @@ def _end_to_end_lines(e: dict) -> list[str]:
     return lines
 
 
+def _threshold_lines(c: dict) -> list[str]:
+    lines = [
+        f"{'end to end, threshold':<24}{'dets':>6}{'ADD(-S)':>9}{'false acc':>10}{'false ref':>10}{'ms/frame':>10}"
+    ]
+    for e in threshold_rows(c):
+        lines.append(
+            f"{e['conf_threshold']:<24g}{e['detections_per_image_median']:>6.0f}{_pct(e['all']['add_recall']):>9}"
+            f"{_pct(e['false_accept']):>10}{_pct(e['false_refuse']):>10}{e['timings_ms_median']['total']:>10.1f}"
+        )
+    return lines
+
+
 def _pct(x: float | None) -> str:
     return "n/a" if x is None or math.isnan(x) else f"{100 * x:.1f}%"
 
@@ -353,6 +412,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--strategies", default=None, help="comma-separated subset of the strategies (default: all)")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--wrong-class", action="store_true", help="also fit every instance with another part's model")
+    parser.add_argument(
+        "--thresholds",
+        default=None,
+        help="comma-separated detector confidence thresholds to run end to end beside the manifest's",
+    )
     parser.add_argument("--quick", action="store_true", help="20 images")
     parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved perception.json")
 
@@ -370,6 +434,19 @@ def parse_strategies(value: str | None) -> tuple[str, ...]:
     return names
 
 
+def parse_thresholds(value: str | None) -> tuple[float, ...]:
+    """``--thresholds``: the confidence thresholds in order (none without a value); each in (0, 1)."""
+    if value is None:
+        return ()
+    try:
+        out = tuple(float(t) for t in value.split(",") if t.strip())
+    except ValueError:
+        raise ConfigError(f"--thresholds {value!r}: expected comma-separated numbers in (0, 1)") from None
+    if not out or not all(0.0 < t < 1.0 for t in out):
+        raise ConfigError(f"--thresholds {value!r}: expected comma-separated numbers in (0, 1)")
+    return out
+
+
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     if args.replot:
         replot("perception", chart, out_dir)
@@ -382,6 +459,7 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         max_images=20 if args.quick and args.max_images is None else args.max_images,
         threads=args.threads,
         wrong_class=args.wrong_class,
+        thresholds=parse_thresholds(args.thresholds),
     )
     print(format_results(results))
     json_path, png_path = save_results("perception", results, chart(results), out_dir)

@@ -19,6 +19,7 @@ from perception.bench import (
     format_results,
     measure,
     parse_strategies,
+    parse_thresholds,
     run,
     target_checks,
 )
@@ -145,7 +146,7 @@ def test_perfect_poses_score_one_and_the_counts_add_up(tiny_dataset: Path, noisy
 def test_the_command_on_the_shipped_models(tiny_dataset: Path, noisy_dataset: Path, tmp_path: Path):
     argv = ["bench", "--out-dir", str(tmp_path), "perception", "--models", str(ROOT / "models" / "builtin"),
             "--data", str(tiny_dataset), "--noisy-data", str(noisy_dataset), "--max-images", "1",
-            "--strategies", "rgb,depth"]  # fmt: skip
+            "--strategies", "rgb,depth", "--thresholds", "0.1"]  # fmt: skip
     args = build_parser("bench").parse_args(argv)
     assert run(args, out_dir=args.out_dir) == 0
     results = json.loads((tmp_path / "perception.json").read_text())
@@ -159,6 +160,10 @@ def test_the_command_on_the_shipped_models(tiny_dataset: Path, noisy_dataset: Pa
         # the choice measured again without the resting search: the same instances
         ablation, reference = condition["gt_masks"]["reference_without_rest"], condition["gt_masks"]["reference"]
         assert ablation["all"]["n"] == reference["all"]["n"] and set(ablation["per_part"]) == set(reference["per_part"])
+        # the pipeline again with the detector at 0.1: the same instances, at least the detections and parts found
+        low, own = condition["end_to_end_thresholds"]["0.1"], condition["end_to_end"]
+        assert low["conf_threshold"] == 0.1 < own["conf_threshold"] and low["all"]["n"] == own["all"]["n"]
+        assert low["detections_per_image_median"] >= own["detections_per_image_median"]
     assert all(set(c) == {"target", "condition", "value", "op", "bound", "met"} for c in results["target_checks"])
     (tmp_path / "perception.png").unlink()  # --replot redraws the chart from the saved JSON alone
     assert run(build_parser("bench").parse_args(["bench", "perception", "--replot"]), out_dir=tmp_path) == 0
@@ -176,3 +181,7 @@ def test_bad_arguments_name_the_flag(tiny_dataset: Path, noisy_dataset: Path):
     with pytest.raises(ConfigError, match=f"--data {noisy_dataset}: generated through the sensor 'oak-d'"):
         checked_sensor("ideal", noisy_dataset)
     assert np.isfinite(TARGETS["ms_per_object"])
+    assert parse_thresholds("0.3, 0.1") == (0.3, 0.1) and parse_thresholds(None) == ()
+    for bad in ("0.3,x", "1.5", ","):
+        with pytest.raises(ConfigError, match="--thresholds"):
+            parse_thresholds(bad)
