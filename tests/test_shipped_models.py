@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from perception.detector_eval import dataset_region
 from perception.evaluation import EvalSettings, evaluate, format_table
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from sygrid.dataset import generate
@@ -58,7 +59,8 @@ def test_the_model_folder_matches_its_cards(folder: str):
 def test_shipped_models_on_a_fresh_test_set(folder: str, fresh_test_sets: dict[str, Path]):
     _, min_box_map50, min_mask_map50_95, min_add_recall = FOLDERS[folder]
     pipeline = PerceptionPipeline.from_folder(ROOT / "models" / folder, PipelineOverrides(refine=True))
-    report = evaluate(pipeline, fresh_test_sets[folder], EvalSettings(), progress=False)
+    settings = EvalSettings(region=dataset_region(fresh_test_sets[folder]))  # where the cell looks: the bin's box
+    report = evaluate(pipeline, fresh_test_sets[folder], settings, progress=False)
     print(format_table(report))
     det, pose = report["detection"], report["pose"]["all"]
     assert det["box_map50"] >= min_box_map50
