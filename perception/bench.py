@@ -269,6 +269,9 @@ def chart(results: dict):
                              squeeze=False)  # fmt: skip
     for ax, (name, c) in zip(axes[0], conditions.items(), strict=True):
         _panel(ax, name, c, results["strategies"])
+    lo, hi = zip(*(ax.get_xlim() for ax in axes[0]), strict=True)
+    for ax in axes[0]:  # per object: one scale across the datasets
+        ax.set_xlim(min(lo), max(hi))
     axes[0][-1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
     if by_threshold:
         for ax, (name, c) in zip(axes[1], conditions.items(), strict=True):
@@ -291,7 +294,8 @@ def _threshold_panel(ax, name: str, c: dict) -> None:
     ax.plot(ms, [e["all"]["add_recall"] for e in rows], "k*-", ms=10, label="end to end, per detector threshold")
     for x, e in zip(ms, rows, strict=True):
         own = e is c["end_to_end"]
-        ax.annotate(f"{e['conf_threshold']:g}{' (manifest)' if own else ''}", (x, e["all"]["add_recall"]),
+        label = f"{e['conf_threshold']:g}{' (manifest)' if own else ''}: false accepts {_pct(e['false_accept'])}"
+        ax.annotate(label, (x, e["all"]["add_recall"]),
                     textcoords="offset points", xytext=(4, -12), fontsize=8)  # fmt: skip
     ax.axhline(TARGETS["end_to_end_recall"][name], color="grey", ls=":", lw=0.8, label="target, end to end")
     ax.set(xlabel="pipeline time per frame, median [ms] (detector, pose, verification, refinement)",
