@@ -18,10 +18,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _models(tmp_path: Path, min_part_px: float | None) -> Path:
+    """The shipped folder with the detector at scale 1 and the given ``min_part_px`` (None: none)."""
     folder = tmp_path / "models"
     shutil.copytree(ROOT / "models" / "builtin", folder)
     manifest = json.loads((folder / "manifest.json").read_text())
     manifest["detector"].pop("min_part_px", None)
+    manifest["detector"].pop("tile_px", None)
+    manifest["detector"]["scale"] = 1.0
     if min_part_px is not None:
         manifest["detector"]["min_part_px"] = min_part_px
     (folder / "manifest.json").write_text(json.dumps(manifest))
@@ -33,7 +36,7 @@ def test_recipe_and_cell_warnings_name_the_small_parts(tmp_path):
     scene = load_scene(scene_path)
     folder = _models(tmp_path, 20.0)
     warnings = scene_warnings(scene, scene_path.parent, folder)
-    # at 0.95 m, fx 579 px and the manifest's scale 1.0: the nut (22.5 mm) spans 13.7 px, the flange (96 mm) 58.5 px
+    # at 0.95 m, fx 579 px and scale 1.0: the nut (22.5 mm) spans 13.7 px, the flange (96 mm) 58.5 px
     assert any(w.startswith("hex_nut spans 13.7 network px") for w in warnings)
     assert not any(w.startswith("flange") for w in warnings)
     assert all("bring the camera within" in w and "scale >=" in w and "fx >=" in w for w in warnings)
