@@ -30,6 +30,7 @@ import mujoco
 import numpy as np
 
 log = logging.getLogger(__name__)
+RENDER_NICENESS = 10  # added to the render process's niceness (lower scheduling priority than the tick's process)
 
 
 class WorldMirror:
@@ -117,6 +118,7 @@ class _Renderer:
 
 def _render_main(conn: Connection, state_conn: Connection) -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")  # a software rasteriser keeps to one core, beside the tick's
+    os.nice(RENDER_NICENESS)  # where cores are short the tick runs first: a frame may wait, a late tick is a fault
     renderer = _Renderer(state_conn)
     load_period_s: float | None = None
     next_load_s = 0.0
