@@ -313,6 +313,10 @@ def _panel(ax, name: str, c: dict, strategies: list[str]) -> None:
     ref, e2e = c["gt_masks"]["reference"], c["end_to_end"]
     ax.scatter(ref["all"]["median_ms"], ref["all"]["accepted_recall"], marker="D", s=50, color="k",
                label=f"GT masks, {ref['label']}")  # fmt: skip
+    if "reference_without_rest" in c["gt_masks"]:
+        off = c["gt_masks"]["reference_without_rest"]["all"]
+        ax.scatter(off["median_ms"], off["accepted_recall"], marker="D", s=50, facecolors="none", edgecolors="k",
+                   label="the same without resting")  # fmt: skip
     if e2e["ms_per_object_median"] is not None:
         ax.scatter(e2e["ms_per_object_median"], e2e["all"]["add_recall"], marker="*", s=140, color="k",
                    label="end to end")  # fmt: skip
