@@ -14,11 +14,11 @@ from pathlib import Path
 
 from launch.eval_detector import (
     add_detector_arguments,
-    default_region,
     detector_breakdown,
     detector_overrides,
     warn_part_pixels,
 )
+from perception.detector_eval import dataset_region
 from perception.evaluation import EvalSettings, check_model_classes, evaluate, format_comparison, format_table
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from sygrid.errors import ConfigError
@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     pipeline = PerceptionPipeline.from_folder(args.models, overrides)
     check_model_classes(args.data, {obj_id: m.name for obj_id, m in pipeline.models.items()}, args.split)
     warn_part_pixels(args)
-    region = default_region(args)
+    region = dataset_region(args.data, args.region)
     reports = []
     for name in sensors:
         settings = EvalSettings(split=args.split, max_images=args.max_images, sensor=name, sensor_seed=args.sensor_seed,

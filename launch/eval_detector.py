@@ -40,13 +40,6 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def default_region(args: argparse.Namespace) -> str:
-    """``--region``, or by default the dataset's (``perception.detector_eval.dataset_region``)."""
-    from perception.detector_eval import dataset_region
-
-    return args.region if args.region is not None else dataset_region(args.data)
-
-
 def detector_overrides(args: argparse.Namespace) -> dict:
     """The ``PipelineOverrides`` fields the detector options set."""
     return {"detector_scale": args.scale, "detector_tile_px": args.tile_px}

@@ -192,7 +192,7 @@ def run_breakdown(args: argparse.Namespace) -> int:
     d = manifest.detector
     detector = YoloSegDetector(args.models / d.onnx, conf_threshold=COCO_CONF, iou_threshold=d.iou_threshold,
                                input_size=d.input_size, view=detector_view(d, PipelineOverrides()))  # fmt: skip
-    settings = EvalSettings(max_images=args.max_images, region=args.region or dataset_region(args.test_data))
+    settings = EvalSettings(max_images=args.max_images, region=dataset_region(args.test_data, args.region))
     report = evaluate_detector(detector, args.test_data, settings, operating_threshold=d.conf_threshold)
     report["data"] = str(args.test_data)
     write_json_atomic(args.models / "eval_detector.json", report)
@@ -250,7 +250,7 @@ def _evaluate(args: argparse.Namespace) -> dict[str, dict]:
     from perception.pipeline import PerceptionPipeline, PipelineOverrides
     from perception.tiling import ViewSettings
 
-    settings = EvalSettings(max_images=args.max_images, region=args.region or dataset_region(args.test_data))
+    settings = EvalSettings(max_images=args.max_images, region=dataset_region(args.test_data, args.region))
     detector = YoloSegDetector(args.out / "detector.onnx", conf_threshold=COCO_CONF,
                                view=ViewSettings(args.scale, args.tile_px))  # fmt: skip
     report = evaluate_detector(detector, args.test_data, settings, operating_threshold=args.conf_threshold)

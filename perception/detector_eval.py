@@ -79,9 +79,12 @@ def bin_region_camera(dataset_bin: DatasetBin, ann: ImageAnnotation) -> np.ndarr
     return transform_points(dataset_bin.T_camera_bin(ann), bin_inner_corners(dataset_bin.inner_size_m))
 
 
-def dataset_region(data_dir: Path) -> Region:
-    """Where a cell's detector looks in this dataset's images: ``"bin"`` where the dataset knows its bin (a ledger of
-    ``sygrid generate``), as the cell's pipeline is given the bin's box, else ``"full"`` (a converted dataset)."""
+def dataset_region(data_dir: Path, region: Region | None = None) -> Region:
+    """``region`` where given (a ``--region`` option), else where a cell's detector looks in this dataset's images:
+    ``"bin"`` where the dataset knows its bin (a ledger of ``sygrid generate``), as the cell's pipeline is given the
+    bin's box, else ``"full"`` (a converted dataset)."""
+    if region is not None:
+        return region
     return "bin" if (Path(data_dir) / LEDGER_NAME).is_file() else "full"
 
 

@@ -98,8 +98,8 @@ class StrategyConfig:
 
     def __post_init__(self) -> None:
         steps_ok = all(f > 0 and deg > 0 for f, deg in self.rest_steps)
-        settled_ok = self.rest_settled_deg >= 0 and self.rest_settled_m >= 0 and self.rest_confident > 0
-        if not 0 <= self.rest_max_tilt_deg <= 180 or self.rest_slack < 0 or not steps_ok or not settled_ok:
+        bounds_ok = self.rest_settled_deg >= 0 and self.rest_settled_m >= 0 and self.rest_confident > 0
+        if not 0 <= self.rest_max_tilt_deg <= 180 or self.rest_slack < 0 or not steps_ok or not bounds_ok:
             raise ValueError(
                 "StrategyConfig: need rest_max_tilt_deg in [0, 180], rest_slack, rest_settled_deg and rest_settled_m"
                 " >= 0, rest_confident > 0 and positive rest_steps, got "
