@@ -25,8 +25,10 @@ free fit when that needed a tilt of at most ``rest_max_tilt_deg`` and the verifi
 a neighbour is no stable pose and keeps its free fit). Where too little of the part stands out of the support to
 fit, the part is placed from its mask at rest on the support (``resting.mask_hypotheses``).
 
-The mask is cleaned with depth first (``perception.mask_cleanup``). Every estimate carries the verification of the
-chosen hypothesis in ``details["verify"]``, its confidence as the pose's ``score`` and the verdict as ``verified``.
+The mask is cleaned with depth first (``perception.mask_cleanup``). The search ranks hypotheses by the verification
+at the pixels' centres; every estimate carries the verdict's verification of the chosen one (each pixel over its
+footprint, ``perception.verify``) in ``details["verify"]``, its confidence as the pose's ``score`` and the verdict as
+``verified``.
 """
 
 from __future__ import annotations
@@ -76,7 +78,7 @@ class StrategyConfig:
     rest_slack: ... and its verification confidence is at least the free fit's minus this.
     rest_steps: the in-plane search's steps: (fraction of the diameter, degrees), coarse to fine.
     rest_settled_deg, rest_settled_m: a fit that levelling turns and moves no more than this is left as it is.
-    rest_confident: a free fit whose verification confidence reaches this is left as it is (above 1: never).
+    rest_confident: a free fit whose (ranking) verification confidence reaches this is left as it is (above 1: never).
     """
 
     icp_hypotheses: int = 3
@@ -246,11 +248,13 @@ class StrategyRunner:
             reason = f"{len(scene)} depth points in the cleaned mask, fewer than {self.config.min_points}"
             if not (refine and self.config.rest and obs.support is not None):
                 return self._unverified(network_pose, strategy, reason, t0, cleanup)
-            candidates = self._from_mask(raw.with_mask(raw.mask, obs.support), model, network_pose)
+            placed = raw.with_mask(raw.mask, obs.support)
+            candidates = self._from_mask(placed, model, network_pose)
             if not candidates:
                 return self._unverified(network_pose, strategy, reason, t0, cleanup)
             best = max(candidates, key=lambda c: c.verification.confidence)
-            return self._result(best, detection, strategy, network_pose, len(candidates), cleanup, t0, c0)
+            n = len(candidates)
+            return self._result(best, model, placed, detection, strategy, network_pose, n, cleanup, t0, c0)
         # the part's rough position (for the visibility of its surface): the network's, else the depth's
         t_hint = network_pose.T_camera_object[:3, 3] if network_pose is not None else np.median(scene, axis=0)
         hypotheses: list[tuple[np.ndarray, str]] = []
@@ -281,11 +285,13 @@ class StrategyRunner:
         best = max(candidates, key=lambda c: c.verification.confidence)
         if refine and self.config.rest and obs.support is not None:
             best = self._rested(best, model, obs)
-        return self._result(best, detection, strategy, network_pose, len(hypotheses), cleanup, t0, c0)
+        return self._result(best, model, obs, detection, strategy, network_pose, len(hypotheses), cleanup, t0, c0)
 
     def _result(
         self,
         best: _Candidate,
+        model: ObjectModel,
+        obs: Observation,
         detection: Detection,
         strategy: str,
         network_pose: ObjectPose | None,
@@ -294,14 +300,17 @@ class StrategyRunner:
         t0: float,
         c0: float,
     ) -> ObjectPose:
-        """The chosen candidate as a verified pose, with the diagnostics in its details."""
+        """The chosen candidate as a verified pose, with the diagnostics in its details: the verdict's verification
+        (each pixel over its footprint) in ``verify``, the confidence the search ranked it by in ``rank_confidence``."""
+        v = self.verifier.verify(best.T, model, obs, footprint=True)
         details = {
             **(network_pose.details if network_pose is not None else {}),
             "strategy": strategy,
             "hypothesis": best.source,
             "hypotheses": n_hypotheses,
             "cleanup": cleanup,
-            "verify": best.verification.as_dict(),
+            "verify": v.as_dict(),
+            "rank_confidence": best.verification.confidence,
             "time_ms": (time.perf_counter() - t0) * 1e3,
             "cpu_ms": (time.process_time() - c0) * 1e3,
         }
@@ -309,7 +318,6 @@ class StrategyRunner:
             details["icp"] = best.icp
         if network_pose is not None:
             details["network_score"] = network_pose.score
-        v = best.verification
         return ObjectPose(detection, best.T, v.confidence, strategy, details, verified=v.accepted)
 
     def _search(

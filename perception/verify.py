@@ -18,6 +18,14 @@ background seen past the part (through its hole, around its edge) and do not cou
 of the unoccluded rendering and the mask. The pose's confidence is ``sqrt(fit * coverage)`` in [0, 1]; it is
 accepted when the confidence reaches ``min_confidence``.
 
+The verdict (``verify(..., footprint=True)``) compares each pixel's observed depth with the range of the model's
+depth over the pixel's footprint (its centre and four corners, ray-cast where the model has a silhouette or a depth
+step nearby), not with the depth at its centre alone: an edge's position is known to a pixel at best, and a depth
+pixel at a discontinuity (one leg of a bracket over the other) holds either side or a mix of both (a renderer's
+filter, a stereo matcher's flying pixels). An observed depth within that range is an inlier; a mask pixel whose
+footprint only touches the rendered silhouette counts neither way. Ranking poses against each other keeps the
+centre's depth (the default): a score that forgives half a pixel cannot tell two poses half a pixel apart.
+
 The tolerance is ``max(tolerance_min_m, tolerance_fraction x diameter)``, plus three standard deviations of the
 camera's depth noise at the pixel's depth (``depth_noise_m`` at 1 m, growing with the square of the depth, the
 stereo error model; ``VerifyConfig.for_sensor`` raises it to a sensor model's), plus a pixel's worth of the
@@ -37,7 +45,7 @@ import numpy as np
 import open3d as o3d
 
 from perception.observation import Observation
-from sygrid.camera import project_points
+from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.objects.model import ObjectModel
 
 if TYPE_CHECKING:
@@ -209,10 +217,16 @@ class PoseVerifier:
         return base + 3.0 * cfg.depth_noise_m * np.square(depth_m)
 
     def _render(
-        self, T: np.ndarray, caster: ModelRaycaster, obs: Observation, window: tuple[int, int, int, int], rays: int
+        self,
+        T: np.ndarray,
+        caster: ModelRaycaster,
+        obs: Observation,
+        window: tuple[int, int, int, int],
+        rays: int,
+        footprint: bool = False,
     ) -> _Rendering:
         """The model's depth ray-cast through ``window`` (crop pixels, strided to at most ``rays``) with the
-        observation at the same pixels."""
+        observation at the same pixels; ``footprint``: with the depth range over each pixel's footprint."""
         cfg = self.config
         x0, y0, x1, y1 = window
         stride = max(1, math.ceil(math.sqrt((x1 - x0) * (y1 - y0) / rays)))
@@ -223,18 +237,27 @@ class PoseVerifier:
         dirs[..., 0] = ((u - K[0, 2]) / K[0, 0])[None, :]
         dirs[..., 1] = ((v - K[1, 2]) / K[1, 1])[:, None]
         dirs[..., 2] = 1.0
-        rendered, slope = caster.depth(T, dirs.reshape(-1, 3), cfg.threads)
         shape = (len(v), len(u))
+        rendered, slope = caster.depth(T, dirs.reshape(-1, 3), cfg.threads)
+        rendered, slope = rendered.reshape(shape), slope.reshape(shape)
+        if footprint:
+            lo, hi, miss = _pixel_range(rendered, caster, T, dirs, obs.intrinsics, cfg)
+        else:
+            hit = rendered > 0
+            lo, hi, miss = np.where(hit, rendered, np.inf), np.where(hit, rendered, -np.inf), ~hit
         height = None
         if obs.support is not None:  # the height of the model's surface above the support
-            height = rendered.reshape(shape) * (dirs @ obs.support[:3]) + float(obs.support[3])
+            height = rendered * (dirs @ obs.support[:3]) + float(obs.support[3])
         return _Rendering(
-            rendered.reshape(shape),
-            slope.reshape(shape),
+            rendered,
+            slope,
             obs.depth_m[y0:y1:stride, x0:x1:stride],
             obs.mask[y0:y1:stride, x0:x1:stride],
             height,
             stride,
+            lo,
+            hi,
+            miss,
         )
 
     def verify(
@@ -243,11 +266,13 @@ class PoseVerifier:
         model: ObjectModel,
         obs: Observation,
         tolerance_fraction: float | None = None,
+        footprint: bool = False,
     ) -> Verification:
         """The agreement of ``model`` at ``T_camera_object`` with the observation; a pose that renders nothing in
         the crop gets confidence 0. ``tolerance_fraction`` overrides the configured one (a coarse score for
-        ranking unrefined hypotheses)."""
-        return self.align(T_camera_object, model, obs, tolerance_fraction, move=False)[1]
+        ranking unrefined hypotheses). ``footprint``: each pixel compared over its footprint (the verdict);
+        False: at its centre (ranking poses)."""
+        return self.align(T_camera_object, model, obs, tolerance_fraction, move=False, footprint=footprint)[1]
 
     def align(
         self,
@@ -256,24 +281,26 @@ class PoseVerifier:
         obs: Observation,
         tolerance_fraction: float | None = None,
         move: bool = True,
+        footprint: bool = False,
     ) -> tuple[np.ndarray, Verification]:
         """The pose moved along its viewing ray so that the rendered model meets the observed surface (the median
         of observed minus rendered depth over the mask's pixels where both exist), and its verification, from one
         rendering (the moved pose's depths are the rendered ones scaled by the move, its silhouette taken as
-        unchanged), at most ``coarse_rays``. ``move`` False: the pose as given and its exact verification."""
+        unchanged), at most ``coarse_rays``. ``move`` False: the pose as given and its exact verification;
+        ``footprint`` as in ``verify``."""
         cfg = self.config
         T = np.array(T_camera_object, dtype=np.float64)
         caster = raycaster(model)
         window = _window(obs, T, caster, cfg.window_margin_px) if np.isfinite(T).all() and T[2, 3] > 0 else None
         if window is None:
             return T, _empty(int(obs.mask.sum()))
-        r = self._render(T, caster, obs, window, cfg.coarse_rays if move else cfg.max_rays)
+        r = self._render(T, caster, obs, window, cfg.coarse_rays if move else cfg.max_rays, footprint)
         if move:
             both = r.in_mask & (r.rendered > 0) & (r.observed > 0)
             if both.any():
                 scale = 1.0 + float(np.median(r.observed[both] - r.rendered[both])) / T[2, 3]
                 T[:3, 3] *= scale
-                r = _Rendering(r.rendered * scale, r.slope, r.observed, r.in_mask, None, r.stride)
+                r = replace(r, rendered=r.rendered * scale, lo=r.lo * scale, hi=r.hi * scale, height=None)
         return T, self._score(T, model, obs, r, tolerance_fraction)
 
     def _score(
@@ -284,12 +311,16 @@ class PoseVerifier:
         rendered, slope, observed, in_mask, stride = r.rendered, r.slope, r.observed, r.in_mask, r.stride
         hit = rendered > 0
         valid = observed > 0
-        residual = observed - rendered
-        tol = self.tolerance_m(model, rendered, tolerance_fraction) + slope * rendered / obs.intrinsics.fx
+        near_hit = np.isfinite(r.lo)  # the model is within a pixel
+        z = np.where(hit, rendered, np.where(near_hit, r.lo, 0.0))
+        tol = self.tolerance_m(model, z, tolerance_fraction) + slope * z / obs.intrinsics.fx
         both = hit & valid
-        inlier = both & (np.abs(residual) <= tol)
-        behind = both & (residual > tol)  # the observed surface is behind the model: free space violated
-        in_front = both & (residual < -tol)
+        with np.errstate(invalid="ignore"):  # inf - inf where no ray within a pixel hits
+            within = valid & near_hit & (observed >= r.lo - tol) & (observed <= r.hi + tol)
+            behind = both & (observed > r.hi + tol)  # the observed surface is behind the model: free space violated
+            in_front = both & (observed < r.lo - tol)
+        inlier = hit & within
+        residual = observed - rendered
         violation = behind | (in_front & in_mask)
         if r.height is not None:  # the part cannot reach through what it lies on
             violation |= hit & (r.height < -self.tolerance_m(model, rendered))
@@ -302,7 +333,7 @@ class PoseVerifier:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
         nearby = cv2.dilate(rendered.astype(np.float32), kernel)
         background = in_mask & valid & ~hit & (nearby > 0) & (observed > nearby + self.tolerance_m(model, nearby))
-        n_mask = int((in_mask & valid & ~background).sum())
+        n_mask = int((in_mask & valid & ~background & ~(within & ~hit)).sum())
         fit = n_inlier / (n_inlier + n_violation) if n_inlier + n_violation else 0.0
         coverage = int((inlier & in_mask).sum()) / n_mask if n_mask else 0.0
         seen = hit & ~occluded
@@ -328,7 +359,8 @@ class PoseVerifier:
 @dataclass(frozen=True)
 class _Rendering:
     """The model's z-depth and slope at (strided) crop pixels, the observed depth and mask there, the rendered
-    surface's height above the observation's support (None without one) and the pixel stride."""
+    surface's height above the observation's support (None without one), the pixel stride, and the model's depth
+    range within one pixel (``_pixel_range``)."""
 
     rendered: np.ndarray
     slope: np.ndarray
@@ -336,6 +368,45 @@ class _Rendering:
     in_mask: np.ndarray
     height: np.ndarray | None
     stride: int
+    lo: np.ndarray
+    hi: np.ndarray
+    miss: np.ndarray
+
+
+_CORNERS = np.array([(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)])  # a pixel's footprint, in pixels
+_KERNEL_3X3 = np.ones((3, 3), np.uint8)
+
+
+def _pixel_range(
+    rendered: np.ndarray,
+    caster: ModelRaycaster,
+    T: np.ndarray,
+    dirs: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    cfg: VerifyConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest and farthest model z-depth over each (strided) pixel's footprint (its centre and corners; inf
+    and -inf where no ray there hits) and whether a ray there misses the model. ``rendered``: (h, w) z-depth at the
+    centres, 0 = miss; ``dirs``: (h, w, 3) their rays. The corners are ray-cast only where the grid's 3 x 3
+    neighbourhood holds a silhouette or a depth step of more than ``tolerance_min_m`` (a smooth surface's slope
+    is the tolerance's slope term); elsewhere the range is the centre's depth."""
+    hit = rendered > 0
+    near = cv2.erode(np.where(hit, rendered, np.inf).astype(np.float32), _KERNEL_3X3)
+    far = cv2.dilate(np.where(hit, rendered, -np.inf).astype(np.float32), _KERNEL_3X3)
+    any_miss = cv2.dilate((~hit).astype(np.uint8), _KERNEL_3X3).astype(bool)
+    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf where nothing is hit
+        edge = (any_miss & np.isfinite(near)) | (far - near > cfg.tolerance_min_m)
+    lo, hi, miss = np.where(hit, rendered, np.inf), np.where(hit, rendered, -np.inf), ~hit
+    if edge.any():
+        d = dirs[edge]  # (m, 3)
+        corners = (d[None, :, :2] + (_CORNERS / (intrinsics.fx, intrinsics.fy))[:, None, :]).reshape(-1, 2)
+        z, _ = caster.depth(T, np.column_stack([corners, np.ones(len(corners))]), cfg.threads)
+        z = z.reshape(len(_CORNERS), -1)
+        z_hit = z > 0
+        lo[edge] = np.minimum(lo[edge], np.where(z_hit, z, np.inf).min(axis=0))
+        hi[edge] = np.maximum(hi[edge], np.where(z_hit, z, -np.inf).max(axis=0))
+        miss[edge] |= ~z_hit.all(axis=0)
+    return lo, hi, miss
 
 
 def _empty(mask_pixels: int) -> Verification:

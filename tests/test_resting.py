@@ -101,7 +101,8 @@ def test_a_fit_to_noisy_depth_is_levelled_onto_the_floor():
     assert height_above(rested.T_camera_object, NUT, FLOOR) == pytest.approx(0.0, abs=1e-6)
     assert err_free.re_deg > 3.0 and err.re_deg < 0.3 * err_free.re_deg, (err, err_free)  # the tilt is gone
     assert err.add_m < err_free.add_m and err.correct(), (err, err_free)
-    trusting = _noisy_runner(rest_confident=free.score).estimate("depth+icp", det, noisy, CAMERA, NUT, None, FLOOR)
+    confident = _noisy_runner(rest_confident=free.details["rank_confidence"])  # the score the search compares
+    trusting = confident.estimate("depth+icp", det, noisy, CAMERA, NUT, None, FLOOR)
     assert not trusting.details["hypothesis"].endswith("+rest")  # a free fit this confident is left as it is
 
 
