@@ -311,11 +311,11 @@ class PoseVerifier:
         rendered, slope, observed, in_mask, stride = r.rendered, r.slope, r.observed, r.in_mask, r.stride
         hit = rendered > 0
         valid = observed > 0
-        near_hit = np.isfinite(r.lo)  # the model is within a pixel
+        near_hit = np.isfinite(r.lo)  # the model reaches into the pixel (its centre; with footprints, a corner)
         z = np.where(hit, rendered, np.where(near_hit, r.lo, 0.0))
         tol = self.tolerance_m(model, z, tolerance_fraction) + slope * z / obs.intrinsics.fx
         both = hit & valid
-        with np.errstate(invalid="ignore"):  # inf - inf where no ray within a pixel hits
+        with np.errstate(invalid="ignore"):  # inf - inf where the model does not reach the pixel
             within = valid & near_hit & (observed >= r.lo - tol) & (observed <= r.hi + tol)
             behind = both & (observed > r.hi + tol)  # the observed surface is behind the model: free space violated
             in_front = both & (observed < r.lo - tol)
