@@ -21,7 +21,7 @@ import math
 from launch.stability.failure import Criterion
 from launch.stability.generated import generated_set
 from launch.stability.options import Options
-from launch.stability.perception_pass import PerceptionStack, measure_set, tally
+from launch.stability.perception_pass import PASS_VERSION, PerceptionStack, measure_set, tally
 from launch.stability.sweep import Axis, Method, Point
 
 PERCEPTION_CRITERION = Criterion(fraction=0.8, floor=0.3)
@@ -42,7 +42,8 @@ def _methods(stack: PerceptionStack, detection: bool = True) -> tuple[Method, ..
 
 
 def _settings(opts: Options, stack: PerceptionStack, **more) -> dict:
-    return {"models": str(opts.models), "strategies": list(stack.strategies), **more}
+    # The pass version makes a point measured by an older pass a settings mismatch, refused rather than mixed in.
+    return {"models": str(opts.models), "strategies": list(stack.strategies), "pass_version": PASS_VERSION, **more}
 
 
 def depth_noise_axis(opts: Options, stack: PerceptionStack) -> Axis:

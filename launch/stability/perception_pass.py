@@ -119,8 +119,9 @@ def cache_path(cache_dir: Path, key: dict[str, Any]) -> Path:
 
 
 # Bumped when what a pass measures changes (2: the depth tare and the sensor's noise allowance; 3: parts at rest on
-# their support), so that cached passes of the old measurement are not reused.
-PASS_VERSION = 3
+# their support; 4: the verification's verdict over pixel footprints), so that cached passes of the old measurement
+# are not reused.
+PASS_VERSION = 4
 
 
 def models_digest(models_dir: Path) -> str:
