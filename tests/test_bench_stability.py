@@ -7,6 +7,7 @@ import math
 import socket
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -127,6 +128,8 @@ def test_the_sweep_saves_each_point_and_resumes_without_measuring_it_again(tmp_p
     m = result["methods"]["oak-d"]
     assert [p["n"] for p in m["curve"]] == [3072, 3072] and m["groups"]["family all"]["curve"][1]["k"] == noisy * 3072
     assert result["points_measured"] == 2 and result["seconds"] >= 0
+    ungrouped = replace(_tiny_axis(calls), methods=(Method("oak-d", "depth within 5 mm", grouped=False),))
+    assert axis_result(ungrouped, again)["methods"]["oak-d"]["groups"] == {}  # saved, not reported
 
 
 def test_a_repacked_model_folder_is_a_new_pass_key(tmp_path):

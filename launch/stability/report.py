@@ -23,7 +23,7 @@ def axis_result(axis: Axis, records: Sequence[dict[str, Any]]) -> dict[str, Any]
     for m in axis.methods:
         mine = [r for r in records if r["method"] == m.name]
         curve = pooled_curve(axis, mine)
-        groups = sorted({g for r in mine for g in r["groups"]})
+        groups = sorted({g for r in mine for g in r["groups"]}) if m.grouped else []
         methods[m.name] = {
             "metric": m.metric,
             "curve": [p.to_json() for p in curve],

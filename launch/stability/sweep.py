@@ -36,10 +36,12 @@ class Point:
 
 @dataclass(frozen=True)
 class Method:
-    """A method measured along an axis and what its proportion is (e.g. "detection recall")."""
+    """A method measured along an axis and what its proportion is (e.g. "detection recall"); ``grouped`` False: its
+    per-group counts (saved with the points) are not reported, where a group's share does not measure the method."""
 
     name: str
     metric: str
+    grouped: bool = True
 
 
 @dataclass
