@@ -209,10 +209,12 @@ def axis_chart(result: dict[str, Any]):
             _draw_failure(bottom, result, row["failure"], f"C{k % 10}")
         top.set(title=f"{result['title']}: {metric}", ylabel=metric)
         bottom.set(title=f"{best_name}, per part family", ylabel=metric)
-        for ax in (top, bottom):
+        for ax in (top, bottom) if families else (top,):
             _axis_frame(ax, result)
             if ax.get_legend_handles_labels()[0]:
                 ax.legend(fontsize=7, loc="best")
+        if not families:  # a whole-bin figure (or no groups measured): nothing per family to draw
+            bottom.remove()
     fig.suptitle(f"sygrid bench stability: {result['title']} (failure: below max({result['criterion']['fraction']:g}"
                  f" x best, {result['criterion']['floor']:g}); bands: ± 1 s.e. of the failure point)")  # fmt: skip
     fig.tight_layout()
