@@ -375,6 +375,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         report = picker.run(max_cycles)
         T_end = process.part_poses()
         thrown = process.thrown_parts()
+        dropped = process.state().backend_dropped_targets
     cell = CellConfig()
     in_start, in_end = _in_bin(T_start, cell), _in_bin(T_end, cell)
     in_tray = _in_box(T_end, cell.T_world_tray, cell.tray_inner_size_m) & in_start
@@ -427,6 +428,8 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "calibration": {k: calibration[k] for k in ("source", "error_mm", "error_deg") if k in calibration},
         # parts the physics threw (sim.throw_watch): their end poses are not to be trusted
         "thrown": thrown,
+        # robot targets the physics fell too far behind to play: the world lost real time (a starved machine)
+        "sim_dropped_targets": dropped,
         "parts_by_kind": dict(total),
         "left_by_kind": dict(left),
         "left_why": dict(left_why),

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from launch.cli import main
-from launch.stability.cell_axes import bin_measurements, camera_error
+from launch.stability.cell_axes import bin_measurements, camera_error, run_cell_bin, starved
 from launch.stability.delay_proxy import DelayProxy
 from launch.stability.failure import (
     BELOW_FROM_START,
@@ -26,6 +26,7 @@ from launch.stability.failure import (
     failure_point,
 )
 from launch.stability.generated import point_recipe_json, spread_counts
+from launch.stability.options import Options
 from launch.stability.perception_pass import models_digest, part_family
 from launch.stability.report import axis_result, summary_markdown
 from launch.stability.sweep import Axis, Measurement, Method, Point, point_path, run_axis
@@ -236,6 +237,27 @@ def test_a_bin_run_becomes_measurements_per_family():
     assert m["parts cleared"].groups["part l_bracket"] == [0, 2] and m["runs completed"].k == 1
     failed = bin_measurements(None, 0, "RobotConnectionError: no controller")
     assert (failed["runs completed"].k, failed["runs completed"].n, failed["pick success"].n) == (0, 1, 0)
+
+
+def test_a_starved_bin_is_run_again_and_then_refused(monkeypatch):
+    """A bin whose physics fell behind real time (or whose frames timed out) measures the machine: it is run again,
+    and a point starved every time is refused rather than saved as the axis's failure."""
+    import launch.bench_cell
+
+    fine = {"n_picked": 2, "n_tried": 2, "n_parts": 6, "n_left": 4, "stop_reason": "max_cycles", "cycle_s": [5.0],
+            "attempts_by_kind": {"hex_nut": [2, 2]}, "parts_by_kind": {"hex_nut": 6}, "left_by_kind": {"hex_nut": 4},
+            "sim_dropped_targets": 0, "stop_detail": "stopped after 2 cycle(s)"}  # fmt: skip
+    late = {**fine, "sim_dropped_targets": 500}
+    assert starved(fine, None) is None and "500 robot targets dropped" in starved(late, None)
+    timeout = "RuntimeError: render process (alive) did not answer 'capture' within 10 s"
+    assert "render process did not answer" in starved(None, timeout) and starved(None, "OSError: refused") is None
+    runs = [late, fine]
+    monkeypatch.setattr(launch.bench_cell, "run_bin", lambda *a, **k: runs.pop(0))
+    m = run_cell_bin(Options(), seed=0, max_cycles=2)
+    assert runs == [] and (m["pick success"].k, m["pick success"].n) == (2, 2)
+    monkeypatch.setattr(launch.bench_cell, "run_bin", lambda *a, **k: late)
+    with pytest.raises(ConfigError, match="too busy for real-time simulation"):
+        run_cell_bin(Options(), seed=0, max_cycles=2)
 
 
 def test_camera_errors_have_the_asked_size():

@@ -17,6 +17,7 @@ grasps), "parts cleared" (parts out of the bin, ground truth, of those the cycle
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -26,10 +27,15 @@ from launch.stability.failure import Criterion
 from launch.stability.options import Options
 from launch.stability.perception_pass import part_family
 from launch.stability.sweep import Axis, Measurement, Method, Point
+from sygrid.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 CELL_CRITERION = Criterion(fraction=0.8, floor=0.5)
 PROXY_HOST = "127.0.0.64"  # bench_cell's emulator listens on .63
 ABORTED = ("error", "needs_operator", "interrupted")
+STARVED_RETRIES = 1  # a starved bin is run again this many times before the point is refused
+RENDER_TIMEOUT = ("render process", "did not answer")  # the error of a frame not delivered in time
 PICKS, CLEARED, COMPLETED = "pick success", "parts cleared", "runs completed"
 # Parts cleared is a whole-bin figure: a family's share of the bin's parts is not what the cycles could clear of it
 # (per family, see the pick success).
@@ -82,18 +88,41 @@ def run_cell_bin(
 ) -> dict[str, Measurement]:
     """One bin of the cell file's setup with the variant's fields (``launch.bench_cell.Variant``), at most
     ``max_cycles`` (default ``opts.max_cycles``) cycles; an exception (the runtime could not connect, or a stop it
-    raises) is a run that did not complete."""
+    raises) is a run that did not complete.
+
+    A bin that the machine starved (``starved``: the physics fell behind real time, or the camera's render process
+    did not answer) measures the machine, not the axis: it is run again, up to ``STARVED_RETRIES`` times, and then
+    refused (ConfigError), so that no such point is saved."""
     from launch.bench_cell import Variant, run_bin
     from robot.cell_setup import load_cell_setup
 
     base = load_cell_setup(opts.cell_config)
     v = Variant(opts.cell_perception, "stability point", calibration="sim", **variant)
-    try:
-        return bin_measurements(
-            run_bin(base, v, seed, scene, max_cycles or opts.max_cycles), max_cycles or opts.max_cycles
-        )
-    except Exception as exc:  # the point's failure is the measurement
-        return bin_measurements(None, 0, f"{type(exc).__name__}: {exc}")
+    cycles = max_cycles or opts.max_cycles
+    why = None
+    for attempt in range(1 + STARVED_RETRIES):
+        outcome, error = None, None
+        try:
+            outcome = run_bin(base, v, seed, scene, cycles)
+        except Exception as exc:  # the point's failure is the measurement
+            error = f"{type(exc).__name__}: {exc}"
+        why = starved(outcome, error)
+        if why is None:
+            return bin_measurements(outcome, cycles, error)
+        log.warning("seed %d: %s; the bin is run again (%d of %d)", seed, why, attempt + 1, STARVED_RETRIES)
+    raise ConfigError(
+        f"cell bin (seed {seed}, {variant}): {why}, {1 + STARVED_RETRIES} times: the machine is too busy for "
+        "real-time simulation; run the cell axes with nothing else on the machine (the point was not saved)"
+    )
+
+
+def starved(outcome: dict[str, Any] | None, error: str | None) -> str | None:
+    """Why a bin run measured a starved machine rather than the cell (None: it did not): robot targets dropped by
+    a physics that fell behind real time, or the render process not answering in time."""
+    if outcome is not None and outcome.get("sim_dropped_targets", 0) > 0:
+        return f"the simulation fell behind real time ({outcome['sim_dropped_targets']} robot targets dropped)"
+    text = error or (outcome or {}).get("stop_detail") or ""
+    return f"the camera's render process did not answer ({text})" if all(w in text for w in RENDER_TIMEOUT) else None
 
 
 def _cell_settings(opts: Options, **more: Any) -> dict[str, Any]:

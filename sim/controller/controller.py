@@ -188,6 +188,7 @@ class EmulatedController:
                 rtde_connections=self.rtde.session_count,
                 rtde_packages_sent=self.rtde.packages_sent,
                 backend_lag_ticks=self._runner.lag_targets,
+                backend_dropped_targets=self._runner.dropped_targets,
                 tick=dataclasses.replace(self.stats),
             )
 

@@ -52,4 +52,5 @@ class ControllerStatus:
     rtde_connections: int
     rtde_packages_sent: int
     backend_lag_ticks: int
+    backend_dropped_targets: int  # targets the backend fell too far behind to play (the world lost real time)
     tick: TickStats
