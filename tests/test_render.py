@@ -158,6 +158,21 @@ def test_raster_mode_matches_the_path_tracer_geometry(item):
     assert fast.masks_full[0].sum() > fast.masks_visib[0].sum()
 
 
+@pytest.mark.parametrize("mode", ["pathtrace", "raster"])
+def test_a_part_behind_the_bin_wall_is_not_fully_visible(mode):
+    """A full mask is the part alone (BOP's ``mask``): a box just inside the bin's +x wall, seen over that wall
+    from outside the bin, has a visible mask smaller than its full mask in both render modes."""
+    scene = parse_scene({"objects": [{"builtin": "hex_nut"}], "render": {"mode": mode, "spp": 1, "max_depth": 4}})
+    inner_x = scene.container.inner_size_m[0]
+    models = [_box("painted")]
+    T = make_T(t=[inner_x / 2 - 0.03, 0.0, BOX_HEIGHT_M / 2])[None]
+    T_world_camera = look_at_T_world_camera(np.array([inner_x / 2 + 0.25, 0.0, 0.2]), T[0, :3, 3])
+    K = CameraIntrinsics.from_fov(W, H, 30.0)
+    res = render_item(scene, models, [Instance(0, 0)], T, T_world_camera, K, np.random.default_rng(1))
+    full, visib = res.masks_full[0].sum(), res.masks_visib[0].sum()
+    assert full > 20 and visib < 0.8 * full  # the wall hides a part of the box that the full mask keeps
+
+
 def test_non_square_pixels_project_alike_in_the_rasteriser_and_the_path_tracer():
     """A real camera's K (fx 608.2, fy 631.4) with an off-centre principal point: the centre of each thin plate lands
     on the pixel K projects it to, in both render modes (square pixels would put the outer plates ~1.3 px off)."""

@@ -394,9 +394,11 @@ def _render_raster(
         n = len(part_geoms)
         masks = ids_visib[None, :, :] == np.arange(1, n + 1)[:, None, None]
         if full_masks and n:
-            # Every part and distractor is moved away but the one whose full mask is drawn.
+            # Every part, distractor and the bin are moved away but the part whose full mask is drawn: a full mask
+            # is the part alone (BOP's), so that a part behind the bin's wall is not counted as fully visible.
             body_ids = [mj_model.body(f"part_{k}").id for k in range(n)]
             body_ids += [mj_model.body(f"clutter_{k}").id for k in range(len(clutter))]
+            body_ids += [mj_model.body("bin").id]
             pos0 = mj_model.body_pos[body_ids].copy()
             for k in range(n):
                 mj_model.body_pos[body_ids] = pos0 + np.array([0.0, 0.0, _FAR_AWAY_M])
