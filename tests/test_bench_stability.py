@@ -27,7 +27,7 @@ from launch.stability.failure import (
 )
 from launch.stability.generated import point_recipe_json, spread_counts
 from launch.stability.options import Options
-from launch.stability.perception_pass import models_digest, part_family
+from launch.stability.perception_pass import data_digest, models_digest, part_family
 from launch.stability.report import axis_result, summary_markdown
 from launch.stability.sweep import Axis, Measurement, Method, Point, point_path, run_axis
 from sygrid.camera import CameraIntrinsics
@@ -140,6 +140,17 @@ def test_a_repacked_model_folder_is_a_new_pass_key(tmp_path):
     assert models_digest(tmp_path) == before
     (tmp_path / "pose.onnx").write_bytes(b"two")
     assert models_digest(tmp_path) != before
+
+
+def test_a_dataset_generated_again_with_other_annotations_is_a_new_pass_key(tmp_path):
+    info = tmp_path / "bop" / "test" / "000000" / "scene_gt_info.json"
+    info.parent.mkdir(parents=True)
+    (tmp_path / "dataset.json").write_text("{}")
+    info.write_text('{"0": [{"visib_fract": 1.0}]}')
+    before = data_digest(tmp_path)
+    assert data_digest(tmp_path) == before
+    info.write_text('{"0": [{"visib_fract": 0.2}]}')  # the same scene, its visible fraction corrected
+    assert data_digest(tmp_path) != before
 
 
 def test_the_seeds_of_a_point_are_pooled():

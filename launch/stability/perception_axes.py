@@ -21,7 +21,7 @@ import math
 from launch.stability.failure import Criterion
 from launch.stability.generated import generated_set
 from launch.stability.options import Options
-from launch.stability.perception_pass import PASS_VERSION, PerceptionStack, measure_set, tally
+from launch.stability.perception_pass import PASS_VERSION, PerceptionStack, data_digest, measure_set, tally
 from launch.stability.sweep import Axis, Method, Point
 
 PERCEPTION_CRITERION = Criterion(fraction=0.8, floor=0.3)
@@ -64,7 +64,8 @@ def depth_noise_axis(opts: Options, stack: PerceptionStack) -> Axis:
         points=tuple(Point(f"{s:g}x", s, {"noise_scale": s}) for s in scales),
         methods=_methods(stack, detection=False), measure=measure, seeds=opts.seeds_or((0,) if opts.quick else (0, 1)),
         criterion=PERCEPTION_CRITERION, summary="pose holds to {x} times the OAK-D's depth noise", unit="x",
-        settings=_settings(opts, stack, data=str(opts.data), max_images=max_images, sensor="oak-d"),
+        settings=_settings(opts, stack, data=str(opts.data), data_digest=data_digest(opts.data), max_images=max_images,
+                           sensor="oak-d"),
         description="The noise-free test set's exact depth through the OAK-D stereo model, its disparity noise, bias "
         "and dropouts scaled (the stereo geometry and the RGB noise as the preset's); pose strategies on "
         "ground-truth masks; seeds draw the noise.",
@@ -90,7 +91,7 @@ def occlusion_axis(opts: Options, stack: PerceptionStack) -> Axis:
                            {"visible_fraction": [lo, hi]}) for lo, hi in VISIBILITY_BINS),
         methods=_methods(stack), measure=measure, seeds=(0,), criterion=PERCEPTION_CRITERION,
         summary="holds down to {x} % of the part visible", unit="%",
-        settings=_settings(opts, stack, data=str(opts.data), max_images=max_images),
+        settings=_settings(opts, stack, data=str(opts.data), data_digest=data_digest(opts.data), max_images=max_images),
         description="One pass over the noise-free test set (the detector at its operating threshold; pose "
         "strategies on ground-truth masks), each instance binned by its visible fraction.",
     )  # fmt: skip
@@ -114,7 +115,8 @@ def size_axis(opts: Options, stack: PerceptionStack) -> Axis:
                            {"nominal_px": [lo, hi if math.isfinite(hi) else None]}) for lo, hi in SIZE_BINS_PX),
         methods=_methods(stack), measure=measure, seeds=(0,), criterion=PERCEPTION_CRITERION,
         summary="works down to {x} px", unit="px",
-        settings=_settings(opts, stack, data=str(opts.data), max_images=max_images, well_seen=WELL_SEEN),
+        settings=_settings(opts, stack, data=str(opts.data), data_digest=data_digest(opts.data), max_images=max_images,
+                           well_seen=WELL_SEEN),
         description="The occlusion axis's pass, instances seen at least 50 % binned by their nominal size (the "
         "model's diameter projected at the part's depth); detector scale 1 (network px = image px) for the "
         "built-in models.",

@@ -133,6 +133,18 @@ def models_digest(models_dir: Path) -> str:
     return h.hexdigest()[:16]
 
 
+def data_digest(data_dir: Path) -> str:
+    """A digest of a dataset's record and annotations (``dataset.json`` and every ``scene_gt*.json``): a set
+    generated again with other annotations is a new key, though its path is the same."""
+    h = hashlib.sha256()
+    root = Path(data_dir)
+    for path in [root / "dataset.json", *sorted(root.glob("bop/*/*/scene_gt*.json"))]:
+        if path.is_file():
+            h.update(str(path.relative_to(root)).encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def measure_set(
     stack: PerceptionStack,
     data_dir: Path,
@@ -146,7 +158,7 @@ def measure_set(
     """The pass's rows (see the module docstring), read from the cache when it was measured before. ``sensor``: a
     ``SensorModel`` the frames go through (None: as stored); ``detection`` False leaves the detectors out."""
     key = {"data": str(Path(data_dir).resolve()), "max_images": max_images, "models": str(stack.models_dir.resolve()),
-           "models_digest": models_digest(stack.models_dir),
+           "models_digest": models_digest(stack.models_dir), "data_digest": data_digest(data_dir),
            "strategies": list(stack.strategies), "detection": detection,
            "sensor": None if sensor is None else repr(sensor), "sensor_seed": sensor_seed,
            "pipeline": PASS_VERSION}  # fmt: skip
