@@ -109,7 +109,8 @@ def run_cell_bin(
         why = starved(outcome, error)
         if why is None:
             return bin_measurements(outcome, cycles, error)
-        log.warning("seed %d: %s; the bin is run again (%d of %d)", seed, why, attempt + 1, STARVED_RETRIES)
+        if attempt < STARVED_RETRIES:
+            log.warning("seed %d: %s; the bin is run again (%d of %d)", seed, why, attempt + 1, STARVED_RETRIES)
     raise ConfigError(
         f"cell bin (seed {seed}, {variant}): {why}, {1 + STARVED_RETRIES} times: the machine is too busy for "
         "real-time simulation; run the cell axes with nothing else on the machine (the point was not saved)"
