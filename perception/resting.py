@@ -140,11 +140,17 @@ def mask_hypotheses(
 
 
 def _horizontal_axis(points: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """The principal direction of ``points`` projected onto the plane with normal ``n`` (unit, in the plane)."""
+    """The principal direction of ``points`` projected onto the plane with normal ``n`` (unit, in the plane); some
+    in-plane direction where the points give none (one point, e.g. a one-pixel mask, or no spread in the plane)."""
     flat = points - np.outer(points @ n, n)
-    _, vectors = np.linalg.eigh(np.cov((flat - flat.mean(axis=0)).T))
-    axis = vectors[:, -1] - (vectors[:, -1] @ n) * n
-    return axis / np.linalg.norm(axis)
+    spread = flat - flat.mean(axis=0)
+    if len(points) >= 2 and np.isfinite(spread).all():
+        _, vectors = np.linalg.eigh(spread.T @ spread)
+        axis = vectors[:, -1] - (vectors[:, -1] @ n) * n
+        norm = float(np.linalg.norm(axis))
+        if norm > 1e-9:
+            return axis / norm
+    return _perpendicular(n)
 
 
 def planar_search(

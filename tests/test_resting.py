@@ -70,6 +70,18 @@ def test_a_washer_the_depth_cannot_see_is_placed_from_its_mask():
     assert _noisy_runner(rest=False).estimate("depth+icp", det, floor_only.depth, CAMERA, WASHER, None, FLOOR) is None
 
 
+def test_a_one_pixel_mask_without_depth_is_placed_not_crashed():
+    """A far, tiny part: one mask pixel and no depth on it (it crashed the mask placement's principal axis)."""
+    T_true = on_floor(WASHER, 0.01, 0.005, 0.0)
+    seen = render([(WASHER, T_true)]).masks[0]
+    mask = np.zeros_like(seen)
+    ys, xs = np.nonzero(seen)
+    mask[int(np.median(ys)), int(np.median(xs))] = True
+    pose = _noisy_runner().estimate("depth+icp", detection(WASHER, mask), render([]).depth, CAMERA, WASHER, None, FLOOR)
+    assert pose is not None and np.isfinite(pose.T_camera_object).all()
+    assert pose.details["hypothesis"] == "mask_rest"
+
+
 def test_a_part_leaning_out_of_any_stable_pose_keeps_its_free_fit():
     leaning = on_floor(WASHER, 0.0, 0.0, 0.0, rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(60.0)))
     seen = render([(WASHER, leaning)])
