@@ -241,10 +241,9 @@ class PoseVerifier:
         rendered, slope = caster.depth(T, dirs.reshape(-1, 3), cfg.threads)
         rendered, slope = rendered.reshape(shape), slope.reshape(shape)
         if footprint:
-            lo, hi, miss = _pixel_range(rendered, caster, T, dirs, obs.intrinsics, cfg)
+            lo, hi = _pixel_range(rendered, caster, T, dirs, obs.intrinsics, cfg)
         else:
-            hit = rendered > 0
-            lo, hi, miss = np.where(hit, rendered, np.inf), np.where(hit, rendered, -np.inf), ~hit
+            lo, hi = _centre_range(rendered)
         height = None
         if obs.support is not None:  # the height of the model's surface above the support
             height = rendered * (dirs @ obs.support[:3]) + float(obs.support[3])
@@ -257,7 +256,6 @@ class PoseVerifier:
             stride,
             lo,
             hi,
-            miss,
         )
 
     def verify(
@@ -370,11 +368,17 @@ class _Rendering:
     stride: int
     lo: np.ndarray
     hi: np.ndarray
-    miss: np.ndarray
 
 
 _CORNERS = np.array([(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)])  # a pixel's footprint, in pixels
 _KERNEL_3X3 = np.ones((3, 3), np.uint8)
+
+
+def _centre_range(rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The model's z-depth range at each pixel's centre alone: the rendered depth twice (inf and -inf where the
+    centre's ray misses; ``rendered`` 0 = miss)."""
+    hit = rendered > 0
+    return np.where(hit, rendered, np.inf), np.where(hit, rendered, -np.inf)
 
 
 def _pixel_range(
@@ -384,19 +388,19 @@ def _pixel_range(
     dirs: np.ndarray,
     intrinsics: CameraIntrinsics,
     cfg: VerifyConfig,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray]:
     """The nearest and farthest model z-depth over each (strided) pixel's footprint (its centre and corners; inf
-    and -inf where no ray there hits) and whether a ray there misses the model. ``rendered``: (h, w) z-depth at the
-    centres, 0 = miss; ``dirs``: (h, w, 3) their rays. The corners are ray-cast only where the grid's 3 x 3
-    neighbourhood holds a silhouette or a depth step of more than ``tolerance_min_m`` (a smooth surface's slope
-    is the tolerance's slope term); elsewhere the range is the centre's depth."""
+    and -inf where no ray there hits). ``rendered``: (h, w) z-depth at the centres, 0 = miss; ``dirs``: (h, w, 3)
+    their rays. The corners are ray-cast only where the grid's 3 x 3 neighbourhood holds a silhouette or a depth
+    step of more than ``tolerance_min_m`` (a smooth surface's slope is the tolerance's slope term); elsewhere the
+    range is the centre's (``_centre_range``)."""
     hit = rendered > 0
     near = cv2.erode(np.where(hit, rendered, np.inf).astype(np.float32), _KERNEL_3X3)
     far = cv2.dilate(np.where(hit, rendered, -np.inf).astype(np.float32), _KERNEL_3X3)
     any_miss = cv2.dilate((~hit).astype(np.uint8), _KERNEL_3X3).astype(bool)
     with np.errstate(invalid="ignore", over="ignore"):  # inf - inf where nothing is hit
         edge = (any_miss & np.isfinite(near)) | (far - near > cfg.tolerance_min_m)
-    lo, hi, miss = np.where(hit, rendered, np.inf), np.where(hit, rendered, -np.inf), ~hit
+    lo, hi = _centre_range(rendered)
     if edge.any():
         d = dirs[edge]  # (m, 3)
         corners = (d[None, :, :2] + (_CORNERS / (intrinsics.fx, intrinsics.fy))[:, None, :]).reshape(-1, 2)
@@ -405,8 +409,7 @@ def _pixel_range(
         z_hit = z > 0
         lo[edge] = np.minimum(lo[edge], np.where(z_hit, z, np.inf).min(axis=0))
         hi[edge] = np.maximum(hi[edge], np.where(z_hit, z, -np.inf).max(axis=0))
-        miss[edge] |= ~z_hit.all(axis=0)
-    return lo, hi, miss
+    return lo, hi
 
 
 def _empty(mask_pixels: int) -> Verification:
