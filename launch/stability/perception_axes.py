@@ -46,6 +46,13 @@ def _settings(opts: Options, stack: PerceptionStack, **more) -> dict:
     return {"models": str(opts.models), "strategies": list(stack.strategies), "pass_version": PASS_VERSION, **more}
 
 
+def _test_set_settings(opts: Options, stack: PerceptionStack, max_images: int | None, **more) -> dict:
+    """``_settings`` of an axis that reads the test set ``opts.data``: its path, the digest of its annotations (a
+    set generated again is measured again) and the images read."""
+    return _settings(opts, stack, data=str(opts.data), data_digest=data_digest(opts.data), max_images=max_images,
+                     **more)  # fmt: skip
+
+
 def depth_noise_axis(opts: Options, stack: PerceptionStack) -> Axis:
     from sygrid.sensor import sensor_preset
 
@@ -64,8 +71,7 @@ def depth_noise_axis(opts: Options, stack: PerceptionStack) -> Axis:
         points=tuple(Point(f"{s:g}x", s, {"noise_scale": s}) for s in scales),
         methods=_methods(stack, detection=False), measure=measure, seeds=opts.seeds_or((0,) if opts.quick else (0, 1)),
         criterion=PERCEPTION_CRITERION, summary="pose holds to {x} times the OAK-D's depth noise", unit="x",
-        settings=_settings(opts, stack, data=str(opts.data), data_digest=data_digest(opts.data), max_images=max_images,
-                           sensor="oak-d"),
+        settings=_test_set_settings(opts, stack, max_images, sensor="oak-d"),
         description="The noise-free test set's exact depth through the OAK-D stereo model, its disparity noise, bias "
         "and dropouts scaled (the stereo geometry and the RGB noise as the preset's); pose strategies on "
         "ground-truth masks; seeds draw the noise.",
@@ -91,7 +97,7 @@ def occlusion_axis(opts: Options, stack: PerceptionStack) -> Axis:
                            {"visible_fraction": [lo, hi]}) for lo, hi in VISIBILITY_BINS),
         methods=_methods(stack), measure=measure, seeds=(0,), criterion=PERCEPTION_CRITERION,
         summary="holds down to {x} % of the part visible", unit="%",
-        settings=_settings(opts, stack, data=str(opts.data), data_digest=data_digest(opts.data), max_images=max_images),
+        settings=_test_set_settings(opts, stack, max_images),
         description="One pass over the noise-free test set (the detector at its operating threshold; pose "
         "strategies on ground-truth masks), each instance binned by its visible fraction.",
     )  # fmt: skip
@@ -115,8 +121,7 @@ def size_axis(opts: Options, stack: PerceptionStack) -> Axis:
                            {"nominal_px": [lo, hi if math.isfinite(hi) else None]}) for lo, hi in SIZE_BINS_PX),
         methods=_methods(stack), measure=measure, seeds=(0,), criterion=PERCEPTION_CRITERION,
         summary="works down to {x} px", unit="px",
-        settings=_settings(opts, stack, data=str(opts.data), data_digest=data_digest(opts.data), max_images=max_images,
-                           well_seen=WELL_SEEN),
+        settings=_test_set_settings(opts, stack, max_images, well_seen=WELL_SEEN),
         description="The occlusion axis's pass, instances seen at least 50 % binned by their nominal size (the "
         "model's diameter projected at the part's depth); detector scale 1 (network px = image px) for the "
         "built-in models.",
