@@ -30,6 +30,7 @@ import mujoco
 import numpy as np
 
 log = logging.getLogger(__name__)
+NO_ANSWER = "render process did not answer"  # begins the error of a call that timed out (callers match it)
 RENDER_NICENESS = 10  # added to the render process's niceness (lower scheduling priority than the tick's process)
 
 
@@ -177,7 +178,7 @@ class RenderProcess:
             self._conn.send((name, args))
             if not self._conn.poll(timeout_s):
                 alive = "alive" if self._proc.is_alive() else f"dead (exit code {self._proc.exitcode})"
-                raise RuntimeError(f"render process ({alive}) did not answer {name!r} within {timeout_s:g} s")
+                raise RuntimeError(f"{NO_ANSWER} {name!r} within {timeout_s:g} s (the process is {alive})")
             status, value = self._conn.recv()
         if status != "ok":
             raise RuntimeError(f"render process: {name} failed: {value}")

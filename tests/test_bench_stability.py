@@ -30,6 +30,7 @@ from launch.stability.options import Options
 from launch.stability.perception_pass import data_digest, models_digest, part_family
 from launch.stability.report import axis_result, summary_markdown
 from launch.stability.sweep import Axis, Measurement, Method, Point, point_path, run_axis
+from sim.render_process import NO_ANSWER
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
@@ -260,7 +261,7 @@ def test_a_starved_bin_is_run_again_and_then_refused(monkeypatch):
             "sim_dropped_targets": 0, "stop_detail": "stopped after 2 cycle(s)"}  # fmt: skip
     late = {**fine, "sim_dropped_targets": 500}
     assert starved(fine, None) is None and "500 robot targets dropped" in starved(late, None)
-    timeout = "RuntimeError: render process (alive) did not answer 'capture' within 10 s"
+    timeout = f"RuntimeError: {NO_ANSWER} 'capture' within 10 s (the process is alive)"
     assert "render process did not answer" in starved(None, timeout) and starved(None, "OSError: refused") is None
     runs = [late, fine]
     monkeypatch.setattr(launch.bench_cell, "run_bin", lambda *a, **k: runs.pop(0))

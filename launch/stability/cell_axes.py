@@ -35,7 +35,6 @@ CELL_CRITERION = Criterion(fraction=0.8, floor=0.5)
 PROXY_HOST = "127.0.0.64"  # bench_cell's emulator listens on .63
 ABORTED = ("error", "needs_operator", "interrupted")
 STARVED_RETRIES = 1  # a starved bin is run again this many times before the point is refused
-RENDER_TIMEOUT = ("render process", "did not answer")  # the error of a frame not delivered in time
 PICKS, CLEARED, COMPLETED = "pick success", "parts cleared", "runs completed"
 # Parts cleared is a whole-bin figure: a family's share of the bin's parts is not what the cycles could clear of it
 # (per family, see the pick success).
@@ -122,8 +121,10 @@ def starved(outcome: dict[str, Any] | None, error: str | None) -> str | None:
     a physics that fell behind real time, or the render process not answering in time."""
     if outcome is not None and outcome.get("sim_dropped_targets", 0) > 0:
         return f"the simulation fell behind real time ({outcome['sim_dropped_targets']} robot targets dropped)"
+    from sim.render_process import NO_ANSWER
+
     text = error or (outcome or {}).get("stop_detail") or ""
-    return f"the camera's render process did not answer ({text})" if all(w in text for w in RENDER_TIMEOUT) else None
+    return f"the camera's {NO_ANSWER} ({text})" if NO_ANSWER in text else None
 
 
 def _cell_settings(opts: Options, **more: Any) -> dict[str, Any]:
