@@ -24,7 +24,7 @@ DIAMETER_MISMATCH_REL = 0.01  # an imported mesh's diameter further than this fr
 def export_bop_models(catalogue: Catalogue, root: str | Path) -> list[Path]:
     """Writes ``root/models/``: each part's mesh (``obj_OOOOOO.ply``, mm) and ``models_info.json``; returns the
     paths written."""
-    return list(BopWriter(root, catalogue.models()).written)
+    return BopWriter(root, catalogue.models()).model_files
 
 
 def catalogue_from_bop_models(

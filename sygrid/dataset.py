@@ -45,6 +45,7 @@ from sygrid.recipe import Recipe, parse_recipe
 from sygrid.sensor import sensor_preset
 from sygrid.transforms import invert
 from sygrid.writers import BopWriter, CocoWriter, YoloWriter
+from sygrid.writers.bop import flush_split
 
 log = logging.getLogger(__name__)
 
@@ -352,7 +353,11 @@ class DatasetOutput:
         return self._listings[folder]
 
     def finish(self) -> None:
-        """Assembles the per-split files (COCO JSON, YOLO data.yaml) from everything on disk, old runs included."""
+        """Assembles the per-split files (BOP scene JSONs, COCO JSON, YOLO data.yaml) from everything on disk, old
+        runs included."""
+        if "bop" in self.formats:
+            for split_dir in sorted(p for p in (self.out_dir / "bop").glob("*") if p.is_dir() and p.name != "models"):
+                flush_split(self.out_dir / "bop", split_dir.name)
         if "coco" in self.formats:
             coco_root = self.out_dir / "coco" / "annotations"
             for split in sorted(p.name.removeprefix("items_") for p in coco_root.glob("items_*")):

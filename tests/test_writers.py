@@ -23,6 +23,7 @@ from sygrid.annotations import (
     polygon_to_mask,
 )
 from sygrid.camera import CameraIntrinsics
+from sygrid.errors import ConfigError
 from sygrid.objects.model import ObjectModel
 from sygrid.writers import WRITERS, BopWriter, CocoWriter, YoloWriter, create_writer, load_bop_item
 from sygrid.writers.coco import rle_to_mask
@@ -141,10 +142,36 @@ def test_bop_round_trip(tmp_path):
     _no_tmp(tmp_path)
 
 
+def test_bop_items_are_records_until_flushed_and_a_flush_merges_them(tmp_path):
+    writer = BopWriter(tmp_path, _models())
+    sdir = tmp_path / "train_pbr" / "000000"
+    writer.write(*_item(image_id=0))
+    writer.flush()
+    first = (sdir / "scene_gt.json").read_bytes()
+    for image_id in (1, 2, 1):  # image 1 written twice: the second replaces the first
+        writer.write(*_item(image_id=image_id))
+    # an item costs its own files only: the scene JSONs are not rewritten per item
+    assert (sdir / "scene_gt.json").read_bytes() == first
+    assert sorted(p.name for p in (sdir / "gt_items").iterdir()) == ["000001.json", "000002.json"]
+    assert writer.instance_counts(0) == {0: 2, 1: 2, 2: 2}  # a resume sees records and scene entries alike
+    assert writer.finish() == [sdir / f for f in ("scene_gt_info.json", "scene_camera.json", "scene_gt.json")]
+    assert not (sdir / "gt_items").exists()
+    for name in ("scene_gt.json", "scene_gt_info.json", "scene_camera.json"):
+        assert list(json.loads((sdir / name).read_text())) == ["0", "1", "2"], name
+    assert load_bop_item(tmp_path, 0, 2)[0].instances[1].obj_id == 2
+    # a record left by a killed run that cannot be read is named, with what was expected
+    (sdir / "gt_items").mkdir()
+    (sdir / "gt_items" / "000005.json").write_text('{"scene_gt": []}')
+    with pytest.raises(ConfigError, match=r"gt_items/000005.json: expected a BOP item record .*scene_camera"):
+        writer.flush()
+    assert list(json.loads((sdir / "scene_gt.json").read_text())) == ["0", "1", "2"]  # nothing merged, nothing lost
+
+
 def test_bop_updates_scene_json_and_bad_item_leaves_it_intact(tmp_path):
     writer = BopWriter(tmp_path, _models())
     for image_id in (0, 1):
         writer.write(*_item(image_id=image_id))
+    writer.flush()
     sdir = tmp_path / "train_pbr" / "000000"
     before = {f: (sdir / f).read_bytes() for f in ("scene_gt.json", "scene_camera.json", "scene_gt_info.json")}
     assert set(json.loads(before["scene_gt.json"])) == {"0", "1"}
@@ -154,7 +181,7 @@ def test_bop_updates_scene_json_and_bad_item_leaves_it_intact(tmp_path):
     with pytest.raises(ValueError, match=r"rgb: expected uint8 array of shape \(48, 64, 3\)"):
         writer.write(ann, rgb[:, :10], depth)
     assert {f: (sdir / f).read_bytes() for f in before} == before
-    assert not (sdir / "rgb" / "000002.png").exists()
+    assert not (sdir / "rgb" / "000002.png").exists() and not (sdir / "gt_items").exists()
     _no_tmp(tmp_path)
 
 

@@ -1,8 +1,9 @@
 """Dataset writers, one module per format, chosen by name from ``WRITERS``.
 
 Every writer is built as ``WRITERS[name](root, models, split=...)``, takes items with
-``write(annotation, rgb, depth_m=None)`` and ends with ``finish()``; each returns the paths it wrote. All files go
-through ``sygrid.fileio``'s atomic writes.
+``write(annotation, rgb, depth_m=None)`` (returns the item's paths) and ends with ``finish()`` (writes what is
+assembled from the items, returns those paths); writers count files, they keep no list of them. All files go through
+``sygrid.fileio``'s atomic writes.
 """
 
 from __future__ import annotations

@@ -12,9 +12,11 @@ Layout under ``root``::
                                                                 the scene's world frame is known, cam_R_w2c and
                                                                 cam_t_w2c; older datasets lack these two)
 
-Every file goes through ``write_bytes_atomic``; the per-scene JSONs are read, updated and rewritten atomically,
-images and masks first and ``scene_gt.json`` last, so a crash leaves either the old or the new entry, never half
-of a file.
+Every file goes through ``write_bytes_atomic``. ``write`` stores an image's files and then its three scene-JSON
+entries as one record, ``<split>/SSSSSS/gt_items/IIIIII.json`` (not BOP), last: so an item is complete or absent,
+and its cost does not grow with the scene (rewriting a thousand-image scene's JSONs per item would). ``flush`` (and
+``finish``; ``flush_split`` for a folder left by a killed run) merges the records into the scene JSONs,
+``scene_gt.json`` last, then deletes them; a crash in between leaves records that the next flush merges again.
 """
 
 from __future__ import annotations
@@ -36,6 +38,11 @@ log = logging.getLogger(__name__)
 
 MM_PER_M = 1000.0
 _UINT16_MAX = 65535
+ITEMS_DIR = "gt_items"  # per-image records of the scene JSON entries, until flushed
+# Scene JSON -> its key in an item record; scene_gt.json last: its entry is the one that commits an image.
+SCENE_FILES = (
+    ("scene_gt_info.json", "scene_gt_info"), ("scene_camera.json", "scene_camera"), ("scene_gt.json", "scene_gt"),
+)  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------ JSON <-> numpy helpers
@@ -143,18 +150,19 @@ class BopWriter:
         self.root = Path(root)
         self.split = split
         self.models = {m.obj_id: m for m in models}
-        self.written: list[Path] = []
-        self._write_models()
+        self.model_files = self._write_models()
+        self.files_written = len(self.model_files)  # a count, not a list: a million-item run must not grow memory
 
-    def _write_models(self) -> None:
-        info = {}
+    def _write_models(self) -> list[Path]:
+        info, paths = {}, []
         for obj_id, model in sorted(self.models.items()):
             info[str(obj_id)] = model.models_info_entry()
             mesh_mm = model.mesh.copy()
             mesh_mm.apply_scale(MM_PER_M)
             payload = mesh_mm.export(file_type="ply")
-            self.written.append(write_bytes_atomic(self.root / "models" / f"obj_{obj_id:06d}.ply", payload))
-        self.written.append(write_json_atomic(self.root / "models" / "models_info.json", info))
+            paths.append(write_bytes_atomic(self.root / "models" / f"obj_{obj_id:06d}.ply", payload))
+        paths.append(write_json_atomic(self.root / "models" / "models_info.json", info))
+        return paths
 
     def scene_dir(self, scene_id: int) -> Path:
         return self.root / self.split / f"{scene_id:06d}"
@@ -193,19 +201,13 @@ class BopWriter:
             paths.append(
                 write_bytes_atomic(sdir / "mask_visib" / name, encode_png(visib.astype(np.uint8) * 255, "mask"))
             )
-        key = str(ann.image_id)
-        updates = (
-            ("scene_gt_info.json", [gt_info_as_json(i) for i in ann.instances]),
-            ("scene_camera.json", camera_as_json(ann.intrinsics, ann.depth_scale_mm, ann.T_camera_world)),
-            ("scene_gt.json", [gt_as_json(i) for i in ann.instances]),  # last: the entry that commits the image
-        )
-        for fname, entry in updates:
-            path = sdir / fname
-            data = _load_json(path)
-            data[key] = entry
-            ordered = dict(sorted(data.items(), key=lambda kv: int(kv[0])))
-            paths.append(write_json_atomic(path, ordered))
-        self.written += paths
+        record = {
+            "scene_gt_info": [gt_info_as_json(i) for i in ann.instances],
+            "scene_camera": camera_as_json(ann.intrinsics, ann.depth_scale_mm, ann.T_camera_world),
+            "scene_gt": [gt_as_json(i) for i in ann.instances],
+        }
+        paths.append(write_json_atomic(sdir / ITEMS_DIR / f"{im}.json", record, None))  # last: commits the image
+        self.files_written += len(paths)
         return paths
 
     def item_files(self, scene_id: int, image_id: int, n_instances: int, true_depth: bool = False) -> list[Path]:
@@ -220,14 +222,53 @@ class BopWriter:
         return paths
 
     def instance_counts(self, scene_id: int) -> dict[int, int]:
-        """image id -> number of instances, for every image of the scene with a ``scene_gt.json`` entry."""
-        gt = _load_json(self.scene_dir(scene_id) / "scene_gt.json")
+        """image id -> number of instances, for every image of the scene written: with a ``scene_gt.json`` entry or
+        a record not yet flushed."""
+        sdir = self.scene_dir(scene_id)
+        gt = _load_json(sdir / "scene_gt.json")
+        gt.update({str(int(k)): r["scene_gt"] for k, r in _item_records(sdir).items()})
         return {int(k): len(v) if isinstance(v, list) else 0 for k, v in gt.items()}
 
+    def flush(self) -> list[Path]:
+        """Merges every item record of the split into its scene JSONs; returns the scene files written."""
+        return flush_split(self.root, self.split)
+
     def finish(self) -> list[Path]:
-        """Nothing left to write (every item is complete on disk); logs and returns everything written."""
-        log.info("BOP dataset: %d files written under %s", len(self.written), self.root)
-        return list(self.written)
+        """Flushes; returns the scene files written."""
+        paths = self.flush()
+        log.info("BOP dataset: %d files written under %s", self.files_written + len(paths), self.root)
+        return paths
+
+
+def flush_split(root: str | Path, split: str) -> list[Path]:
+    """Merges the item records (``gt_items/``) of every scene of ``root/split`` into the scene's JSONs, atomically,
+    ``scene_gt.json`` last, then deletes them; returns the scene files written. A record replaces the scene files'
+    entry of its image (an image written again)."""
+    paths: list[Path] = []
+    for items_dir in sorted(Path(root, split).glob(f"*/{ITEMS_DIR}")):
+        sdir = items_dir.parent
+        records = _item_records(sdir)
+        for fname, field in SCENE_FILES:
+            data = _load_json(sdir / fname)
+            data.update({str(int(k)): r[field] for k, r in records.items()})
+            paths.append(write_json_atomic(sdir / fname, dict(sorted(data.items(), key=lambda kv: int(kv[0])))))
+        for name in records:
+            (items_dir / f"{name}.json").unlink()
+        items_dir.rmdir()
+    return paths
+
+
+def _item_records(sdir: Path) -> dict[str, dict]:
+    """Image name (``IIIIII``) -> the item record of every image of scene folder ``sdir`` not yet flushed."""
+    records = {}
+    for path in sorted((sdir / ITEMS_DIR).glob("*.json")):
+        record = read_json(path, "BOP item record")
+        complete = isinstance(record, dict) and all(field in record for _, field in SCENE_FILES)
+        if not complete or not path.stem.isdigit():
+            fields = ", ".join(field for _, field in SCENE_FILES)
+            raise ConfigError(f"{path}: expected a BOP item record (a JSON object with {fields}) named by image id")
+        records[path.stem] = record
+    return records
 
 
 # ------------------------------------------------------------------------------------------------------ the reader

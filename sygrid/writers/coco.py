@@ -61,7 +61,7 @@ class CocoWriter:
         self.categories = [{"id": int(m.obj_id), "name": m.name} for m in sorted(models, key=lambda m: m.obj_id)]
         if not self.categories:
             raise ValueError("models: expected at least one ObjectModel to name the COCO categories")
-        self.written: list[Path] = []
+        self.files_written = 0  # a count, not a list: a million-item run must not grow memory
 
     def write(self, ann: ImageAnnotation, rgb: np.ndarray, depth_m: np.ndarray | None = None) -> list[Path]:
         """Writes the image file and its annotation record (``depth_m`` is not part of the format)."""
@@ -95,7 +95,7 @@ class CocoWriter:
             ),
             write_json_atomic(self.items_dir / f"{ann.name}.json", {"image": image, "annotations": annotations}, None),
         ]
-        self.written += paths
+        self.files_written += len(paths)
         return paths
 
     def item_files(self, scene_id: int, image_id: int) -> list[Path]:
@@ -127,7 +127,7 @@ class CocoWriter:
         return write_json_atomic(self.json_path, data, indent=None)
 
     def finish(self) -> list[Path]:
-        """Writes the annotation JSON; returns everything written."""
-        self.written.append(self.flush())
-        log.info("COCO dataset written to %s", self.json_path)
-        return list(self.written)
+        """Writes the annotation JSON; returns it."""
+        path = self.flush()
+        log.info("COCO dataset written to %s (%d image and record files this run)", path, self.files_written)
+        return [path]

@@ -71,8 +71,8 @@ class YoloWriter:
             raise ValueError("models: expected at least one ObjectModel to name the YOLO classes")
         self.class_index = {obj_id: i for i, obj_id in enumerate(self.obj_ids)}
         self.names = {self.class_index[m.obj_id]: m.name for m in models}
-        self.written: list[Path] = []
-        self.written.append(self._write_yaml())
+        self._write_yaml()
+        self.files_written = 0  # images and labels; a count, not a list: a million-item run must not grow memory
 
     def _write_yaml(self) -> Path:
         present = {s for s in ("train", "val", "test") if (self.root / "images" / s).is_dir()}
@@ -111,9 +111,9 @@ class YoloWriter:
         label = write_bytes_atomic(
             self.root / "labels" / split / f"{ann.name}.txt", "".join(f"{ln}\n" for ln in lines).encode()
         )
-        self.written += [image, label]
+        self.files_written += 2
         if new_split:  # data.yaml names the splits: keep it true even if the run never reaches finish()
-            self.written.append(self._write_yaml())
+            self._write_yaml()
         return [image, label]
 
     def item_files(self, scene_id: int, image_id: int, split: str | None = None) -> list[Path]:
@@ -122,10 +122,10 @@ class YoloWriter:
         return [self.root / "images" / split / f"{name}.png", self.root / "labels" / split / f"{name}.txt"]
 
     def finish(self) -> list[Path]:
-        """Rewrites ``data.yaml`` (``val`` points at ``images/val`` once it exists); returns everything written."""
-        self.written.append(self._write_yaml())
-        log.info("YOLO dataset: %d files written under %s", len(self.written), self.root)
-        return list(self.written)
+        """Rewrites ``data.yaml`` (``val`` points at ``images/val`` once it exists); returns it."""
+        path = self._write_yaml()
+        log.info("YOLO dataset: %d image and label files written under %s", self.files_written, self.root)
+        return [path]
 
 
 def _check_split(split: str) -> None:
