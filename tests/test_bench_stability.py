@@ -29,6 +29,7 @@ from launch.stability.generated import point_recipe_json, spread_counts
 from launch.stability.options import Options
 from launch.stability.perception_pass import data_digest, models_digest, part_family
 from launch.stability.report import axis_result, summary_markdown
+from launch.stability.soak import slower_p, soak_notes
 from launch.stability.sweep import Axis, Measurement, Method, Point, point_path, run_axis
 from sim.render_process import NO_ANSWER
 from sygrid.camera import CameraIntrinsics
@@ -309,3 +310,23 @@ def test_the_command_lists_its_axes_and_refuses_an_unknown_one(capsys):
     assert "depth_noise: Depth noise; points 0x, 0.5x, 1x, 1.5x, 2x, 3x" in out and "soak: Soak" in out
     assert main(["bench", "stability", "--list", "--axis", "nois"]) == 2
     assert "unknown ['nois']" in capsys.readouterr().err
+
+
+def test_the_soak_notes_compare_the_last_tenth_with_the_first():
+    rng = np.random.default_rng(0)
+
+    def record(method: str, x: float, k: int, n: int, rss: float, make_scale: float) -> dict:
+        extra = {"rss_mb": rss, "make_s": list(rng.gamma(4.0, make_scale / 4.0, 100)),
+                 "write_s": list(rng.gamma(4.0, 0.01, 100))}  # fmt: skip
+        return {"method": method, "x": x, "k": k, "n": n, "extra": extra}
+
+    gen = "generator: items written"
+    notes = soak_notes([record(gen, 1, 100, 100, 1000.0, 1.3), record(gen, 10, 100, 100, 1030.0, 2.0),
+                        record(gen, 5, 100, 100, 1500.0, 1.3)])  # fmt: skip
+    g = notes[gen]
+    assert g["rss_growth_pct"] == pytest.approx(3.0)  # first to last, the middle ignored
+    assert g["make_s_p_last_slower"] < 1e-6 and g["make_s_last_median"] > g["make_s_first_median"]
+    assert g["write_s_p_last_slower"] > 0.01  # drawn alike: no slowdown beyond noise
+    assert g["z_last_vs_first"] == 0.0
+    # the same content times in both tenths: not slower
+    assert slower_p([1.0, 2.0, 3.0] * 30, [1.0, 2.0, 3.0] * 30) > 0.4

@@ -122,6 +122,14 @@ def test_same_files_whatever_the_worker_count(tmp_path):
     assert [k for k in one if one[k] != two[k]] == []
 
 
+def test_generate_reports_each_written_item_with_its_write_time(tmp_path):
+    seen = []
+    summary = generate(_recipe(tmp_path), tmp_path / "d", count=2, seed=3, progress=False,
+                       on_written=lambda item, s: seen.append((item.index, item.timings["item"], s)))  # fmt: skip
+    assert summary.written == 2 and [i for i, _, _ in seen] == [0, 1]
+    assert all(make > 0 and write > 0 for _, make, write in seen)
+
+
 def test_a_temporary_left_by_a_killed_write_is_removed_on_resume(tmp_path):
     """The kill test above lands between a temporary's creation and its rename only now and then; this makes it
     happen: the rerun removes the temporary and leaves the set exactly as a clean run makes it."""

@@ -2,15 +2,18 @@
 process, with the figures of each tenth of the run, to see whether anything grows or degrades with time.
 
 - generator: ``Options.soak_items`` items of the test recipe (``sygrid.dataset.generate``, one worker, in this
-  process), a tenth at a time: per tenth the items written of those asked, seconds per item and this process's RSS
-  after it;
+  process), a tenth at a time: per tenth the items written of those asked, seconds per item, each item's making
+  (drop, render, sensor) and writing seconds, and this process's RSS after it;
 - cell: bins of the simulated cell (``launch.bench_cell.run_bin``, seeds 0, 1, ...) back to back for
   ``Options.soak_minutes``; the bins split into tenths in order: per tenth the picks of the attempts, the median of
   the bins' median cycle times and this process's RSS (the runtime's side: the emulator is a new process per bin).
 
 A soak is measured whole, once (kept under the cache folder, written as it goes); one stopped part way is measured
-again from its start, as resuming it would hide growth. The notes compare the last tenth with the first: RSS growth
-and a two-proportion z score of the success rates (|z| > 2: worse or better beyond noise).
+again from its start, as resuming it would hide growth. The notes compare the last tenth with the first: RSS growth,
+a two-proportion z score of the success rates (|z| > 2: worse or better beyond noise) and, for the generator, the
+median making and writing seconds per item with a one-sided Mann-Whitney p value that the last tenth's items are
+slower (items differ in content, a pile of 5 parts or 30, so their times are compared as samples, not as means;
+p < 0.01: slower beyond noise).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import json
 import math
 import shutil
 import time
+from dataclasses import dataclass, field
 from statistics import median
 from typing import Any
 
@@ -57,7 +61,9 @@ def soak_axis(opts: Options) -> Axis:
         cycle = [b["cycle_median_s"] for b in bins if b["cycle_median_s"] is not None]
         return {
             GENERATOR: Measurement(g["written"], g["asked"], extra={"s_per_item": g["s_per_item"],
-                                                                     "rss_mb": g["rss_mb"]}),
+                                                                     "rss_mb": g["rss_mb"],
+                                                                     "make_s": g.get("make_s", []),
+                                                                     "write_s": g.get("write_s", [])}),
             CELL: Measurement(picked, tried, extra={"bins": len(bins), "rss_mb": bins[-1]["rss_mb"] if bins else None,
                                                     "cycle_median_s": median(cycle) if cycle else None}),
         }  # fmt: skip
@@ -89,16 +95,30 @@ def _generator_soak(opts: Options, folder, items: int, parts: int) -> dict[str, 
     log = {"complete": False, "parts": []}
     for i in range(parts):
         lo, hi = i * items // parts, (i + 1) * items // parts
+        times = ItemSeconds()
         start = time.perf_counter()
-        summary = generate(recipe, data_dir, max(hi, 1), seed=9000, workers=1, progress=False)
+        summary = generate(recipe, data_dir, max(hi, 1), seed=9000, workers=1, progress=False, on_written=times)
         seconds = time.perf_counter() - start
         failed = sum(1 for j in summary.failed if lo <= j < hi)
         log["parts"].append({"asked": hi - lo, "written": hi - lo - failed, "seconds": seconds,
-                             "s_per_item": seconds / max(hi - lo, 1), "rss_mb": rss_mb()})  # fmt: skip
+                             "s_per_item": seconds / max(hi - lo, 1), "rss_mb": rss_mb(),
+                             "make_s": times.make_s, "write_s": times.write_s})  # fmt: skip
         write_json_atomic(log_path, log)
     log["complete"] = True
     write_json_atomic(log_path, log)
     return log
+
+
+@dataclass
+class ItemSeconds:
+    """Each written item's making (``item.timings["item"]``) and writing seconds, as ``generate``'s ``on_written``."""
+
+    make_s: list[float] = field(default_factory=list)
+    write_s: list[float] = field(default_factory=list)
+
+    def __call__(self, item: Any, write_s: float) -> None:
+        self.make_s.append(round(float(item.timings["item"]), 4))
+        self.write_s.append(round(write_s, 5))
 
 
 def _cell_soak(opts: Options, folder, minutes: float, parts: int, cycles: int) -> dict[str, Any]:
@@ -146,7 +166,19 @@ def soak_notes(records: list[dict[str, Any]]) -> dict[str, Any]:
             "rss_growth_pct": 100.0 * (b - a) / a if a and b else None,
             "first": _rate(first), "last": _rate(last), "z_last_vs_first": _z(first, last),
         }  # fmt: skip
+        for stage in ("make_s", "write_s"):
+            a, b = first["extra"].get(stage), last["extra"].get(stage)
+            if a and b:
+                out[method].update({f"{stage}_first_median": median(a), f"{stage}_last_median": median(b),
+                                    f"{stage}_p_last_slower": slower_p(a, b)})  # fmt: skip
     return out
+
+
+def slower_p(first: list[float], last: list[float]) -> float:
+    """One-sided Mann-Whitney U p value of ``last``'s values being larger than ``first``'s (scipy)."""
+    from scipy.stats import mannwhitneyu
+
+    return float(mannwhitneyu(last, first, alternative="greater").pvalue)
 
 
 def _rate(r: dict[str, Any]) -> float | None:
