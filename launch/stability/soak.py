@@ -12,7 +12,7 @@ A soak is measured whole, once (kept under the cache folder, written as it goes)
 again from its start, as resuming it would hide growth. The notes compare the last tenth with the first: RSS growth,
 a two-proportion z score of the success rates (|z| > 2: worse or better beyond noise) and, for the generator, the
 median making and writing seconds per item with a one-sided Mann-Whitney p value that the last tenth's items are
-slower (items differ in content, a pile of 5 parts or 30, so their times are compared as samples, not as means;
+slower (items differ in cost, rasterised or path-traced, redrawn or not, so their times are compared as samples;
 p < 0.01: slower beyond noise).
 """
 
