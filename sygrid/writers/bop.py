@@ -254,7 +254,8 @@ def flush_split(root: str | Path, split: str) -> list[Path]:
             paths.append(write_json_atomic(sdir / fname, dict(sorted(data.items(), key=lambda kv: int(kv[0])))))
         for name in records:
             (items_dir / f"{name}.json").unlink()
-        items_dir.rmdir()
+        if not any(items_dir.iterdir()):  # a killed write's temporary stays for the generator's clean-up
+            items_dir.rmdir()
     return paths
 
 
