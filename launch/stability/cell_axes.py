@@ -139,7 +139,7 @@ def timing_axis(opts: Options) -> Axis:
 
     ports = ControllerPorts()
     port_list = (ports.rtde, ports.dashboard, *ports.script, ports.gripper)
-    latencies = (0.0, 50.0) if opts.quick else (0.0, 5.0, 20.0, 50.0, 100.0, 200.0, 400.0, 800.0, 1600.0)
+    latencies = (0.0, 50.0) if opts.quick else (0.0, 5.0, 20.0, 50.0, 100.0, 200.0, 400.0, 600.0, 800.0, 1600.0)
 
     def measure(point: Point, seed: int) -> dict[str, Measurement]:
         latency, jitter = point.params["latency_ms"] / 1e3, point.params["jitter_ms"] / 1e3
