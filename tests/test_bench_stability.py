@@ -3,6 +3,7 @@ failure point on synthetic curves, the summary table from a fixture result, and 
 
 from __future__ import annotations
 
+import json
 import math
 import socket
 import threading
@@ -330,3 +331,14 @@ def test_the_soak_notes_compare_the_last_tenth_with_the_first():
     assert g["z_last_vs_first"] == 0.0
     # the same content times in both tenths: not slower
     assert slower_p([1.0, 2.0, 3.0] * 30, [1.0, 2.0, 3.0] * 30) > 0.4
+
+
+def test_a_generated_set_is_verified_with_the_sensor_it_was_generated_through(tmp_path):
+    from launch.stability.perception_pass import frames_sensor_of
+    from sygrid.sensor import IDEAL, sensor_preset
+
+    (tmp_path / "dataset.json").write_text(json.dumps({"recipe": {"name": "t", "sensor": "oak-d"}}))
+    assert frames_sensor_of(tmp_path) == sensor_preset("oak-d")
+    assert frames_sensor_of(tmp_path, IDEAL) == IDEAL  # a pass that senses the exact depth itself names its sensor
+    (tmp_path / "dataset.json").write_text(json.dumps({"recipe": {"name": "t"}}))
+    assert frames_sensor_of(tmp_path) == sensor_preset("ideal")

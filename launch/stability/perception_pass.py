@@ -24,10 +24,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from launch.stability.sweep import Measurement
 from sygrid.fileio import read_json, write_json_atomic
+
+if TYPE_CHECKING:
+    from sygrid.sensor import SensorModel
 
 DETECTION_METHODS = {"detector (bin box)": "bin", "detector (whole frame)": "full"}
 THIN_M = 0.0022  # a part whose mean wall thickness (2 x volume / surface) is below this is "thin"
@@ -161,6 +164,7 @@ def measure_set(
            "models_digest": models_digest(stack.models_dir), "data_digest": data_digest(data_dir),
            "strategies": list(stack.strategies), "detection": detection,
            "sensor": None if sensor is None else repr(sensor), "sensor_seed": sensor_seed,
+           "frames_sensor": repr(frames_sensor_of(data_dir, sensor)),
            "pipeline": PASS_VERSION}  # fmt: skip
     path = cache_path(cache_dir, key)
     if path.is_file():
@@ -171,13 +175,21 @@ def measure_set(
     return rows
 
 
+def frames_sensor_of(data_dir: Path, sensor: SensorModel | None = None) -> SensorModel:
+    """The sensor model the pass's frames went through: ``sensor`` where the pass senses the exact depth itself,
+    else the one the dataset was generated with (its ledger's ``recipe.sensor``), so that a set generated through
+    the OAK-D model is verified with the OAK-D's noise allowance, not an ideal sensor's."""
+    from perception.evaluation import EvalSettings, frames_sensor
+
+    return sensor if sensor is not None else frames_sensor(data_dir, EvalSettings())
+
+
 def _measure(stack, data_dir, max_images, detection, sensor, sensor_seed, progress) -> list[Row]:
     from perception.detector_eval import run_detector
     from perception.evaluation import EvalSettings, eval_items
     from perception.strategy_eval import evaluate_strategies
     from sygrid.dataset import DatasetBin
     from sygrid.detection_breakdown import match_instances
-    from sygrid.sensor import sensor_preset
 
     settings = EvalSettings(max_images=max_images)
     root, split, items = eval_items(data_dir, settings)
@@ -194,7 +206,7 @@ def _measure(stack, data_dir, max_images, detection, sensor, sensor_seed, progre
     sense = None if sensor is None else sensing(sensor, sensor_seed, data_dir, split, p.models)
     # As the pipeline runs on such frames: the verification allows for this sensor's noise, and the depth is tared
     # on the bin's floor.
-    p.use_sensor(sensor if sensor is not None else sensor_preset("ideal"))
+    p.use_sensor(frames_sensor_of(data_dir, sensor))
     records = evaluate_strategies(stack.runner, p.pose, p.models, data_dir, stack.strategies, settings,
                                   wrong_class=False, sense=sense, progress=progress, tare=p.depth_tare)  # fmt: skip
     for (obj_id, strategy), recs in records.items():
