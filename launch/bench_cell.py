@@ -67,6 +67,7 @@ class Variant:
     min_fitness: float | None = None
     mask_erosion_px: int | None = None
     calibration: str | None = None  # another [calibration] source than the cell file's ("sim": the true pose)
+    sensor: str | None = None  # another [camera] sensor than the cell file's (a sygrid.sensor preset)
     robot_host: str | None = None  # where the robot and gripper clients connect (e.g. a delaying proxy); None: HOST
     camera_error: tuple[tuple[float, ...], ...] | None = None  # 4x4 onto the camera pose (launch.pick.open_cell)
 
@@ -98,6 +99,11 @@ VARIANTS: dict[str, Variant] = {
     "models_no_nudge": Variant("models", "the cell file's models; no nudges", picker={"max_nudges": 0}),
     "models_true_camera": Variant(
         "models", "the cell file's models; the camera's true pose, not the hand-eye calibration", calibration="sim"
+    ),
+    "models_oak_d": Variant(
+        "models",
+        "the cell file's models and hand-eye calibration; frames through the OAK-D stereo model (realistic sensing)",
+        sensor="oak-d",
     ),
     "models_no_sheet": Variant(
         "models",
@@ -336,10 +342,11 @@ def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> 
     gripper = {**d.gripper, "host": variant.robot_host or HOST}
     picker = {**d.picker, **variant.picker}
     calibration = d.calibration.model_copy(update={"source": variant.calibration or d.calibration.source})
+    camera = d.camera.model_copy(update={"sensor": variant.sensor or d.camera.sensor})
     data = d.model_copy(
         update={
             "sim": sim, "perception": perception, "robot": robot, "gripper": gripper, "picker": picker,
-            "calibration": calibration,
+            "calibration": calibration, "camera": camera,
         }
     )  # fmt: skip
     setup = CellSetup(data, base.path)

@@ -161,6 +161,9 @@ def test_a_variant_changes_only_its_own_settings_of_the_cell_file():
     assert plain.sim.seed == strict.sim.seed == 7 and plain.sim.host == HOST
     assert plain.perception.min_fitness == base.data.perception.min_fitness and strict.perception.min_fitness == 0.8
     assert strict.perception.model_copy(update={"min_fitness": plain.perception.min_fitness}) == plain.perception
+    realistic = _setup(base, VARIANTS["models_oak_d"], 7, None).data
+    assert plain.camera.sensor == base.data.camera.sensor == "ideal" and realistic.camera.sensor == "oak-d"
+    assert realistic.calibration == plain.calibration and realistic.perception == plain.perception
     tuned = _setup(base, VARIANTS["models_sim_cell_erosion0"], 7, None).data.perception
     assert tuned.mask_erosion_px == 0 and tuned.detector_input_size == 960 and tuned.models_dir.endswith("sim_cell")
     # variants that name their models keep measuring the same thing whatever the cell file runs
