@@ -143,6 +143,31 @@ def test_force_mode_presses_and_follows_the_programmed_motion_on_the_other_axes(
     assert c.moveJ(Q_WORK.tolist(), 3.0, 6.0)
 
 
+def test_pressing_past_the_force_limit_is_a_protective_stop_and_the_arm_may_then_back_off(surface_cell):
+    """A position-controlled move into the surface stops where the TCP force passes the 150 N limit (7.5 mm deep on
+    20 N/mm), though nothing collides with the arm; once unlocked, the arm may move back out although the force is
+    still above the limit there."""
+    em, r, c = surface_cell
+    assert c.moveJ(Q_WORK.tolist(), 3.0, 6.0)
+    target = r.getActualTCPPose()
+    target[2] = SURFACE_Z - 0.015  # 300 N deep
+    assert not c.moveL(target, 0.02, 0.5)
+    state = em.state()
+    assert state.protective_stopped and "TCP force" in state.last_error and "force limit" in state.last_error
+    depth = SURFACE_Z - r.getActualTCPPose()[2]
+    assert 7.5e-3 <= depth < 9e-3 and 150.0 < _fz(r) < 180.0
+    with socket.create_connection((HOST, 29999), timeout=2.0) as dash:
+        dash.recv(100)
+        dash.sendall(b"unlock protective stop\n")
+        assert dash.recv(100) == b"Protective stop releasing\n"
+    assert c.reuploadScript()
+    end = time.monotonic() + 2.0
+    while not c.isProgramRunning() and time.monotonic() < end:
+        time.sleep(0.005)
+    assert c.moveJ(Q_WORK.tolist(), 1.0, 2.0) and not em.state().protective_stopped
+    assert _fz(r) == 0.0
+
+
 @pytest.fixture(scope="module")
 def robot(surface_cell):
     config = URConfig(host=HOST, workspace=BOX, recovery_timeout_s=10.0)

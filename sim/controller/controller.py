@@ -45,6 +45,9 @@ from sygrid.robots.kinematics import forward_kinematics
 log = logging.getLogger(__name__)
 
 PROTECTIVE_STOP_FORCE_N = 150.0  # UR5e default force limit of the "normal" safety configuration
+#: The force limit acts on the TCP force held over this many ticks (its median): a real controller's force estimate
+#: is filtered, and one physics step's contact impulse (a finger tapping a part) is not a force the arm exerts.
+TCP_FORCE_WINDOW_TICKS = 5
 PROGRAM_STOP_DECEL_RAD_S2 = 10.0  # how fast a stopped program brings the arm to rest
 #: Force-sensitive motion (force mode, a move until contact) advances only while the backend trails by at most this
 #: many ticks, so a simulation slower than the clock cannot run on past a contact it has not reported yet.
@@ -108,6 +111,7 @@ class EmulatedController:
         self.robot_mode = ROBOT_MODE_RUNNING
         self.protective_stopped = False
         self._protective_stop_time = 0.0
+        self._force_recovery = False
         self.last_error = ""
         self._watchdog_hz: float | None = None
         self._last_cmd_write = time.monotonic()
@@ -208,6 +212,12 @@ class EmulatedController:
         """The measured external wrench on the tool (base frame, torque about the active TCP)."""
         return self._wrench_history[-1] if self._wrench_history else np.zeros(6)
 
+    def tcp_force_n(self) -> float:
+        """The force the TCP exerts, as the safety system's force limit sees it: the median of the external force's
+        magnitude [N] over the last ``TCP_FORCE_WINDOW_TICKS`` ticks."""
+        recent = list(self._wrench_history)[-TCP_FORCE_WINDOW_TICKS:]
+        return float(np.median([np.linalg.norm(w[:3]) for w in recent])) if recent else 0.0
+
     def tool_contact(self, direction: np.ndarray, max_steps: int | None = None) -> int:
         """URScript ``tool_contact``: steps back (at most ``max_steps``) to the start of a contact against
         ``direction``, 0 without one."""
@@ -270,6 +280,9 @@ class EmulatedController:
                 )
             if self.protective_stopped:
                 log.info("protective stop released")
+                # As a UR's recovery lets the arm move back within its limits: a force limit still exceeded when
+                # the stop is released is not a new stop until the force has fallen below the limit once.
+                self._force_recovery = True
             self.protective_stopped = False
             return "Protective stop releasing"
 
@@ -366,11 +379,17 @@ class EmulatedController:
 
     def _check_safety(self, sample: ArmSample) -> None:
         now = time.monotonic()
-        if sample.collision_force_n > self.protective_stop_force_n and not self.protective_stopped:
+        limit = self.protective_stop_force_n
+        if sample.collision_force_n > limit and not self.protective_stopped:
             self._enter_protective_stop(
-                f"contact force {sample.collision_force_n:.1f} N above the {self.protective_stop_force_n:g} N limit"
+                f"contact force {sample.collision_force_n:.1f} N above the {limit:g} N limit"
                 + (f" ({sample.collision_geoms})" if sample.collision_geoms else "")
             )
+        # The UR's force limit is on the TCP, whatever it touches: pressing a part into the pile stops the arm too.
+        tcp_force = self.tcp_force_n()
+        self._force_recovery = self._force_recovery and tcp_force > limit
+        if tcp_force > limit and not (self.protective_stopped or self._force_recovery):
+            self._enter_protective_stop(f"TCP force {tcp_force:.1f} N above the {limit:g} N force limit")
         running = self.program is not None and self.runtime_state == RUNTIME_PLAYING
         if running and self._watchdog_hz and now - self._last_cmd_write > 1.0 / self._watchdog_hz:
             self.end_program(
