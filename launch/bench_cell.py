@@ -29,12 +29,12 @@ import argparse
 import logging
 import time
 from collections import Counter
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from launch.cell_variants import QUICK_VARIANTS, VARIANTS, Variant, cell_for_bin
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.pick_report import Outcome
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, replot, save_results
@@ -47,121 +47,6 @@ HOST = "127.0.0.63"  # sygrid pick uses .50, sygrid bench sim .61, the sim-in-th
 CELL_FILE = Path(__file__).parent / "cells" / "sim.toml"
 TARGETS = {"success_rate": 0.95, "cycle_median_s": 8.0, "perceive_plan_ms": 300.0}
 QUICK_SEEDS = 2
-
-
-@dataclass(frozen=True)
-class Variant:
-    """One setting of the cell: the perception (``oracle``: ground truth; ``models``: the trained pipeline, with
-    optional overrides), and ``robot.grasp_config.PlannerConfig`` / ``robot.pick_config.PickerConfig`` fields to
-    change."""
-
-    perception: str
-    description: str
-    planner: dict[str, Any] = field(default_factory=dict)
-    picker: dict[str, Any] = field(default_factory=dict)
-    refine: bool | None = None
-    detector_input_size: int | None = None
-    models_dir: str | None = None  # another model folder than the cell file's
-    detect_in_bin: bool | None = None
-    ignore_floor: bool | None = None
-    min_fitness: float | None = None
-    mask_erosion_px: int | None = None
-    calibration: str | None = None  # another [calibration] source than the cell file's ("sim": the true pose)
-    sensor: str | None = None  # another [camera] sensor than the cell file's (a sygrid.sensor preset)
-    robot_host: str | None = None  # where the robot and gripper clients connect (e.g. a delaying proxy); None: HOST
-    camera_error: tuple[tuple[float, ...], ...] | None = None  # 4x4 onto the camera pose (launch.pick.open_cell)
-
-
-_BUILTIN_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "builtin")
-_SIM_CELL_MODELS = str(Path(__file__).resolve().parents[1] / "models" / "sim_cell")
-
-_FAST = {
-    "approach_speed_m_s": 0.5,
-    "transit_linear_speed_m_s": 1.0,
-    "approach_accel_m_s2": 2.5,
-    "transit_speed_rad_s": 3.0,
-    "transit_accel_rad_s2": 6.0,
-}
-VARIANTS: dict[str, Variant] = {
-    "oracle": Variant("oracle", "ground-truth poses; default planner and speeds"),
-    "oracle_fast": Variant("oracle", "ground-truth poses; 2x approach speed, faster transits", picker=_FAST),
-    "oracle_cone30": Variant(
-        "oracle", "ground-truth poses; approach within 30 deg of vertical", {"approach_cone_deg": 30.0}
-    ),
-    "oracle_no_nudge": Variant("oracle", "ground-truth poses; no nudges", picker={"max_nudges": 0}),
-    "oracle_position_nudge": Variant(
-        "oracle", "ground-truth poses; nudges pressed under position control", picker={"nudge_contact": "position"}
-    ),
-    "models": Variant("models", "trained detector + pose net, the cell file's settings"),
-    "models_floor2": Variant(
-        "models", "the cell file's models; pad tips 2 mm above the bin floor (not 1 mm)", {"floor_clearance_m": 0.002}
-    ),
-    "models_no_nudge": Variant("models", "the cell file's models; no nudges", picker={"max_nudges": 0}),
-    "models_true_camera": Variant(
-        "models", "the cell file's models; the camera's true pose, not the hand-eye calibration", calibration="sim"
-    ),
-    "models_oak_d": Variant(
-        "models",
-        "the cell file's models and hand-eye calibration; frames through the OAK-D stereo model (realistic sensing)",
-        sensor="oak-d",
-    ),
-    "models_no_sheet": Variant(
-        "models",
-        "the cell file's models; no grasp narrower than 4 mm (no pinch of a 2 mm sheet: the previous planner default)",
-        {"min_grasp_width_m": 0.004},
-    ),
-    "models_planned_width": Variant(
-        "models",
-        "the cell file's models; a part held at another width than the planned one is dropped back (slipped)",
-        picker={"hold_any_width": False},
-    ),
-    "models_refine": Variant("models", "trained models, with depth refinement", refine=True),
-    "models_norefine": Variant("models", "trained models, without depth refinement", refine=False),
-    "models_480": Variant("models", "trained models, detector at its training size 480 px", detector_input_size=480),
-    "models_640": Variant("models", "trained models, detector at 640 px", detector_input_size=640),
-    "models_builtin": Variant(
-        "models",
-        "the general built-in models at 800 px (their best size on the cell's frames), masks peeled by a pixel",
-        models_dir=_BUILTIN_MODELS,
-        detector_input_size=800,
-        mask_erosion_px=1,
-    ),
-    "models_full_frame": Variant(
-        "models", "the cell file's models; the detector on the whole frame, not the bin's box", detect_in_bin=False
-    ),
-    "models_with_floor": Variant(
-        "models",
-        "the cell file's models; refinement also fits the floor seen through the parts' masks",
-        ignore_floor=False,
-    ),
-    "models_fitness08": Variant(
-        "models",
-        "the cell file's models; a refinement is accepted only when 80 % of the depth lies on the model (not 30 %)",
-        min_fitness=0.8,
-    ),
-    "models_erosion0": Variant(
-        "models",
-        "the built-in models at 800 px; refinement on the whole mask (no border pixel peeled off)",
-        models_dir=_BUILTIN_MODELS,
-        detector_input_size=800,
-        mask_erosion_px=0,
-    ),
-    "models_sim_cell_erosion0": Variant(
-        "models",
-        "models/sim_cell at 960 px; refinement on the whole mask (no border pixel peeled off)",
-        models_dir=_SIM_CELL_MODELS,
-        detector_input_size=960,
-        mask_erosion_px=0,
-    ),
-    "models_sim_cell": Variant(
-        "models",
-        "models/sim_cell (detector fine-tuned on the cell's views) at 960 px, masks peeled by a pixel",
-        models_dir=_SIM_CELL_MODELS,
-        detector_input_size=960,
-        mask_erosion_px=1,
-    ),
-}
-QUICK_VARIANTS = ("oracle", "oracle_fast", "models")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -321,46 +206,13 @@ def _chosen_variants(args: argparse.Namespace) -> list[str]:
     return names
 
 
-def _setup(base: CellSetup, variant: Variant, seed: int, scene: Path | None) -> CellSetup:
-    """The cell file's setup for one bin: this benchmark's host, the seed (and scene), the variant's settings."""
-    d = base.data
-    sim = d.sim.model_copy(update={"host": HOST, "seed": seed, **({"scene": str(scene.resolve())} if scene else {})})
-    # the variant's settings where it has them, the cell file's elsewhere
-    overrides = {
-        "refine": variant.refine,
-        "detector_input_size": variant.detector_input_size,
-        "models_dir": variant.models_dir,
-        "detect_in_bin": variant.detect_in_bin,
-        "ignore_floor": variant.ignore_floor,
-        "min_fitness": variant.min_fitness,
-        "mask_erosion_px": variant.mask_erosion_px,
-    }
-    perception = d.perception.model_copy(
-        update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}
-    )
-    robot = {**d.robot, "host": variant.robot_host or HOST}
-    gripper = {**d.gripper, "host": variant.robot_host or HOST}
-    picker = {**d.picker, **variant.picker}
-    calibration = d.calibration.model_copy(update={"source": variant.calibration or d.calibration.source})
-    camera = d.camera.model_copy(update={"sensor": variant.sensor or d.camera.sensor})
-    data = d.model_copy(
-        update={
-            "sim": sim, "perception": perception, "robot": robot, "gripper": gripper, "picker": picker,
-            "calibration": calibration, "camera": camera,
-        }
-    )  # fmt: skip
-    setup = CellSetup(data, base.path)
-    setup.planner_overrides = {**setup.planner_overrides, **variant.planner}
-    return setup
-
-
 def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, max_cycles: int) -> dict[str, Any]:
     """One bin with one variant: the run's figures and the simulator's ground truth before and after."""
     from launch.pick import open_cell
     from sim.cell_config import CellConfig
     from sygrid.objects import builtin_part
 
-    setup = _setup(base, variant, seed, scene)
+    setup = cell_for_bin(base, variant, seed, scene, HOST)
     start = time.perf_counter()
     calibration: dict[str, Any] = {}
     error = None if variant.camera_error is None else np.array(variant.camera_error, dtype=float)

@@ -152,22 +152,23 @@ def test_a_stopped_run_resumes_with_its_bins_and_only_the_same_run_can_resume(tm
 
 
 def test_a_variant_changes_only_its_own_settings_of_the_cell_file():
-    from launch.bench_cell import CELL_FILE, HOST, VARIANTS, _setup
+    from launch.bench_cell import CELL_FILE, HOST
+    from launch.cell_variants import VARIANTS, cell_for_bin
     from robot.cell_setup import load_cell_setup
 
     base = load_cell_setup(CELL_FILE)
-    plain = _setup(base, VARIANTS["models"], 7, None).data
-    strict = _setup(base, VARIANTS["models_fitness08"], 7, None).data
+    plain = cell_for_bin(base, VARIANTS["models"], 7, None, HOST).data
+    strict = cell_for_bin(base, VARIANTS["models_fitness08"], 7, None, HOST).data
     assert plain.sim.seed == strict.sim.seed == 7 and plain.sim.host == HOST
     assert plain.perception.min_fitness == base.data.perception.min_fitness and strict.perception.min_fitness == 0.8
     assert strict.perception.model_copy(update={"min_fitness": plain.perception.min_fitness}) == plain.perception
-    realistic = _setup(base, VARIANTS["models_oak_d"], 7, None).data
+    realistic = cell_for_bin(base, VARIANTS["models_oak_d"], 7, None, HOST).data
     assert plain.camera.sensor == base.data.camera.sensor == "ideal" and realistic.camera.sensor == "oak-d"
     assert realistic.calibration == plain.calibration and realistic.perception == plain.perception
-    tuned = _setup(base, VARIANTS["models_sim_cell_erosion0"], 7, None).data.perception
+    tuned = cell_for_bin(base, VARIANTS["models_sim_cell_erosion0"], 7, None, HOST).data.perception
     assert tuned.mask_erosion_px == 0 and tuned.detector_input_size == 960 and tuned.models_dir.endswith("sim_cell")
     # variants that name their models keep measuring the same thing whatever the cell file runs
     for name, peel in (("models_builtin", 1), ("models_erosion0", 0)):
-        general = _setup(base, VARIANTS[name], 7, None).data.perception
+        general = cell_for_bin(base, VARIANTS[name], 7, None, HOST).data.perception
         assert general.models_dir.endswith("builtin") and general.detector_input_size == 800
         assert general.mask_erosion_px == peel

@@ -85,14 +85,15 @@ def bin_measurements(
 def run_cell_bin(
     opts: Options, seed: int, scene: Path | None = None, max_cycles: int | None = None, **variant: Any
 ) -> dict[str, Measurement]:
-    """One bin of the cell file's setup with the variant's fields (``launch.bench_cell.Variant``), at most
+    """One bin of the cell file's setup with the variant's fields (``launch.cell_variants.Variant``), at most
     ``max_cycles`` (default ``opts.max_cycles``) cycles; an exception (the runtime could not connect, or a stop it
     raises) is a run that did not complete.
 
     A bin that the machine starved (``starved``: the physics fell behind real time, or the camera's render process
     did not answer) measures the machine, not the axis: it is run again, up to ``STARVED_RETRIES`` times, and then
     refused (ConfigError), so that no such point is saved."""
-    from launch.bench_cell import Variant, run_bin
+    from launch.bench_cell import run_bin
+    from launch.cell_variants import Variant
     from robot.cell_setup import load_cell_setup
 
     base = load_cell_setup(opts.cell_config)

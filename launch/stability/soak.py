@@ -122,7 +122,8 @@ class ItemSeconds:
 
 
 def _cell_soak(opts: Options, folder, minutes: float, parts: int, cycles: int) -> dict[str, Any]:
-    from launch.bench_cell import Variant, run_bin
+    from launch.bench_cell import run_bin
+    from launch.cell_variants import Variant
     from robot.cell_setup import load_cell_setup
 
     log_path = folder / "cell.json"
