@@ -36,6 +36,7 @@ _FINGER_MASS_KG = 0.05
 _FINGER_ARMATURE_KG = 0.5
 # Status thresholds.
 _MOVING_SPEED_M_S = 0.002
+_CREEP_SPEED_M_S = 0.005  # a quarter of the slowest commanded speed (20 mm/s)
 _POSITION_TOL_M = 0.0015
 
 _HOUSING_RGBA = (0.15, 0.15, 0.17, 1.0)
@@ -209,18 +210,28 @@ class GripperController:
         return self._force_n
 
     def moving(self, data: mujoco.MjData) -> bool:
-        """The fingers are moving, or about to: the set point still travels and the servo is not stalled."""
-        if abs(self.speed_m_s(data)) > _MOVING_SPEED_M_S:
-            return True
+        """The fingers are moving, or about to: the set point still travels and the servo is not stalled. A servo
+        at its force limit whose fingers touch something and only creep (below ``_CREEP_SPEED_M_S``) is stalled:
+        MuJoCo's soft friction lets pads pressed on a surface slide slowly where a real gripper's stick, and its
+        firmware reports them stopped. (Without a contact, a servo at its limit is accelerating.)"""
+        speed = abs(self.speed_m_s(data))
         stalled = abs(float(data.actuator_force[self._actuator_id])) >= 0.99 * self._force_n
+        if stalled and speed < _CREEP_SPEED_M_S and self._touching(data):
+            return False
+        if speed > _MOVING_SPEED_M_S:
+            return True
         return self._setpoint_m != self._target_width_m and not stalled
 
     def object_detected(self, data: mujoco.MjData) -> bool:
         """The fingers stopped short of the target (by more than 1.5 mm) while a pad touches something."""
-        if abs(self.speed_m_s(data)) > _MOVING_SPEED_M_S:
+        if self.moving(data):
             return False
         if abs(self._target_width_m - self.width_m(data)) <= _POSITION_TOL_M:
             return False
+        return self._touching(data)
+
+    def _touching(self, data: mujoco.MjData) -> bool:
+        """A finger (pad or link) is in contact with something."""
         n = data.ncon
         touching = self._is_finger_geom[data.contact.geom1[:n]] | self._is_finger_geom[data.contact.geom2[:n]]
         return bool(touching.any())

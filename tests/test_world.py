@@ -128,6 +128,28 @@ def test_part_is_grasped_and_lifted_by_friction() -> None:
     assert world.part_poses()[0][2, 3] < z_part + 0.02
 
 
+def test_fingers_dragged_along_the_floor_at_their_force_limit_read_as_stopped() -> None:
+    """Pads pressed onto the bin floor (the TCP 4 mm above it) close against the floor's friction: MuJoCo's soft
+    friction lets them creep at about 2 mm/s with the servo at its force limit, where a real gripper's fingers stick
+    and it reports them stopped on an object. Read as moving, a close never ended (the runtime's move deadline)."""
+    world = CellWorld()
+    spot = world.T_world_bin[:3, 3] + np.array([0.0, 0.0, 0.004])
+    R = rotation_about(np.array([0, 0, 1.0]), np.pi / 6) @ R_TOOL_DOWN
+    q_above = ik_nearest(invert(world.T_world_base) @ make_T(R, spot + np.array([0, 0, 0.1])), ur5e.HOME_Q,
+                         T_flange_tcp=world.T_flange_tcp)  # fmt: skip
+    _move(world, q_above, 1.2)
+    _move(world, ik_nearest(invert(world.T_world_base) @ make_T(R, spot), q_above, T_flange_tcp=world.T_flange_tcp),
+          0.8)  # fmt: skip
+    world.set_gripper(0.0, 0.1, 100.0)
+    world.step(round(1.0 / world.dt_s))  # the set point has travelled the stroke (0.85 s)
+    readings = []
+    for _ in range(round(1.0 / world.dt_s)):
+        world.step()
+        readings.append((world.gripper_moving(), world.gripper_object_detected()))
+    assert world.gripper_width_m() > 0.03  # held open by the floor, not closed
+    assert not any(moving for moving, _ in readings) and all(detected for _, detected in readings)
+
+
 def test_pushing_into_the_table_is_a_large_collision_force() -> None:
     world = CellWorld()
     spot = np.array([-0.3, 0.3, 0.0])  # free table top between the bin and the robot
