@@ -215,7 +215,10 @@ class GripperController:
         MuJoCo's soft friction lets pads pressed on a surface slide slowly where a real gripper's stick, and its
         firmware reports them stopped. (Without a contact, a servo at its limit is accelerating.)"""
         speed = abs(self.speed_m_s(data))
-        stalled = abs(float(data.actuator_force[self._actuator_id])) >= 0.99 * self._force_n
+        # at its force limit pushing towards the target (a squeeze that a new opening request has not yet relieved
+        # pushes the other way: that is no stall)
+        force = float(data.actuator_force[self._actuator_id])
+        stalled = abs(force) >= 0.99 * self._force_n and force * (self._target_width_m - self.width_m(data)) > 0
         if stalled and speed < _CREEP_SPEED_M_S and self._touching(data):
             return False
         if speed > _MOVING_SPEED_M_S:

@@ -122,8 +122,12 @@ def test_part_is_grasped_and_lifted_by_friction() -> None:
     # Opening releases it: it falls back. The fingers move from the first steps on (a set point left at the
     # closed end would hold them on the part, stalled, which reads as "stopped on an object while opening").
     world.set_gripper(0.085, 0.15, 100.0)
-    world.step(10)
+    # Until the request reaches the servo (the next step) it still squeezes at its force limit, away from the new
+    # target: not a stall, so not "stopped on an object while opening".
     assert world.gripper_moving() and not world.gripper_object_detected()
+    for _ in range(10):
+        world.step()
+        assert world.gripper_moving() and not world.gripper_object_detected()
     world.step(390)
     assert world.part_poses()[0][2, 3] < z_part + 0.02
 
