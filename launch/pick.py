@@ -118,6 +118,10 @@ def open_cell(
         else:
             camera = stack.enter_context(setup.open_camera())
         planner_config = setup.planner_config()
+        sensor = setup.depth_sensor()
+        if planner_config.bin is not None:  # the depth noise where the camera sees the bin's far corners
+            far_z = float(planner_config.bin.inner_corners_camera(T_base_camera)[:, 2].max())
+            planner_config = planner_config.for_depth_noise(float(sensor.depth_noise_sigma_m(far_z)))
         if kind == "oracle":
             if process is None:
                 raise ConfigError(f"{setup.path}: perception 'oracle' exists only in the simulated cell")
@@ -141,7 +145,7 @@ def open_cell(
             perception = PerceptionPipeline.from_folder(
                 models_dir, overrides, region_camera_m=region, floor_plane_camera=floor,
                 floor_bounds_camera_m=corners if floor is not None else None,
-                floor_margin_m=d.perception.floor_margin_m, sensor=sensor_preset(d.camera.sensor),
+                floor_margin_m=d.perception.floor_margin_m, sensor=sensor,
             )  # fmt: skip
             models = perception.models
             if planner_config.bin is not None:  # parts on the bin's floor, as far as its farthest corner

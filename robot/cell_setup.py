@@ -47,7 +47,7 @@ from robot.pick_config import PickerConfig
 from robot.ur_config import URConfig
 from sygrid.errors import ConfigError
 from sygrid.scene import validation_message
-from sygrid.sensor import sensor_preset
+from sygrid.sensor import SensorModel, sensor_preset
 
 if TYPE_CHECKING:
     from perception.camera import Camera
@@ -58,6 +58,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+# The sygrid.sensor model of each hardware camera kind's depth: what its noise allowances assume.
+HARDWARE_SENSORS = {"oak": "oak-d", "realsense": "d435"}
 # [camera] fields per kind (besides kind); the rest must stay unset.
 _CAMERA_FIELDS = {
     "sim": ("sensor",),
@@ -228,6 +230,12 @@ class CellSetup:
     @property
     def is_sim(self) -> bool:
         return self.data.cell.kind == "sim"
+
+    def depth_sensor(self) -> SensorModel:
+        """The sensor model of the cell's depth, which the verification and the planner allow for: the simulated
+        camera's ``sensor``, or the stereo model of the hardware camera's kind (``HARDWARE_SENSORS``)."""
+        cam = self.data.camera
+        return sensor_preset(cam.sensor if cam.kind == "sim" else HARDWARE_SENSORS[cam.kind])
 
     def _camera_config(self) -> OakConfig | RealSenseConfig | None:
         """The hardware camera's config from [camera] (None for the simulated camera); ConfigError for a field of

@@ -4,7 +4,7 @@ cell (its bin, place tray and gripper)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -170,3 +170,17 @@ class PlannerConfig:
     @property
     def gripper(self) -> GripperGeometry:
         return self.grasp_params.gripper
+
+    def for_depth_noise(self, sigma_m: float) -> PlannerConfig:
+        """This config with its tolerances against depth points (own points, bin surface, covered) widened by three
+        times ``sigma_m``, the camera's depth noise (1 sigma, metres) where it sees the bin: a stereo camera's points
+        scatter about the surface, and a part's own noisy points read as something lying on it otherwise."""
+        if not sigma_m >= 0:
+            raise ConfigError(f"PlannerConfig.for_depth_noise: sigma_m must be >= 0, got {sigma_m}")
+        allowance = 3.0 * float(sigma_m)
+        return replace(
+            self,
+            own_points_tolerance_m=self.own_points_tolerance_m + allowance,
+            bin_surface_tolerance_m=self.bin_surface_tolerance_m + allowance,
+            cover_tolerance_m=self.cover_tolerance_m + allowance,
+        )

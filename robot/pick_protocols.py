@@ -78,7 +78,9 @@ class PoseLike(Protocol):
 
 
 class PerceptionResultLike(Protocol):
-    """``perception.pipeline.PerceptionResult``: the poses, the detections they came from, stage times (ms)."""
+    """``perception.pipeline.PerceptionResult``: the poses, the detections they came from, stage times (ms); where
+    it has a ``depth_tare`` (``perception.depth_tare.Tare``) that was applied, the picker plans on the frame's depth
+    corrected by it, as the poses were fitted."""
 
     @property
     def poses(self) -> list[Any]: ...

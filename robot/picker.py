@@ -33,13 +33,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
 
 import numpy as np
 
 from perception.camera import Frame
+from perception.depth_tare import apply_tare
 from robot.pick_arm import Arm, motion_cause
 from robot.pick_config import PickerConfig
 from robot.pick_fingers import Fingers
@@ -339,6 +340,11 @@ class Picker:
         record = c.record
         with c.timer(Stage.PERCEIVE):
             c.result = self.perception.run(c.frame)
+        tare = getattr(c.result, "depth_tare", None)
+        if tare is not None and tare.applied:
+            # Plan on the depth the poses were fitted in: with a stereo offset left in, a part's own points lie
+            # millimetres off its estimated surface and read as something lying on it (or a gap under it).
+            c.frame = replace(c.frame, depth_m=apply_tare(c.frame.depth_m, tare))
         record.n_detections, record.n_poses = len(c.result.detections), len(c.result.poses)
         record.perception_ms = {k: float(v) for k, v in c.result.timings_ms.items()}
         self.memory.look_after_last_pick(c.result.poses)

@@ -358,6 +358,27 @@ def test_a_part_beneath_another_comes_after_it_and_is_refused_when_covered(plann
     assert from_camera.timings_s["depth_cloud"] >= 0.0
 
 
+def test_a_part_seen_through_depth_noise_is_not_blocked_by_its_own_points(planner):
+    """A stereo camera's points scatter about the surface: with 3 mm of noise some of a lone nut's own points lie
+    beyond ``own_points_tolerance_m`` and read as a neighbour in the fingers' way, unless the tolerances allow for
+    the noise (``for_depth_noise``)."""
+    nut = _flat("hex_nut", -0.5, 0.0)
+    T_base_camera = make_T(np.diag([1.0, -1.0, -1.0]), (-0.5, 0.0, 0.52))
+    K = CameraIntrinsics.from_fov(320, 240, 30.0)
+    depth = _render_depth([(builtin_part("hex_nut"), nut)], K, T_base_camera)
+    noisy = np.where(depth > 0, depth + np.random.default_rng(0).normal(0.0, 0.003, depth.shape), 0.0)
+    poses = [_pose(1, invert(T_base_camera) @ nut)]
+    assert planner.plan(poses, T_base_camera, depth, K).parts[0].status == "planned"
+    assert planner.plan(poses, T_base_camera, noisy, K).parts[0].status == "collision_parts"
+    allowing = GraspPlanner([builtin_part("hex_nut")], planner.config.for_depth_noise(0.003),
+                            cache_dir=planner.cache_dir)  # fmt: skip
+    plan = allowing.plan(poses, T_base_camera, noisy, K)
+    assert plan.parts[0].status == "planned" and plan.grasps, plan.summary()
+    assert allowing.config.own_points_tolerance_m == pytest.approx(planner.config.own_points_tolerance_m + 0.009)
+    with pytest.raises(ConfigError, match="sigma_m"):
+        planner.config.for_depth_noise(-1.0)
+
+
 def test_an_unseen_neighbour_in_the_depth_frame_blocks_the_fingers(planner):
     """A part the detector missed is only in the depth frame: the gripper must still keep off it."""
     nut = _flat("hex_nut", -0.5, 0.0)

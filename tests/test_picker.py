@@ -205,6 +205,32 @@ def test_clears_the_bin_and_stops_when_empty():
     assert report.sim_cycle_times_s() == [5.0, 5.0, 5.0]  # camera time from one capture to the next
 
 
+def test_the_planner_gets_the_depth_the_poses_were_fitted_in():
+    """The perception measured a stereo offset on the floor and fitted the poses in the corrected depth: the planner
+    and the checks after it read the same corrected depth, not the camera's raw frame."""
+    from perception.depth_tare import Tare
+
+    class TaringBin(FakeBin):
+        def run(self, frame):
+            result = super().run(frame)
+            result.depth_tare = Tare(offset_inv_m=0.01, floor_px=5000, applied=True)  # 1 / z_obs = 1 / z + 0.01
+            return result
+
+    class RecordingPlanner(FakePlanner):
+        def __init__(self) -> None:
+            super().__init__()
+            self.depths: list = []
+
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
+            self.depths.append(depth_m)
+            return super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
+
+    planner = RecordingPlanner()
+    picker, _ = make_picker(TaringBin(parts=[0.0]), planner)
+    picker.run()
+    assert planner.depths and np.allclose(planner.depths[0], 1.0 / (1.0 - 0.01))  # the raw frame reads 1 m
+
+
 def test_nothing_safe_is_a_clean_stop_with_the_reasons():
     picker, _ = make_picker(FakeBin(), FakePlanner(nothing_safe=True))
     report = picker.run()

@@ -312,6 +312,7 @@ def test_a_cell_file_names_the_sim_cameras_sensor(tmp_path: Path):
         path.write_text(text.replace('[camera]\nkind = "sim"\n', f'[camera]\nkind = "sim"\nsensor = "{sensor}"\n'))
         if error is None:
             assert load_cell_setup(path).data.camera.sensor == sensor
+            assert load_cell_setup(path).depth_sensor() == sensor_preset(sensor)  # what the pipeline allows for
         else:
             with pytest.raises(ConfigError, match=error):
                 load_cell_setup(path)
@@ -320,6 +321,9 @@ def test_a_cell_file_names_the_sim_cameras_sensor(tmp_path: Path):
     path.write_text(oak.replace('[camera]\nkind = "oak"\n', '[camera]\nkind = "oak"\nsensor = "oak-d"\n'))
     with pytest.raises(ConfigError, match=r"camera\.sensor is for the simulated camera"):
         load_cell_setup(path)
+    # a hardware camera's noise allowances assume its kind's stereo model
+    assert load_cell_setup(ROOT / "launch" / "cells" / "ur5e_oak.toml").depth_sensor() == sensor_preset("oak-d")
+    assert load_cell_setup(ROOT / "launch" / "cells" / "ur5e_realsense.toml").depth_sensor() == sensor_preset("d435")
 
 
 def test_the_emulator_camera_applies_its_sensor():
