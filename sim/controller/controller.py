@@ -215,7 +215,8 @@ class EmulatedController:
     def tcp_force_n(self) -> float:
         """The force the TCP exerts, as the safety system's force limit sees it: the median of the external force's
         magnitude [N] over the last ``TCP_FORCE_WINDOW_TICKS`` ticks."""
-        recent = list(self._wrench_history)[-TCP_FORCE_WINDOW_TICKS:]
+        history = self._wrench_history  # indexed from its end: the tick must not copy a thousand entries
+        recent = [history[-k] for k in range(1, min(TCP_FORCE_WINDOW_TICKS, len(history)) + 1)]
         return float(np.median([np.linalg.norm(w[:3]) for w in recent])) if recent else 0.0
 
     def tool_contact(self, direction: np.ndarray, max_steps: int | None = None) -> int:
