@@ -26,6 +26,7 @@ from robot.ur import URRobot  # noqa: E402
 from robot.ur_config import URConfig, WorkspaceBox  # noqa: E402
 from robot.ur_errors import MotionRefusedError, NoContactError, OutsideWorkspaceError  # noqa: E402
 from sim.controller import ControllerProcess  # noqa: E402
+from tests.emulator_recovery import unlock_and_restart  # noqa: E402
 
 HOST, MUJOCO_HOST = "127.0.0.33", "127.0.0.34"
 Q_WORK = np.array([0.3, -1.2, 1.4, -1.8, -1.5708, 0.2])
@@ -156,14 +157,7 @@ def test_pressing_past_the_force_limit_is_a_protective_stop_and_the_arm_may_then
     assert state.protective_stopped and "TCP force" in state.last_error and "force limit" in state.last_error
     depth = SURFACE_Z - r.getActualTCPPose()[2]
     assert 7.5e-3 <= depth < 9e-3 and 150.0 < _fz(r) < 180.0
-    with socket.create_connection((HOST, 29999), timeout=2.0) as dash:
-        dash.recv(100)
-        dash.sendall(b"unlock protective stop\n")
-        assert dash.recv(100) == b"Protective stop releasing\n"
-    assert c.reuploadScript()
-    end = time.monotonic() + 2.0
-    while not c.isProgramRunning() and time.monotonic() < end:
-        time.sleep(0.005)
+    unlock_and_restart(HOST, c)
     assert c.moveJ(Q_WORK.tolist(), 1.0, 2.0) and not em.state().protective_stopped
     assert _fz(r) == 0.0
 

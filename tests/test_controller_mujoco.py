@@ -15,6 +15,7 @@ rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 
 from sim.controller import ControllerProcess  # noqa: E402
+from tests.emulator_recovery import unlock_and_restart  # noqa: E402
 
 HOST = "127.0.0.24"
 ABOVE_TABLE = [-0.3, 0.3, 0.35, 0.0, 3.14159, 0.0]  # flange 35 cm above the table top, tool down, clear of bin/tray
@@ -87,14 +88,7 @@ def test_contact_with_the_table_is_a_protective_stop(cell):
     # passes 150 N first
     assert ("contact force" in state.last_error or "TCP force" in state.last_error) and state.runtime_state == 4
     assert r.getActualTCPPose()[2] > 0.1  # stopped on the table with the gripper, not inside it
-    with socket.create_connection((HOST, 29999), timeout=2.0) as dash:
-        dash.recv(100)
-        dash.sendall(b"unlock protective stop\n")
-        assert dash.recv(100) == b"Protective stop releasing\n"
-    assert c.reuploadScript()
-    end = time.monotonic() + 2.0
-    while not c.isProgramRunning() and time.monotonic() < end:
-        time.sleep(0.005)
+    unlock_and_restart(HOST, c)
     assert c.moveJ_IK(ABOVE_TABLE, 1.0, 2.0)
 
 

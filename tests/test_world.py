@@ -26,8 +26,12 @@ def _box_part(size_m: float = 0.03) -> ObjectModel:
     return ObjectModel(obj_id=1, name="box", mesh=trimesh.creation.box((size_m, size_m, size_m)))
 
 
-def _q_for_tcp(world: CellWorld, p_world: np.ndarray, q_near: np.ndarray | None = None) -> np.ndarray:
-    T_base_tcp = invert(world.T_world_base) @ make_T(R_TOOL_DOWN, p_world)
+def _q_for_tcp(
+    world: CellWorld, p_world: np.ndarray, q_near: np.ndarray | None = None, yaw_rad: float = 0.0
+) -> np.ndarray:
+    """Joint angles with the tool pointing down at ``p_world``, its pads along world x turned by ``yaw_rad``."""
+    R = rotation_about(np.array([0, 0, 1.0]), yaw_rad) @ R_TOOL_DOWN
+    T_base_tcp = invert(world.T_world_base) @ make_T(R, p_world)
     q = ik_nearest(T_base_tcp, ur5e.HOME_Q if q_near is None else q_near, T_flange_tcp=world.T_flange_tcp)
     assert q is not None, f"no IK solution for a TCP at {p_world}"
     return q
@@ -138,12 +142,9 @@ def test_fingers_dragged_along_the_floor_at_their_force_limit_read_as_stopped() 
     and it reports them stopped on an object. Read as moving, a close never ended (the runtime's move deadline)."""
     world = CellWorld()
     spot = world.T_world_bin[:3, 3] + np.array([0.0, 0.0, 0.004])
-    R = rotation_about(np.array([0, 0, 1.0]), np.pi / 6) @ R_TOOL_DOWN
-    q_above = ik_nearest(invert(world.T_world_base) @ make_T(R, spot + np.array([0, 0, 0.1])), ur5e.HOME_Q,
-                         T_flange_tcp=world.T_flange_tcp)  # fmt: skip
+    q_above = _q_for_tcp(world, spot + np.array([0, 0, 0.1]), yaw_rad=np.pi / 6)
     _move(world, q_above, 1.2)
-    _move(world, ik_nearest(invert(world.T_world_base) @ make_T(R, spot), q_above, T_flange_tcp=world.T_flange_tcp),
-          0.8)  # fmt: skip
+    _move(world, _q_for_tcp(world, spot, q_above, yaw_rad=np.pi / 6), 0.8)
     world.set_gripper(0.0, 0.1, 100.0)
     world.step(round(1.0 / world.dt_s))  # the set point has travelled the stroke (0.85 s)
     readings = []

@@ -160,17 +160,18 @@ def measure_set(
 ) -> list[Row]:
     """The pass's rows (see the module docstring), read from the cache when it was measured before. ``sensor``: a
     ``SensorModel`` the frames go through (None: as stored); ``detection`` False leaves the detectors out."""
+    frames = frames_sensor_of(data_dir, sensor)
     key = {"data": str(Path(data_dir).resolve()), "max_images": max_images, "models": str(stack.models_dir.resolve()),
            "models_digest": models_digest(stack.models_dir), "data_digest": data_digest(data_dir),
            "strategies": list(stack.strategies), "detection": detection,
            "sensor": None if sensor is None else repr(sensor), "sensor_seed": sensor_seed,
-           "frames_sensor": repr(frames_sensor_of(data_dir, sensor)),
+           "frames_sensor": repr(frames),
            "pipeline": PASS_VERSION}  # fmt: skip
     path = cache_path(cache_dir, key)
     if path.is_file():
         return read_json(path, "stability pass")["rows"]
     start = time.perf_counter()
-    rows = _measure(stack, Path(data_dir), max_images, detection, sensor, sensor_seed, progress)
+    rows = _measure(stack, Path(data_dir), max_images, detection, sensor, frames, sensor_seed, progress)
     write_json_atomic(path, {"key": key, "seconds": time.perf_counter() - start, "rows": rows}, indent=None)
     return rows
 
@@ -184,7 +185,7 @@ def frames_sensor_of(data_dir: Path, sensor: SensorModel | None = None) -> Senso
     return sensor if sensor is not None else frames_sensor(data_dir, EvalSettings())
 
 
-def _measure(stack, data_dir, max_images, detection, sensor, sensor_seed, progress) -> list[Row]:
+def _measure(stack, data_dir, max_images, detection, sensor, frames, sensor_seed, progress) -> list[Row]:
     from perception.detector_eval import run_detector
     from perception.evaluation import EvalSettings, eval_items
     from perception.strategy_eval import evaluate_strategies
@@ -206,7 +207,7 @@ def _measure(stack, data_dir, max_images, detection, sensor, sensor_seed, progre
     sense = None if sensor is None else sensing(sensor, sensor_seed, data_dir, split, p.models)
     # As the pipeline runs on such frames: the verification allows for this sensor's noise, and the depth is tared
     # on the bin's floor.
-    p.use_sensor(frames_sensor_of(data_dir, sensor))
+    p.use_sensor(frames)
     records = evaluate_strategies(stack.runner, p.pose, p.models, data_dir, stack.strategies, settings,
                                   wrong_class=False, sense=sense, progress=progress, tare=p.depth_tare)  # fmt: skip
     for (obj_id, strategy), recs in records.items():
