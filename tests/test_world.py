@@ -147,11 +147,13 @@ def test_fingers_dragged_along_the_floor_at_their_force_limit_read_as_stopped() 
     _move(world, _q_for_tcp(world, spot, q_above, yaw_rad=np.pi / 6), 0.8)
     world.set_gripper(0.0, 0.1, 100.0)
     world.step(round(1.0 / world.dt_s))  # the set point has travelled the stroke (0.85 s)
+    width_before = world.gripper_width_m()
     readings = []
     for _ in range(round(1.0 / world.dt_s)):
         world.step()
         readings.append((world.gripper_moving(), world.gripper_object_detected()))
     assert world.gripper_width_m() > 0.03  # held open by the floor, not closed
+    assert 0.002 < width_before - world.gripper_width_m() < 0.005  # still creeping, above 2 mm/s, over that second
     assert not any(moving for moving, _ in readings) and all(detected for _, detected in readings)
 
 
