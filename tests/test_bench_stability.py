@@ -31,7 +31,7 @@ from launch.stability.options import Options
 from launch.stability.perception_pass import data_digest, models_digest, part_family
 from launch.stability.report import axis_result, summary_markdown
 from launch.stability.soak import slower_p, soak_notes
-from launch.stability.sweep import Axis, Measurement, Method, Point, point_path, run_axis
+from launch.stability.sweep import CLAIM_FILE, Axis, Measurement, Method, Point, point_path, run_axis
 from sim.render_process import NO_ANSWER
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
@@ -134,6 +134,32 @@ def test_the_sweep_saves_each_point_and_resumes_without_measuring_it_again(tmp_p
     assert result["points_measured"] == 2 and result["seconds"] >= 0
     ungrouped = replace(_tiny_axis(calls), methods=(Method("oak-d", "depth within 5 mm", grouped=False),))
     assert axis_result(ungrouped, again)["methods"]["oak-d"]["groups"] == {}  # saved, not reported
+
+
+def test_runs_sharing_an_axis_skip_a_point_claimed_by_a_live_process_and_take_over_a_dead_ones(tmp_path):
+    import subprocess
+    import sys
+
+    calls: list = []
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    try:
+        claim_0x = point_path(tmp_path, "tiny", "0x", 0, "oak-d").parent / CLAIM_FILE
+        claim_3x = point_path(tmp_path, "tiny", "3x", 0, "oak-d").parent / CLAIM_FILE
+        for claim, pid in ((claim_0x, live.pid), (claim_3x, dead.pid)):
+            claim.parent.mkdir(parents=True)
+            claim.write_text(str(pid))
+        logged: list[str] = []
+        records = run_axis(_tiny_axis(calls), tmp_path, log=logged.append)
+        assert calls == [("3x", 0)] and [r["point"] for r in records] == ["3x"]
+        assert any(f"being measured by process {live.pid}" in line for line in logged)
+        assert claim_0x.read_text() == str(live.pid) and not claim_3x.exists()  # the live claim kept, ours released
+    finally:
+        live.kill()
+        live.wait()
+    run_axis(_tiny_axis(calls), tmp_path, log=lambda s: None)  # its owner gone, the point is measured here
+    assert calls == [("3x", 0), ("0x", 0)] and not claim_0x.exists()
 
 
 def test_a_repacked_model_folder_is_a_new_pass_key(tmp_path):

@@ -7,11 +7,14 @@ Layout under the points folder: ``<axis>/<point>/s<seed>/<method>.json``, each `
 <name>"``: ``[k, n]``), ``seconds`` the wall time of the whole (point, seed) measurement (shared by its methods).
 Files are written atomically (``sygrid.fileio``) as soon as a (point, seed) is measured, so a run stopped at any
 time goes on where it stopped. A saved point measured with other ``settings`` (data, images, models, strategies) is
-refused rather than mixed in.
+refused rather than mixed in. Several runs of one axis can share the work: a run claims a (point, seed) with a
+``.claim`` file (created exclusively, holding its process id) and skips one claimed by a live process; a claim left by
+a process that died is taken over.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import time
 from collections.abc import Callable
@@ -124,20 +127,71 @@ def run_axis(
             if len(saved) == len(paths) or not measure:
                 records += saved.values()
                 continue
-            log(f"{axis.name}: point {point.label}, seed {seed}")
-            start = time.perf_counter()
-            measured = axis.measure(point, seed)
-            seconds = time.perf_counter() - start
-            unknown = sorted(set(measured) - set(paths))
-            if unknown:
-                raise ValueError(f"axis {axis.name}: measure returned unknown methods {unknown}")
-            for m in axis.methods:
-                result = measured.get(m.name, Measurement(0, 0, extra={"not_measured": True}))
-                record = _record(axis, point, seed, m, result, seconds)
-                write_json_atomic(paths[m.name], record)
-                records.append(record)
-            log(f"{axis.name}: point {point.label}, seed {seed}: {_brief(measured)} ({seconds:.0f} s)")
+            claim = next(iter(paths.values())).parent / CLAIM_FILE
+            owner = _claim(claim)
+            if owner is not None:
+                log(f"{axis.name}: point {point.label}, seed {seed}: being measured by process {owner}; skipped here")
+                continue
+            try:
+                records += _measure_point(axis, point, seed, paths, log)
+            finally:
+                claim.unlink(missing_ok=True)
     return records
+
+
+def _measure_point(
+    axis: Axis, point: Point, seed: int, paths: dict[str, Path], log: Callable[[str], None]
+) -> list[dict[str, Any]]:
+    log(f"{axis.name}: point {point.label}, seed {seed}")
+    start = time.perf_counter()
+    measured = axis.measure(point, seed)
+    seconds = time.perf_counter() - start
+    unknown = sorted(set(measured) - set(paths))
+    if unknown:
+        raise ValueError(f"axis {axis.name}: measure returned unknown methods {unknown}")
+    records = []
+    for m in axis.methods:
+        result = measured.get(m.name, Measurement(0, 0, extra={"not_measured": True}))
+        record = _record(axis, point, seed, m, result, seconds)
+        write_json_atomic(paths[m.name], record)
+        records.append(record)
+    log(f"{axis.name}: point {point.label}, seed {seed}: {_brief(measured)} ({seconds:.0f} s)")
+    return records
+
+
+CLAIM_FILE = ".claim"
+
+
+def _claim(path: Path) -> int | None:
+    """Claim the (point, seed) folder of ``path`` for this process: None where claimed (a stale claim, whose
+    process is gone, is taken over), else the live process id that holds it. Same machine only (process ids)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                owner = int(path.read_text().strip() or 0)
+            except (OSError, ValueError):
+                owner = 0
+            if owner and owner != os.getpid() and _alive(owner):
+                return owner
+            path.unlink(missing_ok=True)
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        return None
+    raise ConfigError(f"{path}: could not claim the point (another run keeps taking it over)")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _record(axis: Axis, point: Point, seed: int, method: Method, m: Measurement, seconds: float) -> dict[str, Any]:
