@@ -11,7 +11,9 @@ stock ur_rtde client) runs until it stops. Per variant it reports:
 - cycle time: median and p90 of the robot (simulated) seconds from one look to the next, over the picks;
 - perception + planning wall time per cycle: median and p90 (ms, on this machine, as it is loaded);
 - failures by cause, nudges by outcome (and the robot time of a nudge cycle), stop reasons, and which parts were
-  left in the bin with the planner's reason.
+  left in the bin with the planner's reason;
+- per attempt outcome, how many attempts were planned on a wrong estimate (``launch.cell_attempts``: each
+  estimate against the simulator's pose of the part at its plan).
 
 Targets: success >= 95 %, median cycle <= 8 s simulated, perception + planning <= 300 ms wall.
 Writes ``bench/results/cell.json`` and ``cell.png`` (``cell_quick.*`` with ``--quick``, ``NAME.*`` with ``--name``,
@@ -34,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from launch.cell_attempts import TruthAtPlan, attempt_pose_error, format_attempt_errors, summarize_attempt_errors
 from launch.cell_variants import QUICK_VARIANTS, VARIANTS, Variant, cell_for_bin
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.pick_report import Outcome
@@ -224,9 +227,11 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         obj_kind = {builtin_part(k).obj_id: k for k in set(kinds)}
         plans: list[Any] = []
         plan = picker.planner.plan
+        truth = TruthAtPlan([builtin_part(k).obj_id for k in kinds])
 
         def keep_last(*a: Any, **k: Any) -> Any:
             plans[:] = [plan(*a, **k)]
+            truth.add(process.part_poses(), [g.T_base_obj for g in plans[0].grasps])
             return plans[0]
 
         picker.planner.plan = keep_last
@@ -236,6 +241,13 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         thrown = process.thrown_parts()
         dropped = process.state().backend_dropped_targets
     cell = CellConfig()
+    models = {i: builtin_part(k) for i, k in obj_kind.items()}
+
+    def pose_error(a: Any) -> dict[str, float] | None:
+        if a.T_base_obj is None or a.obj_id not in models:
+            return None
+        return attempt_pose_error(cell.T_world_base, a.T_base_obj, a.obj_id, truth, models[a.obj_id])
+
     in_start, in_end = _in_bin(T_start, cell), _in_bin(T_end, cell)
     in_tray = _in_box(T_end, cell.T_world_tray, cell.tray_inner_size_m) & in_start
     left = Counter(k for k, inside in zip(kinds, in_end, strict=True) if inside)
@@ -281,6 +293,12 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
             }
             for a in report.attempts
             if a.outcome != Outcome.PICKED
+        ],
+        # every attempt that moved the arm, with its estimate's error against the simulator (launch.cell_attempts)
+        "attempt_pose_errors": [
+            {"part": obj_kind.get(a.obj_id, a.obj_id), "outcome": a.outcome.value, "pose_error": pose_error(a)}
+            for a in report.attempts
+            if a.outcome != Outcome.MOTION_REFUSED
         ],
         "stop_reason": report.stop_reason.value,
         "stop_detail": report.stop_detail,
@@ -369,6 +387,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "stop_reasons": dict(stops),
         "left_by_cause": dict(left_why.most_common()),
         "false_detections_last_plan": sum(b.get("false_detections_last_plan", 0) for b in bins),
+        "attempts_by_estimate": summarize_attempt_errors([a for b in bins for a in b.get("attempt_pose_errors", [])]),
         "cleared_by_kind": {
             k: f"{by_kind_total[k] - by_kind_left[k]}/{by_kind_total[k]}" for k in sorted(by_kind_total)
         },
@@ -403,6 +422,8 @@ def format_results(results: dict[str, Any]) -> str:
             f"planned: {r.get('n_held_off_plan', '-')}), in the tray {r.get('n_in_tray', '-')}"
         )
         lines.append(f"{name}: left in the bin {r['left_by_cause'] or 'nothing'}")
+        if r.get("attempts_by_estimate"):
+            lines.append(format_attempt_errors(name, r["attempts_by_estimate"]))
         thrown = r.get("thrown_parts", [])
         lines.append(
             f"{name}: parts thrown by the physics: {len(thrown)}"

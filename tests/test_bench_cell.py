@@ -172,3 +172,40 @@ def test_a_variant_changes_only_its_own_settings_of_the_cell_file():
         general = cell_for_bin(base, VARIANTS[name], 7, None, HOST).data.perception
         assert general.models_dir.endswith("builtin") and general.detector_input_size == 800
         assert general.mask_erosion_px == peel
+
+
+def test_each_attempt_is_judged_against_the_true_pose_of_the_nearest_part_of_its_kind_at_its_plan():
+    import numpy as np
+
+    from launch.cell_attempts import TruthAtPlan, attempt_pose_error, format_attempt_errors, summarize_attempt_errors
+    from sygrid.objects import builtin_part
+    from sygrid.transforms import make_T
+
+    nut, washer = builtin_part("hex_nut"), builtin_part("washer")
+    T_world_base = make_T(t=(0.1, 0.0, 0.0))
+    truth = TruthAtPlan([nut.obj_id, washer.obj_id, nut.obj_id])
+    T_true = np.stack([make_T(t=(0.4, 0.0, 0.01)), make_T(t=(0.45, 0.0, 0.01)), make_T(t=(0.5, 0.1, 0.01))])
+    near_first = make_T(t=(0.3, 0.0, 0.012))  # base frame: 2 mm above the first nut
+    far_off = make_T(t=(0.4, 0.1, 0.03))  # 20 mm above the second nut: a wrong estimate
+    truth.add(T_true, [near_first, far_off])
+    right = attempt_pose_error(T_world_base, near_first.tolist(), nut.obj_id, truth, nut)
+    wrong = attempt_pose_error(T_world_base, far_off.tolist(), nut.obj_id, truth, nut)
+    assert right["dz_mm"] == pytest.approx(2.0) and right["te_mm"] == pytest.approx(2.0)
+    # ADD-S (the nut is symmetric) is at most the 2 mm shift: a shifted point lands near another of the surface
+    assert 0 < right["add_d"] <= 0.002 / nut.diameter_m and right["re_deg"] == pytest.approx(0)
+    assert wrong["dz_mm"] == pytest.approx(20.0) and wrong["add_d"] >= 0.1
+    assert attempt_pose_error(T_world_base, make_T(t=(0.3, 0.0, 0.5)).tolist(), nut.obj_id, truth, nut) is None
+    gear = builtin_part("spur_gear")  # no part of its kind in the bin: a false detection
+    assert attempt_pose_error(T_world_base, near_first.tolist(), gear.obj_id, truth, gear) is None
+    later = make_T(t=(0.3, 0.0, 0.011))
+    truth.add(T_true + make_T(t=(0.0, 0.0, 0.001)) - np.eye(4), [later, near_first])  # the parts settled 1 mm up
+    assert attempt_pose_error(T_world_base, near_first.tolist(), nut.obj_id, truth, nut)["dz_mm"] == pytest.approx(1)
+    summary = summarize_attempt_errors([
+        {"outcome": "picked", "pose_error": right}, {"outcome": "gripper_empty", "pose_error": wrong},
+        {"outcome": "gripper_empty", "pose_error": None},
+    ])  # fmt: skip
+    assert summary["picked"]["n_wrong_estimate"] == 0 and summary["gripper_empty"] == {
+        "n": 2, "n_with_truth": 1, "n_wrong_estimate": 1, "te_median_mm": pytest.approx(wrong["te_mm"]),
+        "abs_dz_median_mm": pytest.approx(20.0), "re_median_deg": pytest.approx(0.0),
+    }  # fmt: skip
+    assert "gripper_empty 1/1 wrong" in format_attempt_errors("v", summary)
