@@ -242,6 +242,23 @@ def test_the_bin_box_finds_what_the_whole_frame_finds():
         assert xs.min() >= x0 and xs.max() < x1 and ys.min() >= y0 and ys.max() < y1
 
 
+@pytest.mark.parametrize("cell_file", sorted((ROOT / "launch" / "cells").glob("*.toml")), ids=lambda p: p.stem)
+def test_every_shipped_cell_runs_a_verified_pose_strategy_per_part(cell_file):
+    """A cell file's model folder with its [perception] overrides keeps the per-part pose strategies and their
+    verification (an override of the pose method or of the refinement would switch them off, and the cell would
+    pick on unverified network poses)."""
+    from launch.pick import cell_overrides
+    from perception.manifest import MANIFEST_NAME
+    from robot.cell_setup import load_cell_setup
+
+    setup = load_cell_setup(cell_file)
+    models_dir = setup.resolve(setup.data.perception.models_dir)
+    pipeline = PerceptionPipeline.from_folder(models_dir, cell_overrides(setup))
+    assert pipeline.strategies is not None and set(pipeline.strategies) == set(pipeline.models)
+    # the verification threshold chosen with the strategies (sygrid models choose-pose), not the default
+    assert "min_confidence" in json.loads((models_dir / MANIFEST_NAME).read_text()).get("verify", {})
+
+
 def test_a_region_outside_the_image_is_a_configuration_error():
     from sygrid.camera import CameraIntrinsics
 
