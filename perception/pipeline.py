@@ -304,7 +304,8 @@ class PerceptionPipeline:
         if self.strategies is not None:
             skipped = [p for p in poses if _icp_status(p) == "skipped"]
             kept = [p for p in poses if _icp_status(p) != "skipped"]
-            fitted = self._fit(frame, [p.detection for p in skipped], {})
+            detections = [p.detection for p in skipped]
+            fitted = self._fit(frame, detections, self._network_poses(frame, detections))
             return sorted(kept + [p for p in fitted if p.verified is not False], key=lambda p: -p.score)
         if self.refiner is None:
             return None
@@ -318,8 +319,7 @@ class PerceptionPipeline:
         detection's strategy (nearest first, ``max_refined``), the refused poses apart."""
         assert self.strategies is not None
         t = time.perf_counter()
-        need = [d for d in usable if self.strategies[d.obj_id] in NETWORK_STRATEGIES]
-        network = {id(p.detection): p for p in self.pose.estimate(frame.rgb, need, frame.intrinsics)} if need else {}
+        network = self._network_poses(frame, usable)
         timings["pose"] = 1e3 * (time.perf_counter() - t)
         t = time.perf_counter()
         poses = self._fit(frame, usable, network)
@@ -328,6 +328,13 @@ class PerceptionPipeline:
         accepted = sorted((p for p in poses if p.verified is not False), key=lambda p: -p.score)
         refused = sorted((p for p in poses if p.verified is False), key=lambda p: -p.score)
         return PerceptionResult(accepted, detections, timings, refused)
+
+    def _network_poses(self, frame: Frame, detections: list[Detection]) -> dict[int, ObjectPose]:
+        """The pose network's estimates, by ``id`` of their detection, of the detections whose strategy starts
+        from it (``NETWORK_STRATEGIES``); the others are not run through the network."""
+        assert self.strategies is not None
+        need = [d for d in detections if self.strategies[d.obj_id] in NETWORK_STRATEGIES]
+        return {id(p.detection): p for p in self.pose.estimate(frame.rgb, need, frame.intrinsics)} if need else {}
 
     def _fit(self, frame: Frame, detections: list[Detection], network: dict[int, ObjectPose]) -> list[ObjectPose]:
         """Each detection's strategy, nearest first; past ``max_refined`` accepted fits, the rest are ``skipped``

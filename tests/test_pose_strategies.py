@@ -174,6 +174,18 @@ class _FixedDetector:
         return list(self.detections)
 
 
+class _TruthPoseNetwork:
+    """A pose network that estimates each detection's given pose (by ``id`` of the detection)."""
+
+    def __init__(self, poses: dict[int, np.ndarray]) -> None:
+        self.poses = poses
+
+    def estimate(self, rgb, detections, intrinsics, method=None):
+        from perception.results import ObjectPose
+
+        return [ObjectPose(d, self.poses[id(d)], 0.9, "direct") for d in detections]
+
+
 def test_the_pipeline_follows_the_strategies_and_keeps_refused_poses_apart(scene):
     from perception.camera import Frame
 
@@ -198,6 +210,14 @@ def test_the_pipeline_follows_the_strategies_and_keeps_refused_poses_apart(scene
     more = limited.refine_more(first.poses, frame)
     assert more is not None and all(p.verified for p in more) and len(more) == 2
     assert limited.refine_more(more, frame) is None
+    # a strategy that starts from the network: refine_more runs the network for the parts it fits
+    truth = {id(d): scene.poses[k] for k, d in enumerate(good)}
+    with_network = PerceptionPipeline(
+        _FixedDetector(good), _TruthPoseNetwork(truth), models, max_refined=1,  # type: ignore[arg-type]
+        strategies={NUT.obj_id: "rgbd+icp", WASHER.obj_id: "rgbd+icp"},
+    )  # fmt: skip
+    more = with_network.refine_more(with_network.run(frame).poses, frame)
+    assert more is not None and len(more) == 2 and all(p.verified and p.method == "rgbd+icp" for p in more)
     with pytest.raises(ConfigError, match="strategies must name every model"):
         PerceptionPipeline(None, None, models, strategies={NUT.obj_id: "depth+icp"})  # type: ignore[arg-type]
 
