@@ -15,6 +15,10 @@ class PickerConfig:
     """Settings of the cycle. Speeds in m/s (straight lines) and rad/s (joint moves); None: the robot's default.
 
     approach_speed_m_s: pre-grasp -> grasp and grasp -> lift; transit_linear_speed_m_s: lift -> pre-grasp.
+    approach_max_force_n: the pre-grasp -> grasp line is a guarded move: where the TCP force passes this [N] the arm
+    stops, backs out to the lift and the attempt fails "contact" (a finger met a part that lies elsewhere than
+    estimated). Below the controller's force limit (150 N on a UR5e), so that such a contact ends before a
+    protective stop, and above what a light part pushed aside reads; None: unguarded.
     transit_speed_rad_s: joint moves (to the lift, to the place pose). grip_force_n: closing force (None: the
     gripper's default). max_attempts_per_cycle: planned grasps tried in one cycle before looking again.
     slip_width_tolerance_m: after lifting, an opening smaller than the narrowest width the part can be held at
@@ -54,6 +58,7 @@ class PickerConfig:
     approach_speed_m_s: float | None = 0.25
     transit_linear_speed_m_s: float | None = 0.5
     approach_accel_m_s2: float | None = 1.2
+    approach_max_force_n: float | None = 30.0
     transit_speed_rad_s: float | None = 2.0
     transit_accel_rad_s2: float | None = 3.0
     grip_force_n: float | None = None
@@ -98,6 +103,10 @@ class PickerConfig:
         ):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"PickerConfig.{name} must be >= 0, got {getattr(self, name)!r}")
+        if self.approach_max_force_n is not None and not self.approach_max_force_n > 0:
+            raise ConfigError(
+                f"PickerConfig.approach_max_force_n must be > 0 or absent, got {self.approach_max_force_n!r}"
+            )
         if self.nudge_contact not in NUDGE_CONTACTS:
             raise ConfigError(f"PickerConfig.nudge_contact must be one of {NUDGE_CONTACTS}, got {self.nudge_contact!r}")
         for name in ("nudge_press_force_n", "nudge_contact_speed_m_s", "nudge_approach_m", "nudge_overtravel_m"):

@@ -38,6 +38,7 @@ class Outcome(StrEnum):
     MOTION_REFUSED = "motion_refused"  # checked and refused, nothing sent: next candidate
     GRIPPER_EMPTY = "gripper_empty"  # closed on air (no object detected, the fingers closed)
     SLIPPED = "slipped"  # lost the part while lifting
+    CONTACT = "contact"  # the guarded approach met something before the grasp: stopped and backed out
     PROTECTIVE_STOP = "protective_stop"
     CONNECTION_LOST = "connection_lost"
     MOTION_FAILED = "motion_failed"  # another recoverable motion failure (program stopped, timeout)

@@ -469,8 +469,19 @@ class Picker:
             # through the bin wall.
             self.robot.move_j(grasp.q_lift, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
             self.robot.move_l(grasp.T_base_pregrasp, cfg.transit_linear_speed_m_s, cfg.approach_accel_m_s2)
-            self.robot.move_l(grasp.T_base_grasp, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
-        return _S.GRASP
+            down = self.robot.move_l(
+                grasp.T_base_grasp, cfg.approach_speed_m_s, cfg.approach_accel_m_s2, cfg.approach_max_force_n
+            )
+            if down.contact_force_n is None:
+                return _S.GRASP
+            # a finger met something the plan did not expect: back out along the approach, fingers still open
+            self.robot.move_l(grasp.T_base_lift, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
+        short = float(np.linalg.norm(down.T_base_tcp[:3, 3] - grasp.T_base_grasp[:3, 3]))
+        return _fail(
+            c.attempt, Outcome.CONTACT,
+            f"the fingers met something {1e3 * short:.0f} mm short of the grasp (TCP force {down.contact_force_n:.0f} "
+            f"N, above the approach's {cfg.approach_max_force_n:g} N guard): stopped and backed out",
+        )  # fmt: skip
 
     def _grasp(self, c: _Cycle) -> CycleState:
         """Close: held when the gripper detects the object or the fingers stopped at least ``min_held_width_m``

@@ -201,12 +201,19 @@ class URRobot:
 
     # --- motion ----------------------------------------------------------------------------------------------
     def move_l(
-        self, T_base_tcp: np.ndarray, speed_m_s: float | None = None, accel_m_s2: float | None = None
+        self,
+        T_base_tcp: np.ndarray,
+        speed_m_s: float | None = None,
+        accel_m_s2: float | None = None,
+        max_force_n: float | None = None,
     ) -> MotionResult:
-        """Straight-line TCP move to ``T_base_tcp``; blocks until the arm is there. See the module docstring for
-        what it raises."""
+        """Straight-line TCP move to ``T_base_tcp``; blocks until the arm is there, or, guarded by ``max_force_n``
+        [N], until the TCP force passes it (the arm stopped short: ``contact_force_n`` in the result). See the
+        module docstring for what it raises."""
+        if max_force_n is not None and not (math.isfinite(max_force_n) and max_force_n > 0):
+            raise MotionRefusedError(f"max_force_n must be a positive number of newtons, got {max_force_n!r}")
         self.start_move_l(T_base_tcp, speed_m_s, accel_m_s2)
-        return self.wait_for_motion()
+        return self.wait_for_motion(max_force_n=max_force_n)
 
     def move_j(
         self, q: np.ndarray, speed_rad_s: float | None = None, accel_rad_s2: float | None = None
@@ -310,10 +317,10 @@ class URRobot:
             self.start_move_l(T_base_tcp, speed_m_s, accel_m_s2)
             return self.wait_for_motion()
 
-    def wait_for_motion(self, timeout_s: float | None = None) -> MotionResult:
+    def wait_for_motion(self, timeout_s: float | None = None, max_force_n: float | None = None) -> MotionResult:
         """Waits for the motion in flight to end (``robot.ur_motion``); see the module docstring for the errors.
-        ``timeout_s`` overrides the one derived from the motion's duration."""
-        return self._motion.wait(timeout_s)
+        ``timeout_s`` overrides the one derived from the motion's duration; ``max_force_n`` guards it."""
+        return self._motion.wait(timeout_s, max_force_n)
 
     def stop(self, decel: float | None = None) -> None:
         """Decelerates the motion in flight to rest (``stopJ`` after a joint move, ``stopL`` after a linear one);

@@ -106,6 +106,9 @@ class URConfig:
     #: Decelerations of ``stop()``.
     stop_decel_rad_s2: float = 4.0
     stop_decel_m_s2: float = 2.0
+    #: Deceleration of a guarded linear move stopped on a contact (``move_l(max_force_n=...)``): short, as the
+    #: force grows with every millimetre travelled into what was met (the controller's own stopL default).
+    contact_stop_decel_m_s2: float = 10.0
     #: Reconnect by itself before a motion when the link is down (nothing is in flight then).
     auto_reconnect: bool = True
     #: Re-upload the control script before a motion when it stopped without a safety stop (a script error, a
@@ -136,7 +139,7 @@ class URConfig:
             "joint_accel_rad_s2", "linear_speed_m_s", "linear_accel_m_s2", "max_joint_speed_rad_s",
             "max_joint_accel_rad_s2", "max_linear_speed_m_s", "max_linear_accel_m_s2", "path_check_step_rad",
             "motion_timeout_factor", "stale_state_timeout_s", "stop_decel_rad_s2", "stop_decel_m_s2",
-            "max_contact_speed_m_s", "max_press_force_n",
+            "max_contact_speed_m_s", "max_press_force_n", "contact_stop_decel_m_s2",
         )  # fmt: skip
         for name in positive:
             value = getattr(self, name)

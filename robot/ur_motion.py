@@ -9,6 +9,11 @@ ur_rtde move would wait up to 300 s on a dead link and cannot be stopped from an
 Errors (``robot.ur_errors``): ``ProtectiveStopError``/``EmergencyStopError`` on a safety stop, ``ConnectionLostError``
 when the link drops, ``MotionFailedError`` when the control script stops, the controller refuses the command or the
 timeout passes (the arm is then stopped). Each carries where the arm was when the failure was seen.
+
+A **guarded** motion (``wait(max_force_n=...)``) also watches the TCP force the controller reports: above the
+guard the arm is stopped at ``URConfig.contact_stop_decel_m_s2`` and the result says so (``contact_force_n``). It
+is not an error: it lets a cell stop on an unexpected contact (a finger meeting a part that lies elsewhere than
+estimated) well below the safety system's force limit, which would otherwise stop the arm with a protective stop.
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ class MotionResult:
     T_base_tcp: np.ndarray
     target_error_m: float
     duration_s: float
+    contact_force_n: float | None = None  # a guarded motion stopped on this TCP force [N]; None: no contact
 
 
 @dataclass
@@ -101,17 +107,25 @@ class MotionWatch:
             )
         self._pending = _Pending(kind, np.array(T_target), op_id, now, now + timeout)
 
-    def wait(self, timeout_s: float | None = None) -> MotionResult:
-        """Waits for the motion in flight to end; ``timeout_s`` overrides the one derived from its duration."""
+    def wait(self, timeout_s: float | None = None, max_force_n: float | None = None) -> MotionResult:
+        """Waits for the motion in flight to end; ``timeout_s`` overrides the one derived from its duration.
+        ``max_force_n``: a guard [N] on the TCP force's magnitude: above it the arm is stopped (the result's
+        ``contact_force_n``, ``reached`` False)."""
         pending = self._pending
         if pending is None:
             raise RobotError("wait_for_motion: no motion in flight (start_move_* first)")
         link = self.link
         deadline = pending.deadline_s if timeout_s is None else time.monotonic() + timeout_s
+        contact: float | None = None
         try:
             while True:
                 link.raise_if_link_lost(f"during {pending.kind}")
                 link.raise_if_safety_stopped(f"during {pending.kind}")
+                if max_force_n is not None and contact is None:
+                    force = float(np.linalg.norm(link.rtde_r.getActualTCPForce()[:3]))
+                    if force > max_force_n:
+                        contact = force
+                        self._stop_now(pending, link.config.contact_stop_decel_m_s2)
                 runtime = int(link.rtde_r.getRuntimeState())
                 status = link.rtde_c.getAsyncOperationProgressEx()
                 finished = status.operationId() != pending.op_id_before and not status.isAsyncOperationRunning()
@@ -138,6 +152,7 @@ class MotionWatch:
                 T_base_tcp=T_end,
                 target_error_m=float(np.linalg.norm(T_end[:3, 3] - pending.T_target[:3, 3])),
                 duration_s=time.monotonic() - pending.started_s,
+                contact_force_n=contact,
             )
         finally:
             self._pending = None

@@ -183,6 +183,27 @@ def test_urrobot_move_until_contact_then_pressing_move(robot):
     assert robot._link.rtde_r.getActualTCPForce()[2] == 0.0
 
 
+def test_a_guarded_move_at_the_picks_approach_speed_stops_on_contact_well_below_the_force_limit(robot, surface_cell):
+    """The picker's approach (0.25 m/s, 1.2 m/s2) aimed 15 mm into the stiff surface, guarded at 30 N: the arm stops
+    a few millimetres in, with no protective stop (unguarded, the same move is one: the test above), and a plain
+    move leaves. A guard that is not a positive force is refused before anything moves."""
+    em = surface_cell[0]
+    robot.move_j(Q_WORK, 3.0, 6.0)
+    T = robot.T_base_tcp()
+    T[2, 3] = SURFACE_Z - 0.015
+    result = robot.move_l(T, 0.25, 1.2, max_force_n=30.0)
+    depth = SURFACE_Z - result.T_base_tcp[2, 3]
+    assert not result.reached and 30.0 < result.contact_force_n < 60.0
+    assert 0.0015 < depth < 0.0075 and not em.state().protective_stopped  # 150 N is 7.5 mm deep
+    robot.move_j(Q_WORK, 3.0, 6.0)
+    with pytest.raises(MotionRefusedError, match="max_force_n"):
+        robot.move_l(T, 0.25, 1.2, max_force_n=0.0)
+    up = robot.T_base_tcp()
+    up[2, 3] += 0.01
+    free = robot.move_l(up, 0.25, 1.2, max_force_n=30.0)  # through the air: nothing stops it
+    assert free.reached and free.contact_force_n is None
+
+
 def test_urrobot_contact_moves_are_checked_and_a_missed_contact_stops_the_program(robot):
     robot.move_j(Q_WORK, 3.0, 6.0)
     with pytest.raises(MotionRefusedError, match="speed_m_s"):

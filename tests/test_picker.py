@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -102,9 +103,20 @@ class FakePlanner:
         return 0.0  # the fake camera's depth shows an empty bin
 
 
+def moved(T, contact_force_n=None) -> SimpleNamespace:
+    """A fake robot's motion result: where the TCP ended, and the force a guarded move stopped on (or None)."""
+    return SimpleNamespace(T_base_tcp=np.array(T), contact_force_n=contact_force_n)
+
+
 class FakeRobot:
-    def __init__(self, bin_: FakeBin, refuse_x: float | None = None, stop_once_x: float | None = None) -> None:
-        self.bin, self.refuse_x, self.stop_once_x = bin_, refuse_x, stop_once_x
+    def __init__(
+        self,
+        bin_: FakeBin,
+        refuse_x: float | None = None,
+        stop_once_x: float | None = None,
+        contact_once_x: float | None = None,
+    ) -> None:
+        self.bin, self.refuse_x, self.stop_once_x, self.contact_once_x = bin_, refuse_x, stop_once_x, contact_once_x
         self.q_now = np.zeros(6)
         self.recovered = 0
         self.stops = 0
@@ -116,12 +128,16 @@ class FakeRobot:
     def T_base_tcp(self):
         return make_T(t=(0, 0, 0.05))
 
-    def move_l(self, T, speed_m_s=None, accel_m_s2=None):
+    def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
         if self.refuse_x is not None and abs(T[0, 3] - self.refuse_x) < 1e-9:
             raise MotionRefusedError("outside the box")
         if self.stop_once_x is not None and abs(T[0, 3] - self.stop_once_x) < 1e-9:
             self.stop_once_x = None
             raise ProtectiveStopError("contact")
+        if max_force_n is not None and self.contact_once_x is not None and abs(T[0, 3] - self.contact_once_x) < 1e-9:
+            self.contact_once_x = None  # a finger meets the part 12 mm above the grasp and presses it with 41 N
+            return moved(T + make_T(t=(0.0, 0.0, 0.012)) - np.eye(4), contact_force_n=41.0)
+        return moved(T)
 
     def move_j(self, q, speed_rad_s=None, accel_rad_s2=None):
         self.q_now = np.asarray(q)
@@ -312,6 +328,32 @@ def test_protective_stop_is_recovered_and_the_cycle_looks_again():
     assert report.stop_reason == "bin_empty"
 
 
+def test_a_finger_meeting_a_part_on_the_guarded_approach_stops_backs_out_and_the_cycle_looks_again():
+    """Only the line down to the grasp is guarded; a contact there is a failed attempt ("contact"), backed out along
+    the approach with no protective stop to recover from; the next look picks the part. Unguarded, nothing stops."""
+    picker, robot = make_picker(FakeBin([0.0]), contact_once_x=0.0)
+    guards: list[float | None] = []
+    move_l = robot.move_l
+
+    def log_guard(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+        guards.append(max_force_n)
+        return move_l(T, speed_m_s, accel_m_s2, max_force_n)
+
+    robot.move_l = log_guard
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["contact", "picked"] and robot.recovered == 0
+    assert report.attempts[0].stage == "approach" and report.attempts[0].detail == (
+        "the fingers met something 12 mm short of the grasp (TCP force 41 N, above the approach's 30 N guard): "
+        "stopped and backed out"
+    )
+    # pre-grasp, the guarded line down, back out to the lift; then the next cycle's pick
+    assert guards[:3] == [None, 30.0, None] and guards[3:5] == [None, 30.0]
+    picker, robot = make_picker(FakeBin([0.0]), config=PickerConfig(approach_max_force_n=None), contact_once_x=0.0)
+    assert [a.outcome for a in picker.run().attempts] == ["picked"]
+    with pytest.raises(ConfigError, match="approach_max_force_n must be > 0"):
+        PickerConfig(approach_max_force_n=0.0)
+
+
 def test_after_a_protective_stop_the_fingers_are_held_until_the_arm_is_up():
     """Fingers that go on moving after a stop push on whatever stopped them (a finger opening into a wall stops the
     arm again as soon as it is unlocked): hold them at their width, recover, go straight up, and only then open."""
@@ -323,9 +365,10 @@ def test_after_a_protective_stop_the_fingers_are_held_until_the_arm_is_up():
         events.append("open" if width_m is None else f"open to {1e3 * width_m:.0f} mm")
         gripper_open(width_m, speed_m_s)
 
-    def log_move_l(T, speed_m_s=None, accel_m_s2=None):
-        move_l(T, speed_m_s, accel_m_s2)
+    def log_move_l(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+        result = move_l(T, speed_m_s, accel_m_s2, max_force_n)
         events.append(f"move_l to z {T[2, 3]:.2f}")
+        return result
 
     def log_recover(timeout_s=None):
         events.append("recover")
@@ -499,7 +542,12 @@ def test_fingers_closed_on_air_are_no_hold_of_a_thin_sheet():
     # below 1 mm after lifting: the sheet slid out, whatever the slip tolerance (4 mm) below its 2 mm leaves
     picker, _ = make_picker(bin_, SheetGrasps())
     _close_on_a_sheet(picker.gripper, 0.0013)
-    picker.robot.move_l = lambda T, speed_m_s=None, accel_m_s2=None: setattr(picker.gripper, "width", 0.0005)
+
+    def slide_out(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+        picker.gripper.width = 0.0005
+        return moved(T)
+
+    picker.robot.move_l = slide_out
     first = picker.run(max_cycles=1).attempts[0]
     assert first.outcome == "slipped" and "closed to 0.5 mm, the part is 2.0 mm wide" in first.detail
 
@@ -693,11 +741,12 @@ class DraggingRobot(FakeRobot):
         super().__init__(bin_)
         self.drags, self.stop_at_press = drags, stop_at_press
 
-    def move_l(self, T, speed_m_s=None, accel_m_s2=None):
+    def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
         if T[0, 3] == -1.0:
             self._press()
         if T[0, 3] == -2.0:
             self._drag()
+        return moved(T)
 
     def move_until_contact(self, direction, speed_m_s, max_travel_m, accel_m_s2=None):
         self._press()
@@ -792,8 +841,9 @@ def test_a_protective_stop_on_the_way_to_the_observe_pose_is_recovered_once():
             super().__init__(bin_)
             self.stops, self.been_there, self.moves_l = stops, False, []
 
-        def move_l(self, T, speed_m_s=None, accel_m_s2=None):
+        def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
             self.moves_l.append(np.array(T))
+            return moved(T)
 
         def recover(self, timeout_s=None):
             super().recover(timeout_s)
@@ -878,10 +928,11 @@ def test_a_stop_requested_during_a_motion_ends_the_run_there_and_keeps_every_cyc
 
     signals = ["SIGTERM"]
 
-    def move_l_then_signal(T, speed_m_s=None, accel_m_s2=None):
-        move_l(T, speed_m_s, accel_m_s2)
+    def move_l_then_signal(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+        result = move_l(T, speed_m_s, accel_m_s2, max_force_n)
         if abs(T[0, 3] - 0.1) < 1e-9 and signals:
             picker.request_stop(signals.pop())  # arrives while this motion runs
+        return result
 
     robot.move_l = move_l_then_signal
     sent_after = _commands_after_a_stop(picker, robot, picker.gripper.target)
@@ -948,10 +999,10 @@ def test_a_cell_lost_during_an_attempt_keeps_that_attempt_in_the_report():
     picker, robot = make_picker(bin_)
     move_l = robot.move_l
 
-    def link_lost_at_the_second_part(T, speed_m_s=None, accel_m_s2=None):
+    def link_lost_at_the_second_part(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
         if abs(T[0, 3] - 0.1) < 1e-9:
             raise ConnectionLostError("lost the link to UR controller 127.0.0.81 during move_l")
-        move_l(T, speed_m_s, accel_m_s2)
+        return move_l(T, speed_m_s, accel_m_s2, max_force_n)
 
     def gone(timeout_s=None):
         raise RecoveryError("UR controller 127.0.0.81 does not answer")
