@@ -6,6 +6,7 @@ fingers, recover, go straight up, let go). Joint angles in radians, heights as b
 from __future__ import annotations
 
 import logging
+import math
 import time
 
 import numpy as np
@@ -86,7 +87,11 @@ class Arm:
             cause = NudgeOutcome(motion_cause(exc).value)
             outcome = NudgeOutcome.NO_CONTACT if isinstance(exc, NoContactError) else cause
             log.warning("nudge of part %d: %s (%s); recovering", nudge.part_index, outcome, exc)
-            self.recover_and_back_out(float(nudge.T_base_retreat[2, 3]))
+            # The arm stopped where the press or drag was, not where the retreat was planned from: up to the observe
+            # pose's height (above the rim), fingers kept closed as the paddle the nudge's paths were checked with
+            # (opened there, a pad reached the bin wall on the joint move that follows)
+            height = max(float(nudge.T_base_retreat[2, 3]), self._observe_height_m or -math.inf)
+            self.recover_and_back_out(height, open_fingers=False)
             return outcome, str(exc)
         return NudgeOutcome.DONE, ""
 
@@ -108,11 +113,11 @@ class Arm:
         T_end[:3, 3] += ((T_touch[:3, 3] - np.asarray(nudge.T_base_press)[:3, 3]) @ up) * up  # at the contact's height
         robot.move_l_pressing(T_end, -up, cfg.nudge_press_force_n, nudge.speed_m_s, cfg.approach_accel_m_s2)
 
-    def recover_and_back_out(self, safe_height_m: float) -> None:
+    def recover_and_back_out(self, safe_height_m: float, open_fingers: bool = True) -> None:
         """After a protective stop or a dropped link the arm is at rest somewhere on the way, perhaps with a finger
         pressed on a wall: hold the fingers where they are, recover, go straight up to ``safe_height_m`` (base z of
-        a pose above the bin's rim), and only then let go, before the joint move to the observe pose. Fingers that
-        go on pushing would stop the arm again as soon as it is unlocked."""
+        a pose above the bin's rim), and only then let go (``open_fingers``), before the joint move to the observe
+        pose. Fingers that go on pushing would stop the arm again as soon as it is unlocked."""
         self.fingers.hold()
         self.recover()
         T = np.array(self.robot.T_base_tcp())
@@ -126,6 +131,8 @@ class Arm:
                 raise
             log.warning("backing out after recovery failed too (%s); recovering again", exc)
             self.recover()
+        if not open_fingers:
+            return
         try:
             self.fingers.gripper.open()
         except GripperError as exc:

@@ -823,14 +823,39 @@ def test_a_robot_without_force_limited_motion_refuses_force_limited_nudges_and_s
 
 
 def test_a_press_that_meets_nothing_is_recovered_as_no_contact():
+    """Recovered, then straight up to the observe pose's height (not only the planned retreat's: the arm stopped
+    elsewhere), the fingers kept closed as the paddle whose paths were checked (opened, a pad reached the wall)."""
+
     class MissesThePart(DraggingRobot):
+        z = 0.3  # the TCP's height: at the observe pose until the press goes down
+
+        def T_base_tcp(self):
+            return make_T(t=(0, 0, self.z))
+
         def move_until_contact(self, direction, speed_m_s, max_travel_m, accel_m_s2=None):
+            self.z = 0.02
             raise NoContactError("met nothing within 25 mm")
+
+        def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+            if self.recovered:
+                self.after_recovery.append(("move_l", round(float(T[2, 3]), 3)))
+            return super().move_l(T, speed_m_s, accel_m_s2, max_force_n)
 
     bin_ = FakeBin([-0.05])
     robot = MissesThePart(bin_)
-    report = _nudging_picker(bin_, robot, PickerConfig(max_nudges=1, max_failed_cycles=1)).run()
+    robot.after_recovery = []
+    picker = _nudging_picker(bin_, robot, PickerConfig(max_nudges=1, max_failed_cycles=1))
+    gripper_open = picker.gripper.open
+
+    def log_open(width_m=None, speed_m_s=None):
+        if robot.recovered:
+            robot.after_recovery.append(("open", width_m))
+        gripper_open(width_m, speed_m_s)
+
+    picker.gripper.open = log_open
+    report = picker.run()
     assert report.cycles[0].nudge["outcome"] == "no_contact" and robot.recovered == 1
+    assert robot.after_recovery == [("move_l", 0.3)]  # up to the observe height (the retreat is at 0.1), no open
 
 
 def test_a_protective_stop_on_the_way_to_the_observe_pose_is_recovered_once():
