@@ -69,10 +69,12 @@ def run(args: argparse.Namespace) -> int:
     models = manifest_models(args.models, manifest)
     network = PoseEstimator(args.models / manifest.pose.onnx, models=models, num_threads=args.threads)
     settings = EvalSettings(split=args.split, max_images=args.max_images)
-    verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m).for_sensor(frames_sensor(args.data, settings))
+    sensor = frames_sensor(args.data, settings)
+    verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m).for_sensor(sensor)
     runner = StrategyRunner(verifier=PoseVerifier(verify))
+    tare = tare_config(manifest.depth_tare)
     records = evaluate_strategies(runner, network, models, args.data, strategies, settings,
-                                  tare=tare_config(manifest.depth_tare))  # fmt: skip
+                                  tare=tare.for_sensor(sensor) if tare is not None else None)  # fmt: skip
     choice, threshold = choose_all(records, args.bar, args.max_false_accept)
     chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
     names = {obj_id: m.name for obj_id, m in models.items()}

@@ -12,10 +12,15 @@ pixel's ray meets the plane) is ``c`` plus noise where the floor is seen and lar
 (nearer than the floor); nothing there lies beyond the floor. So the floor is the lowest dense cluster of ``q``:
 the first peak of q's smoothed histogram from the low end that reaches a share of the highest one, refined by the
 median of the pixels in a window around it (a few times; the window's width from the spread of the cluster's low
-side, which no part reaches). Fewer floor pixels than ``min_floor_px`` (a full bin, the floor out of view): no
-correction, with the reason. The correction ``z = 1 / (1 / z_obs - c)`` applies to the whole image; no data stays
-no data. Optionally a disparity gain too (``1 / z_obs = g / z + c``, a baseline or focal length error), fitted to
-the floor pixels where the floor spans enough inverse depth (``fit_gain``; the sensor model has no gain error).
+side, which no part reaches). A stereo camera's disparities are quantised (subpixel steps): the floor's ``q`` then
+falls on a few levels one step apart, and a median (or the lowest level dense enough) sticks on one of them, up to
+a step off (3 mm at 0.9 m for the OAK-D). With the sensor's step known (``quantum_inv_m``, ``TareConfig.for_sensor``)
+the histogram is smoothed over at least a step and the offset is the mean over a window of at least a step and a
+half each side, where the noise dithers the levels into an unbiased mean. Fewer floor pixels than ``min_floor_px``
+(a full bin, the floor out of view): no correction, with the reason. The correction ``z = 1 / (1 / z_obs - c)``
+applies to the whole image; no data stays no data. Optionally a disparity gain too (``1 / z_obs = g / z + c``, a
+baseline or focal length error), fitted to the floor pixels where the floor spans enough inverse depth
+(``fit_gain``; the sensor model has no gain error).
 
 The floor's polygon comes from any camera-frame points that bound where the floor is seen (the bin's inner corners,
 floor and rim): projected onto the plane along its normal, then into the image, their convex hull.
@@ -28,11 +33,12 @@ against its own target.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from sygrid.camera import CameraIntrinsics, project_points
+from sygrid.sensor import SensorModel
 
 
 @dataclass(frozen=True)
@@ -50,6 +56,8 @@ class TareConfig:
         max_offset_inv_m: a larger offset is no stereo offset (a wrong floor plane): no correction.
         fit_gain: also fit a disparity gain where the floor spans ``min_gain_span`` of its inverse depth.
         min_gain_span: the 5-95 % span of the floor pixels' plane inverse depth, as a fraction of its median.
+        quantum_inv_m: the depth's quantisation in inverse depth (a disparity step over focal length x baseline);
+            0: not quantised (exact depth), the medians as they are.
     """
 
     min_floor_px: int = 1000
@@ -62,6 +70,7 @@ class TareConfig:
     max_offset_inv_m: float = 0.05
     fit_gain: bool = False
     min_gain_span: float = 0.15
+    quantum_inv_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.min_floor_px < 1 or self.stride < 1 or self.iterations < 1:
@@ -75,6 +84,14 @@ class TareConfig:
                 "TareConfig: need smooth_inv_m, window_sigmas, min_window_inv_m, max_offset_inv_m, min_gain_span > 0 "
                 f"and peak_fraction in (0, 1], got {positive}, {self.min_gain_span}, {self.peak_fraction}"
             )
+        if not (math.isfinite(self.quantum_inv_m) and self.quantum_inv_m >= 0):
+            raise ValueError(f"TareConfig: need quantum_inv_m >= 0, got {self.quantum_inv_m}")
+
+    def for_sensor(self, sensor: SensorModel) -> TareConfig:
+        """These settings for depth from ``sensor``: its disparity step as the quantisation (none for exact depth)."""
+        stereo = sensor.stereo_focal_px * sensor.baseline_m
+        quantum = sensor.disparity_step_px / stereo if stereo > 0 else 0.0
+        return replace(self, quantum_inv_m=float(quantum))
 
 
 @dataclass(frozen=True)
@@ -201,10 +218,14 @@ def tared_depth(
 def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float]:
     """(centre, half window) of the lowest dense cluster of ``q``: the first peak of its smoothed histogram from the
     low end reaching ``peak_fraction`` of the highest, then medians within the window, its half width
-    ``window_sigmas`` robust standard deviations of the cluster's low side."""
+    ``window_sigmas`` robust standard deviations of the cluster's low side. Quantised depth (``quantum_inv_m``):
+    smoothed over at least a step, means within at least a step and a half each side (see the module docstring)."""
+    sigma_inv = max(cfg.smooth_inv_m, cfg.quantum_inv_m)  # the histogram's smoothing
+    min_window = max(cfg.min_window_inv_m, 1.5 * cfg.quantum_inv_m)
+    centre_of = np.mean if cfg.quantum_inv_m > 0 else np.median
     lo, hi = np.percentile(q, (0.1, 99.9))
-    bin_width = cfg.smooth_inv_m / 4
-    hi = max(hi, lo + 8 * cfg.smooth_inv_m)
+    bin_width = sigma_inv / 4
+    hi = max(hi, lo + 8 * sigma_inv)
     n_bins = min(math.ceil((hi - lo) / bin_width), 20000)
     counts, edges = np.histogram(q, bins=n_bins, range=(lo, lo + n_bins * bin_width))
     radius = 12  # three smoothing sigmas in bins
@@ -214,15 +235,15 @@ def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float]:
     right = np.concatenate((smooth[1:], [-np.inf]))
     peaks = np.flatnonzero((smooth >= left) & (smooth > right) & (smooth >= cfg.peak_fraction * smooth.max()))
     centre = float(0.5 * (edges[peaks[0]] + edges[peaks[0] + 1]))
-    window = cfg.min_window_inv_m
+    window = min_window
     for _ in range(cfg.iterations):
-        below = centre - q[(q <= centre) & (q >= centre - 8 * cfg.smooth_inv_m)]
+        below = centre - q[(q <= centre) & (q >= centre - 8 * sigma_inv)]
         sigma = 1.4826 * float(np.median(below)) if len(below) else 0.0
-        window = max(cfg.window_sigmas * sigma, cfg.min_window_inv_m)
+        window = max(cfg.window_sigmas * sigma, min_window)
         near = q[np.abs(q - centre) <= window]
         if not len(near):
             break
-        centre = float(np.median(near))
+        centre = float(centre_of(near))
     return centre, window
 
 

@@ -178,8 +178,9 @@ class PerceptionPipeline:
             )
         self.strategies = strategies
         self.runner = runner if runner is not None or strategies is None else StrategyRunner()
-        # the verification's settings without a sensor's noise allowance (use_sensor starts from these)
+        # the verification's and the tare's settings without a sensor's (use_sensor starts from these)
         self._verify_config = self.runner.verifier.config if self.runner is not None else None
+        self._tare_config = depth_tare
 
     @classmethod
     def from_folder(
@@ -237,10 +238,12 @@ class PerceptionPipeline:
 
     def use_sensor(self, sensor: SensorModel) -> None:
         """The frames come through ``sensor`` from now on: the verification allows at least its depth noise
-        (``VerifyConfig.for_sensor`` of the pipeline's own settings, not of an earlier sensor's). Without pose
-        strategies (no verification) nothing changes."""
+        (``VerifyConfig.for_sensor`` of the pipeline's own settings, not of an earlier sensor's; without pose
+        strategies there is no verification) and the depth tare knows its disparity step (``TareConfig.for_sensor``)."""
         if self.runner is not None and self._verify_config is not None:
             self.runner.verifier = PoseVerifier(self._verify_config.for_sensor(sensor))
+        if self._tare_config is not None:
+            self.depth_tare = self._tare_config.for_sensor(sensor)
 
     def tare(self, frame: Frame) -> tuple[Frame, Tare | None]:
         """``frame`` with its depth corrected by the stereo offset measured on the floor (``depth_tare``), and the

@@ -18,11 +18,14 @@ K = CameraIntrinsics(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=4
 HALF = (0.15, 0.10)  # the floor's half sizes, metres
 
 
-def _scene(offset_inv_m: float, noise_inv_m: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(observed depth, plane, bounds): a floor tilted 20 degrees at 0.8 m with boxes 1-6 cm tall covering a third of
-    it, the walls' rim beyond it, seen with an inverse-depth offset and noise, and a few holes."""
+def _scene(
+    offset_inv_m: float, noise_inv_m: float, seed: int = 0, quantum_inv_m: float = 0.0, tilt_deg: float = 20.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(observed depth, plane, bounds): a floor tilted ``tilt_deg`` at 0.8 m with boxes 1-6 cm tall covering a third
+    of it, the walls' rim beyond it, seen with an inverse-depth offset and noise (rounded to ``quantum_inv_m``, as a
+    stereo camera's subpixel disparity steps round it), and a few holes."""
     rng = np.random.default_rng(seed)
-    c, s = np.cos(np.radians(20)), np.sin(np.radians(20))
+    c, s = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
     R = np.array([[1, 0, 0], [0, -c, s], [0, -s, -c]])  # bin z (up) towards the camera, tilted about x
     T_camera_bin = make_T(R, np.array([0.02, -0.01, 0.8]))
     normal = T_camera_bin[:3, 2]
@@ -41,6 +44,8 @@ def _scene(offset_inv_m: float, noise_inv_m: float, seed: int = 0) -> tuple[np.n
     # a surface ``height`` above the floor, parallel to it: its plane's d shrinks by the height
     z = -(plane[3] - height) / (rays @ normal)
     inv = 1.0 / z + offset_inv_m + noise_inv_m * rng.standard_normal(z.shape)
+    if quantum_inv_m:
+        inv = np.round(inv / quantum_inv_m) * quantum_inv_m
     depth = (1.0 / inv).astype(np.float32)
     depth[rng.random(depth.shape) < 0.02] = 0.0
     corners = np.array([(x, y, h) for x in (-HALF[0], HALF[0]) for y in (-HALF[1], HALF[1]) for h in (0.0, 0.12)])
@@ -61,6 +66,29 @@ def test_a_known_offset_is_recovered_under_noise(offset: float):
     assert abs(np.median(fixed[both] - exact[both])) < 3e-4
     if offset:
         assert abs(np.median(depth[both] - exact[both])) > 3e-3
+
+
+@pytest.mark.parametrize("offset", [-0.005, 0.0019, 0.007])
+def test_a_quantised_floor_is_tared_to_its_mean_not_to_one_of_its_levels(offset: float):
+    """The OAK-D model's disparity step (1/8 px: 3.8e-3 /m of inverse depth, 2.4 mm at 0.8 m) and about its noise,
+    on a floor facing the camera (as a cell's camera looks down into its bin; a tilted floor dithers the levels by
+    itself): told the step, the tare recovers the offset within a sixth of a step; not told, it sticks on a level
+    (the lowest dense one) for some offsets."""
+    from sygrid.sensor import sensor_preset
+
+    oak = sensor_preset("oak-d")
+    config = TareConfig().for_sensor(oak)
+    quantum = oak.disparity_step_px / (oak.stereo_focal_px * oak.baseline_m)
+    assert config.quantum_inv_m == pytest.approx(quantum) and TareConfig().quantum_inv_m == 0.0
+    errors = []
+    for seed in range(3):
+        depth, plane, bounds = _scene(offset, noise_inv_m=0.003, seed=seed, quantum_inv_m=quantum, tilt_deg=0.0)
+        tare = estimate_tare(depth, K, plane, bounds, config)
+        assert tare.applied and tare.offset_inv_m == pytest.approx(offset, abs=quantum / 6)
+        errors.append(abs(estimate_tare(depth, K, plane, bounds).offset_inv_m - offset))
+    assert TareConfig().for_sensor(sensor_preset("ideal")).quantum_inv_m == 0.0
+    if offset == 0.0019:  # half a step: the levels straddle the offset and the old estimate takes the lower one
+        assert min(errors) > quantum / 3
 
 
 def test_exact_depth_gives_no_offset_and_the_gain_stays_one_without_an_error():

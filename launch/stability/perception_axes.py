@@ -53,6 +53,11 @@ def _test_set_settings(opts: Options, stack: PerceptionStack, max_images: int | 
                      **more)  # fmt: skip
 
 
+# Axes whose frames come through a stereo sensor model record the depth tare's version, so that a point measured
+# with an older tare is refused (2: the tare averages over the sensor's disparity steps instead of sticking on one).
+SENSOR_TARE_VERSION = 2
+
+
 def depth_noise_axis(opts: Options, stack: PerceptionStack) -> Axis:
     from sygrid.sensor import sensor_preset
 
@@ -71,7 +76,7 @@ def depth_noise_axis(opts: Options, stack: PerceptionStack) -> Axis:
         points=tuple(Point(f"{s:g}x", s, {"noise_scale": s}) for s in scales),
         methods=_methods(stack, detection=False), measure=measure, seeds=opts.seeds_or((0,) if opts.quick else (0, 1)),
         criterion=PERCEPTION_CRITERION, summary="pose holds to {x} times the OAK-D's depth noise", unit="x",
-        settings=_test_set_settings(opts, stack, max_images, sensor="oak-d"),
+        settings=_test_set_settings(opts, stack, max_images, sensor="oak-d", depth_tare=SENSOR_TARE_VERSION),
         description="The noise-free test set's exact depth through the OAK-D stereo model, its disparity noise, bias "
         "and dropouts scaled (the stereo geometry and the RGB noise as the preset's); pose strategies on "
         "ground-truth masks; seeds draw the noise.",
@@ -129,7 +134,9 @@ def size_axis(opts: Options, stack: PerceptionStack) -> Axis:
 
 
 def _generated_axis(opts: Options, stack: PerceptionStack, name: str, title: str, x_label: str, points, summary: str,
-                    unit: str, description: str) -> Axis:  # fmt: skip
+                    unit: str, description: str, sensor: bool = False) -> Axis:  # fmt: skip
+    """``sensor``: the points' sets are generated through a stereo sensor model (their settings name the tare's
+    version)."""
     count = min(opts.images_per_point, 2) if opts.quick else opts.images_per_point
 
     def measure(point: Point, seed: int) -> dict:
@@ -139,7 +146,8 @@ def _generated_axis(opts: Options, stack: PerceptionStack, name: str, title: str
     return Axis(
         name=name, title=title, x_label=x_label, points=tuple(points), methods=_methods(stack), measure=measure,
         seeds=opts.seeds_or((0,) if opts.quick else (0, 1)), criterion=PERCEPTION_CRITERION, summary=summary,
-        unit=unit, settings=_settings(opts, stack, recipe=str(opts.recipe), images_per_point=count),
+        unit=unit, settings=_settings(opts, stack, recipe=str(opts.recipe), images_per_point=count,
+                                      **({"depth_tare": SENSOR_TARE_VERSION} if sensor else {})),
         description=description,
     )  # fmt: skip
 
@@ -170,7 +178,7 @@ def lighting_axis(opts: Options, stack: PerceptionStack) -> Axis:
         (Point(f"{s:g}x light", s, {"scene.environment.strength": s, "sensor": "oak-d"}) for s in levels),
         "holds down to {x} times the recipe's light", "x",
         "Generated sets through the OAK-D sensor model (dark pixels drop out of its depth) with the environment "
-        "light scaled; the recipe's random lights kept.",
+        "light scaled; the recipe's random lights kept.", sensor=True,
     )  # fmt: skip
 
 
@@ -181,5 +189,5 @@ def material_axis(opts: Options, stack: PerceptionStack) -> Axis:
         (Point(m, None, {"sensor": "oak-d", **({} if m == "catalogued" else {"material": m})}) for m in materials),
         "holds through {x}", "",
         "Generated sets through the OAK-D sensor model (specular metal drops out of its depth in patches) with "
-        "every part painted, as catalogued, or of one metal.",
+        "every part painted, as catalogued, or of one metal.", sensor=True,
     )  # fmt: skip

@@ -166,7 +166,7 @@ def measure_set(
            "strategies": list(stack.strategies), "detection": detection,
            "sensor": None if sensor is None else repr(sensor), "sensor_seed": sensor_seed,
            "frames_sensor": repr(frames),
-           "pipeline": PASS_VERSION}  # fmt: skip
+           "pipeline": PASS_VERSION, **_tare_key(frames)}  # fmt: skip
     path = cache_path(cache_dir, key)
     if path.is_file():
         return read_json(path, "stability pass")["rows"]
@@ -174,6 +174,15 @@ def measure_set(
     rows = _measure(stack, Path(data_dir), max_images, detection, sensor, frames, sensor_seed, progress)
     write_json_atomic(path, {"key": key, "seconds": time.perf_counter() - start, "rows": rows}, indent=None)
     return rows
+
+
+def _tare_key(frames: SensorModel) -> dict:
+    """The depth tare's quantisation for frames from ``frames`` where it has one (a stereo sensor's disparity step):
+    passes tared before the tare knew it are not reused; exact-depth passes keep their keys."""
+    from perception.depth_tare import TareConfig
+
+    quantum = TareConfig().for_sensor(frames).quantum_inv_m
+    return {"tare_quantum_inv_m": quantum} if quantum > 0 else {}
 
 
 def frames_sensor_of(data_dir: Path, sensor: SensorModel | None = None) -> SensorModel:
