@@ -6,7 +6,6 @@ fingers, recover, go straight up, let go). Joint angles in radians, heights as b
 from __future__ import annotations
 
 import logging
-import math
 import time
 
 import numpy as np
@@ -90,7 +89,9 @@ class Arm:
             # The arm stopped where the press or drag was, not where the retreat was planned from: up to the observe
             # pose's height (above the rim), fingers kept closed as the paddle the nudge's paths were checked with
             # (opened there, a pad reached the bin wall on the joint move that follows)
-            height = max(float(nudge.T_base_retreat[2, 3]), self._observe_height_m or -math.inf)
+            height = float(nudge.T_base_retreat[2, 3])
+            if self._observe_height_m is not None:
+                height = max(height, self._observe_height_m)
             self.recover_and_back_out(height, open_fingers=False)
             return outcome, str(exc)
         return NudgeOutcome.DONE, ""

@@ -210,6 +210,12 @@ class URConnection:
         self.raise_if_link_lost("reading the TCP pose")
         return pose_to_T(np.array(self.rtde_r.getActualTCPPose(), dtype=float))
 
+    def tcp_force_n(self) -> float:
+        """Magnitude of the measured force on the TCP [N] (the controller's ``actual_TCP_force``, its force part).
+        ``ConnectionLostError`` when the received state is not current."""
+        self.raise_if_link_lost("reading the TCP force")
+        return float(np.linalg.norm(self.rtde_r.getActualTCPForce()[:3]))
+
     def status(self) -> RobotStatus:
         r = self.receiver()
         runtime = int(r.getRuntimeState())

@@ -96,7 +96,7 @@ def contact_move(
         while worker.is_alive():
             link.raise_if_link_lost("during move_until_contact")
             link.raise_if_safety_stopped("during move_until_contact")
-            peak = max(peak, float(np.linalg.norm(link.rtde_r.getActualTCPForce()[:3])))
+            peak = max(peak, link.tcp_force_n())
             travel = float((link.T_base_tcp()[:3, 3] - T_start[:3, 3]) @ d)
             if travel > max_travel_m or time.monotonic() > deadline:
                 _stop_program(link, worker)

@@ -122,7 +122,7 @@ class MotionWatch:
                 link.raise_if_link_lost(f"during {pending.kind}")
                 link.raise_if_safety_stopped(f"during {pending.kind}")
                 if max_force_n is not None and contact is None:
-                    force = float(np.linalg.norm(link.rtde_r.getActualTCPForce()[:3]))
+                    force = link.tcp_force_n()
                     if force > max_force_n:
                         contact = force
                         self._stop_now(pending, link.config.contact_stop_decel_m_s2)
