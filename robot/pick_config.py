@@ -18,7 +18,11 @@ class PickerConfig:
     approach_max_force_n: the pre-grasp -> grasp line is a guarded move: where the TCP force passes this [N] the arm
     stops, backs out to the lift and the attempt fails "contact" (a finger met a part that lies elsewhere than
     estimated). Below the controller's force limit (150 N on a UR5e), so that such a contact ends before a
-    protective stop, and above what a light part pushed aside reads; None: unguarded.
+    protective stop, and above what a light part pushed aside reads; None: unguarded. final_approach_m /
+    final_approach_speed_m_s: the last stretch of that line (metres short of the grasp) runs at this slower speed:
+    the guard stops the arm within v^2 / (2 a) + v * (one control tick) of where the force passed it, so a finger
+    meeting a stiff part at the approach speed overshoots by millimetres and presses it past the controller's
+    limit (a protective stop), where at the final speed it stops within a fraction of a millimetre.
     transit_speed_rad_s: joint moves (to the lift, to the place pose). grip_force_n: closing force (None: the
     gripper's default). max_attempts_per_cycle: planned grasps tried in one cycle before looking again.
     slip_width_tolerance_m: after lifting, an opening smaller than the narrowest width the part can be held at
@@ -59,6 +63,8 @@ class PickerConfig:
     transit_linear_speed_m_s: float | None = 0.5
     approach_accel_m_s2: float | None = 1.2
     approach_max_force_n: float | None = 30.0
+    final_approach_m: float = 0.03
+    final_approach_speed_m_s: float = 0.05
     transit_speed_rad_s: float | None = 2.0
     transit_accel_rad_s2: float | None = 3.0
     grip_force_n: float | None = None
@@ -106,6 +112,12 @@ class PickerConfig:
         if self.approach_max_force_n is not None and not self.approach_max_force_n > 0:
             raise ConfigError(
                 f"PickerConfig.approach_max_force_n must be > 0 or absent, got {self.approach_max_force_n!r}"
+            )
+        if not self.final_approach_m >= 0:
+            raise ConfigError(f"PickerConfig.final_approach_m must be >= 0, got {self.final_approach_m!r}")
+        if not self.final_approach_speed_m_s > 0:
+            raise ConfigError(
+                f"PickerConfig.final_approach_speed_m_s must be > 0, got {self.final_approach_speed_m_s!r}"
             )
         if self.nudge_contact not in NUDGE_CONTACTS:
             raise ConfigError(f"PickerConfig.nudge_contact must be one of {NUDGE_CONTACTS}, got {self.nudge_contact!r}")

@@ -133,7 +133,7 @@ def test_movel_ends_within_half_a_millimetre_on_a_straight_line(cell):
     assert np.linalg.norm(np.array(cell.r.getActualTCPPose()[:3]) - target[:3]) < 0.5e-3
     direction = (target[:3] - start[:3]) / np.linalg.norm(target[:3] - start[:3])
     offsets = [np.linalg.norm((p - start[:3]) - np.dot(p - start[:3], direction) * direction) for p in np.array(path)]
-    assert max(offsets) < 1e-6  # the TCP stays on the line
+    assert max(offsets) < 1e-5  # on the line to 10 um (a joint-space move bows off it by millimetres)
 
 
 def test_ik_fk_round_trips_through_the_client(cell):

@@ -204,6 +204,21 @@ def test_a_guarded_move_at_the_picks_approach_speed_stops_on_contact_well_below_
     assert free.reached and free.contact_force_n is None
 
 
+def test_at_the_final_approach_speed_a_guarded_move_stops_just_past_the_guard(robot, surface_cell):
+    """The picker's last stretch (0.05 m/s): the same guard stops the arm far closer to where the force passed it
+    than at the approach speed (stop distance v^2 / 2a + a tick of travel): a fraction of a millimetre past it."""
+    em = surface_cell[0]
+    robot.move_j(Q_WORK, 3.0, 6.0)
+    T = robot.T_base_tcp()
+    T[2, 3] = SURFACE_Z - 0.015
+    result = robot.move_l(T, 0.05, 1.2, max_force_n=30.0)
+    depth = SURFACE_Z - result.T_base_tcp[2, 3]
+    assert not result.reached and 30.0 < result.contact_force_n < 40.0
+    # where it came to rest the surface pushes back with under 50 N (at 0.25 m/s: over 100 N, near the 150 N limit)
+    assert 0.0 < depth * STIFFNESS_N_M < 50.0 and not em.state().protective_stopped
+    robot.move_j(Q_WORK, 3.0, 6.0)
+
+
 def test_urrobot_contact_moves_are_checked_and_a_missed_contact_stops_the_program(robot):
     robot.move_j(Q_WORK, 3.0, 6.0)
     with pytest.raises(MotionRefusedError, match="speed_m_s"):
