@@ -453,7 +453,8 @@ class Picker:
 
     def _approach(self, c: _Cycle) -> CycleState:
         """Open to the grasp's opening and check that the fingers got there (else ``gripper_blocked``), joint move to
-        the lift pose, straight lines to the pre-grasp and the grasp."""
+        the lift pose, straight lines to the pre-grasp and, guarded, to the grasp (its last stretch slower); a guard
+        that trips ends the attempt ``contact``, backed out to the lift."""
         cfg, grasp = self.config, c.grasp
         with c.timer(Stage.APPROACH):
             c.opening = self.fingers.grasp_opening(grasp)
