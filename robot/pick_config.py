@@ -23,6 +23,10 @@ class PickerConfig:
     the guard stops the arm within v^2 / (2 a) + v * (one control tick) of where the force passed it, so a finger
     meeting a stiff part at the approach speed overshoots by millimetres and presses it past the controller's
     limit (a protective stop), where at the final speed it stops within a fraction of a millimetre.
+    final_approach_contact_detection: the last stretch also runs under the controller's own contact detection
+    (``URRobot.move_l(stop_on_contact=True)``), which stops the arm on the tick a contact shows rather than after a
+    round trip through this process (whose reaction a loaded computer delays by tens of milliseconds) and moves it
+    back to where the contact began.
     transit_speed_rad_s: joint moves (to the lift, to the place pose). grip_force_n: closing force (None: the
     gripper's default). max_attempts_per_cycle: planned grasps tried in one cycle before looking again.
     slip_width_tolerance_m: after lifting, an opening smaller than the narrowest width the part can be held at
@@ -65,6 +69,7 @@ class PickerConfig:
     approach_max_force_n: float | None = 30.0
     final_approach_m: float = 0.03
     final_approach_speed_m_s: float = 0.05
+    final_approach_contact_detection: bool = True
     transit_speed_rad_s: float | None = 2.0
     transit_accel_rad_s2: float | None = 3.0
     grip_force_n: float | None = None
@@ -99,8 +104,9 @@ class PickerConfig:
         ):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ConfigError(f"PickerConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
-        if not isinstance(self.hold_any_width, bool):
-            raise ConfigError(f"PickerConfig.hold_any_width must be true or false, got {self.hold_any_width!r}")
+        for name in ("hold_any_width", "final_approach_contact_detection"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"PickerConfig.{name} must be true or false, got {getattr(self, name)!r}")
         if not (isinstance(self.max_nudges, int) and self.max_nudges >= 0):
             raise ConfigError(f"PickerConfig.max_nudges must be an integer >= 0, got {self.max_nudges!r}")
         for name in (

@@ -26,6 +26,7 @@ class RobotLike(Protocol):
         speed_m_s: float | None = None,
         accel_m_s2: float | None = None,
         max_force_n: float | None = None,
+        stop_on_contact: bool = False,
     ) -> Any: ...  # a result with ``contact_force_n`` (None, or the TCP force a guarded move stopped on)
     def move_j(self, q: np.ndarray, speed_rad_s: float | None = None, accel_rad_s2: float | None = None) -> Any: ...
     def recover(self, timeout_s: float | None = None) -> None: ...

@@ -470,8 +470,12 @@ class Picker:
             # through the bin wall.
             self.robot.move_j(grasp.q_lift, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
             self.robot.move_l(grasp.T_base_pregrasp, cfg.transit_linear_speed_m_s, cfg.approach_accel_m_s2)
-            for T_target, speed in _approach_legs(grasp, cfg):
-                down = self.robot.move_l(T_target, speed, cfg.approach_accel_m_s2, cfg.approach_max_force_n)
+            legs = _approach_legs(grasp, cfg)
+            for k, (T_target, speed) in enumerate(legs):
+                detect = cfg.final_approach_contact_detection and k == len(legs) - 1
+                down = self.robot.move_l(
+                    T_target, speed, cfg.approach_accel_m_s2, cfg.approach_max_force_n, stop_on_contact=detect
+                )
                 if down.contact_force_n is not None:
                     break
             else:
@@ -479,10 +483,15 @@ class Picker:
             # a finger met something the plan did not expect: back out along the approach, fingers still open
             self.robot.move_l(grasp.T_base_lift, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
         short = float(np.linalg.norm(down.T_base_tcp[:3, 3] - grasp.T_base_grasp[:3, 3]))
+        guard = cfg.approach_max_force_n
+        how = (
+            f"TCP force {down.contact_force_n:.0f} N, above the approach's {guard:g} N guard"
+            if guard is not None and down.contact_force_n > guard
+            else "the controller's contact detection"
+        )
         return _fail(
             c.attempt, Outcome.CONTACT,
-            f"the fingers met something {1e3 * short:.0f} mm short of the grasp (TCP force {down.contact_force_n:.0f} "
-            f"N, above the approach's {cfg.approach_max_force_n:g} N guard): stopped and backed out",
+            f"the fingers met something {1e3 * short:.0f} mm short of the grasp ({how}): stopped and backed out",
         )  # fmt: skip
 
     def _grasp(self, c: _Cycle) -> CycleState:

@@ -206,14 +206,26 @@ class URRobot:
         speed_m_s: float | None = None,
         accel_m_s2: float | None = None,
         max_force_n: float | None = None,
+        stop_on_contact: bool = False,
     ) -> MotionResult:
         """Straight-line TCP move to ``T_base_tcp``; blocks until the arm is there, or, guarded by ``max_force_n``
-        [N], until the TCP force passes it (the arm stopped short: ``contact_force_n`` in the result). See the
-        module docstring for what it raises."""
+        [N], until the TCP force passes it (the arm stopped short: ``contact_force_n`` in the result).
+        ``stop_on_contact``: the controller's own contact detection watches the move (against its direction) and
+        stops the arm on the tick a contact shows, then moves it back to where the contact began: no round trip
+        through this client, so the arm presses far less into what it met (``contact_force_n`` is the TCP force
+        read when the client learnt of it). See the module docstring for what it raises."""
         if max_force_n is not None and not (math.isfinite(max_force_n) and max_force_n > 0):
             raise MotionRefusedError(f"max_force_n must be a positive number of newtons, got {max_force_n!r}")
+        start = self.T_base_tcp()[:3, 3] if stop_on_contact else None
         self.start_move_l(T_base_tcp, speed_m_s, accel_m_s2)
-        return self.wait_for_motion(max_force_n=max_force_n)
+        if start is not None:
+            travel = np.asarray(T_base_tcp, dtype=float)[:3, 3] - start
+            norm = float(np.linalg.norm(travel))
+            if norm > 1e-9:
+                self._link.rtde_c.startContactDetection([*(travel / norm), 0.0, 0.0, 0.0])
+            else:
+                start = None
+        return self._motion.wait(max_force_n=max_force_n, detecting_contact=start is not None)
 
     def move_j(
         self, q: np.ndarray, speed_rad_s: float | None = None, accel_rad_s2: float | None = None

@@ -107,10 +107,15 @@ class MotionWatch:
             )
         self._pending = _Pending(kind, np.array(T_target), op_id, now, now + timeout)
 
-    def wait(self, timeout_s: float | None = None, max_force_n: float | None = None) -> MotionResult:
+    def wait(
+        self, timeout_s: float | None = None, max_force_n: float | None = None, detecting_contact: bool = False
+    ) -> MotionResult:
         """Waits for the motion in flight to end; ``timeout_s`` overrides the one derived from its duration.
         ``max_force_n``: a guard [N] on the TCP force's magnitude: above it the arm is stopped (the result's
-        ``contact_force_n``, ``reached`` False)."""
+        ``contact_force_n``, ``reached`` False). ``detecting_contact``: the controller's contact detection runs
+        (``startContactDetection`` sent after the move): a contact it reports ends the motion the same way, once
+        the controller has stopped the arm and moved it back to where the contact began; the detection is stopped
+        whatever happens."""
         pending = self._pending
         if pending is None:
             raise RobotError("wait_for_motion: no motion in flight (start_move_* first)")
@@ -121,6 +126,9 @@ class MotionWatch:
             while True:
                 link.raise_if_link_lost(f"during {pending.kind}")
                 link.raise_if_safety_stopped(f"during {pending.kind}")
+                if detecting_contact and contact is None and link.rtde_c.readContactDetection():
+                    contact = link.tcp_force_n()
+                    pending.stopped = True  # the controller stops the arm and moves it back by itself
                 if max_force_n is not None and contact is None:
                     force = link.tcp_force_n()
                     if force > max_force_n:
@@ -131,7 +139,7 @@ class MotionWatch:
                 finished = status.operationId() != pending.op_id_before and not status.isAsyncOperationRunning()
                 if runtime != RUNTIME_PLAYING or (finished and not link.rtde_c.isProgramRunning()):
                     self._raise_program_stopped(f"during {pending.kind}")
-                if finished:
+                if finished and (not detecting_contact or link.rtde_c.isSteady()):
                     break
                 if time.monotonic() > deadline:
                     with contextlib.suppress(RuntimeError):
@@ -156,6 +164,9 @@ class MotionWatch:
             )
         finally:
             self._pending = None
+            if detecting_contact:
+                with contextlib.suppress(RuntimeError):
+                    link.rtde_c.stopContactDetection()
 
     def stop(self, decel: float | None = None) -> None:
         """Decelerates the motion in flight to rest (``stopJ`` after a joint move, ``stopL`` after a linear one);

@@ -219,6 +219,27 @@ def test_at_the_final_approach_speed_a_guarded_move_stops_just_past_the_guard(ro
     robot.move_j(Q_WORK, 3.0, 6.0)
 
 
+def test_the_controllers_contact_detection_stops_a_move_where_the_contact_began(robot, surface_cell):
+    """``move_l(stop_on_contact=True)``: ur_rtde's start/read/stopContactDetection. The controller stops the arm on
+    the tick the contact shows and moves it back to where it began: at the approach's 0.25 m/s it ends within a
+    millimetre of the surface, pressing on it with far less than the client-side guard's stop left; a move
+    through the air reaches its target."""
+    em = surface_cell[0]
+    robot.move_j(Q_WORK, 3.0, 6.0)
+    T = robot.T_base_tcp()
+    T[2, 3] = SURFACE_Z - 0.015
+    result = robot.move_l(T, 0.25, 1.2, stop_on_contact=True)
+    depth = SURFACE_Z - result.T_base_tcp[2, 3]
+    assert not result.reached and result.contact_force_n is not None
+    assert depth < 0.001 and not em.state().protective_stopped
+    assert robot._link.rtde_r.getActualTCPForce()[2] < 20.0
+    up = robot.T_base_tcp()
+    up[2, 3] += 0.01
+    free = robot.move_l(up, 0.25, 1.2, stop_on_contact=True)
+    assert free.reached and free.contact_force_n is None
+    robot.move_j(Q_WORK, 3.0, 6.0)
+
+
 def test_urrobot_contact_moves_are_checked_and_a_missed_contact_stops_the_program(robot):
     robot.move_j(Q_WORK, 3.0, 6.0)
     with pytest.raises(MotionRefusedError, match="speed_m_s"):

@@ -128,7 +128,7 @@ class FakeRobot:
     def T_base_tcp(self):
         return make_T(t=(0, 0, 0.05))
 
-    def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+    def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
         if self.refuse_x is not None and abs(T[0, 3] - self.refuse_x) < 1e-9:
             raise MotionRefusedError("outside the box")
         if self.stop_once_x is not None and abs(T[0, 3] - self.stop_once_x) < 1e-9:
@@ -335,9 +335,12 @@ def test_a_finger_meeting_a_part_on_the_guarded_approach_stops_backs_out_and_the
     guards: list[float | None] = []
     move_l = robot.move_l
 
-    def log_guard(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+    detecting: list[bool] = []
+
+    def log_guard(T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
         guards.append(max_force_n)
-        return move_l(T, speed_m_s, accel_m_s2, max_force_n)
+        detecting.append(stop_on_contact)
+        return move_l(T, speed_m_s, accel_m_s2, max_force_n, stop_on_contact)
 
     robot.move_l = log_guard
     report = picker.run()
@@ -348,6 +351,8 @@ def test_a_finger_meeting_a_part_on_the_guarded_approach_stops_backs_out_and_the
     )
     # pre-grasp, the guarded line down, back out to the lift; then the next cycle's pick
     assert guards[:3] == [None, 30.0, None] and guards[3:5] == [None, 30.0]
+    # the line down (here all of it the slow last stretch) also runs under the controller's contact detection
+    assert detecting[:3] == [False, True, False]
     picker, robot = make_picker(FakeBin([0.0]), config=PickerConfig(approach_max_force_n=None), contact_once_x=0.0)
     assert [a.outcome for a in picker.run().attempts] == ["picked"]
     with pytest.raises(ConfigError, match="approach_max_force_n must be > 0"):
@@ -556,7 +561,7 @@ def test_fingers_closed_on_air_are_no_hold_of_a_thin_sheet():
     picker, _ = make_picker(bin_, SheetGrasps())
     _close_on_a_sheet(picker.gripper, 0.0013)
 
-    def slide_out(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+    def slide_out(T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
         picker.gripper.width = 0.0005
         return moved(T)
 
@@ -754,7 +759,7 @@ class DraggingRobot(FakeRobot):
         super().__init__(bin_)
         self.drags, self.stop_at_press = drags, stop_at_press
 
-    def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+    def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
         if T[0, 3] == -1.0:
             self._press()
         if T[0, 3] == -2.0:
@@ -849,7 +854,7 @@ def test_a_press_that_meets_nothing_is_recovered_as_no_contact():
             self.z = 0.02
             raise NoContactError("met nothing within 25 mm")
 
-        def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+        def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
             if self.recovered:
                 self.after_recovery.append(("move_l", round(float(T[2, 3]), 3)))
             return super().move_l(T, speed_m_s, accel_m_s2, max_force_n)
@@ -879,7 +884,7 @@ def test_a_protective_stop_on_the_way_to_the_observe_pose_is_recovered_once():
             super().__init__(bin_)
             self.stops, self.been_there, self.moves_l = stops, False, []
 
-        def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+        def move_l(self, T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
             self.moves_l.append(np.array(T))
             return moved(T)
 
@@ -966,8 +971,8 @@ def test_a_stop_requested_during_a_motion_ends_the_run_there_and_keeps_every_cyc
 
     signals = ["SIGTERM"]
 
-    def move_l_then_signal(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
-        result = move_l(T, speed_m_s, accel_m_s2, max_force_n)
+    def move_l_then_signal(T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
+        result = move_l(T, speed_m_s, accel_m_s2, max_force_n, stop_on_contact)
         if abs(T[0, 3] - 0.1) < 1e-9 and signals:
             picker.request_stop(signals.pop())  # arrives while this motion runs
         return result
@@ -1037,10 +1042,10 @@ def test_a_cell_lost_during_an_attempt_keeps_that_attempt_in_the_report():
     picker, robot = make_picker(bin_)
     move_l = robot.move_l
 
-    def link_lost_at_the_second_part(T, speed_m_s=None, accel_m_s2=None, max_force_n=None):
+    def link_lost_at_the_second_part(T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
         if abs(T[0, 3] - 0.1) < 1e-9:
             raise ConnectionLostError("lost the link to UR controller 127.0.0.81 during move_l")
-        return move_l(T, speed_m_s, accel_m_s2, max_force_n)
+        return move_l(T, speed_m_s, accel_m_s2, max_force_n, stop_on_contact)
 
     def gone(timeout_s=None):
         raise RecoveryError("UR controller 127.0.0.81 does not answer")

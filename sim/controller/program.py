@@ -24,6 +24,7 @@ import numpy as np
 
 from sim.controller.arm import ArmController, Motion, within_joint_limits
 from sim.controller.commands import REALTIME_CODES, STOP_SCRIPT, command_name
+from sim.controller.contact_detection import ContactDetection
 from sim.controller.errors import MotionError
 from sim.controller.ik_query import solve_ik
 from sim.controller.state import Registers
@@ -66,6 +67,7 @@ class ControlProgram:
         self._async_wr_count = 0
         self._async_op_id = 0
         self._unsupported_rt_logged: int | None = None
+        self._contact = ContactDetection(arm, host)
         self._handlers: dict[int, Callable[[], bool | None]] = {
             1: self._movej,
             2: self._movej_ik,
@@ -108,6 +110,9 @@ class ControlProgram:
             59: lambda: None,  # setGravity: the kinematic and MuJoCo arms keep their own gravity
             60: self._ik_has_solution,
             61: self._ik_has_solution_args,
+            62: lambda: self._contact.start(self.in_vector(0)),
+            63: lambda: self._answer_contact(self._contact.stop),
+            64: lambda: self._answer_contact(lambda: self._contact.step_back),
             65: self._set_target_payload,
         }
 
@@ -135,6 +140,7 @@ class ControlProgram:
             self._write_async_progress(_PROGRESS_FINISHED)
             self.out_int(0, READY)
         self._track_async()
+        self._contact.step(self._stop_async_move)
         if self._blocking is not None:
             if not self._blocking():
                 return
@@ -163,6 +169,7 @@ class ControlProgram:
         self._blocking = None
         self.arm.end_force_mode()
         self.arm.contact_watch = False
+        self._contact.abort()
         if self._async_motion is not None or self._stop_thread_motion is not None:
             self._async_motion = self._stop_thread_motion = None
             self._write_async_progress(_PROGRESS_FINISHED)
@@ -309,6 +316,19 @@ class ControlProgram:
 
         step()
         self._blocking = step
+
+    def _answer_contact(self, answer: Callable[[], int]) -> None:
+        """readContactDetection (64) / stopContactDetection (63): i1 the steps back to the contact's start (0:
+        none); while a contact is being stopped and moved back from, the script's main loop answers afterwards."""
+
+        def done() -> bool:
+            if self._contact.handling:
+                return False
+            self.out_int(1, answer())
+            return True
+
+        if not done():
+            self._blocking = done
 
     # --- stops ---------------------------------------------------------------------------------------------
     def _stop(self) -> None:
