@@ -18,9 +18,9 @@ from robot.pick_report import Attempt, Outcome
 log = logging.getLogger(__name__)
 
 #: Outcomes that count against a part's location: a dropped connection or a blocked gripper says nothing about the
-#: part.
+#: part, and a part dropped on the way to the tray has left that location.
 PART_FAILURES = frozenset(Outcome) - {
-    Outcome.PICKED, Outcome.CONNECTION_LOST, Outcome.GRIPPER_BLOCKED, Outcome.NOT_RELEASED,
+    Outcome.PICKED, Outcome.CONNECTION_LOST, Outcome.GRIPPER_BLOCKED, Outcome.NOT_RELEASED, Outcome.DROPPED,
 }  # fmt: skip
 
 

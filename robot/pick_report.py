@@ -38,6 +38,7 @@ class Outcome(StrEnum):
     MOTION_REFUSED = "motion_refused"  # checked and refused, nothing sent: next candidate
     GRIPPER_EMPTY = "gripper_empty"  # closed on air (no object detected, the fingers closed)
     SLIPPED = "slipped"  # lost the part while lifting
+    DROPPED = "dropped"  # held after lifting, gone at the place pose: lost on the way there
     CONTACT = "contact"  # the guarded approach met something before the grasp: stopped and backed out
     PROTECTIVE_STOP = "protective_stop"
     CONNECTION_LOST = "connection_lost"

@@ -570,6 +570,27 @@ def test_fingers_closed_on_air_are_no_hold_of_a_thin_sheet():
     assert first.outcome == "slipped" and "closed to 0.5 mm, the part is 2.0 mm wide" in first.detail
 
 
+def test_a_part_lost_on_the_way_to_the_place_pose_is_dropped_not_picked():
+    """Held after lifting, gone at the place pose (it fell out during the joint move): the attempt is ``dropped``,
+    not a pick; the next look finds it (here back in the bin) and picks it."""
+    bin_ = FakeBin([0.0])
+    picker, robot = make_picker(bin_)
+    move_j, moves_to_the_part = robot.move_j, []
+
+    def drop_on_the_way(q, speed_rad_s=None, accel_rad_s2=None):
+        move_j(q, speed_rad_s, accel_rad_s2)
+        if np.allclose(q, 0.0):  # the fake grasp's lift and place poses: the second is the place
+            moves_to_the_part.append(q)
+            if len(moves_to_the_part) == 2:
+                picker.gripper.held, picker.gripper.width = False, 0.0
+
+    robot.move_j = drop_on_the_way
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["dropped", "picked"] and report.n_picked == 1
+    assert report.attempts[0].stage == "place" and "lost on the way to the place pose" in report.attempts[0].detail
+    assert report.stop_reason == "bin_empty" and bin_.parts == []
+
+
 def test_a_part_stuck_in_the_fingers_stops_the_run_as_gripper_blocked():
     bin_ = FakeBin([0.0, 0.1])
     picker, _ = make_picker(bin_, config=PickerConfig(open_timeout_s=0.05))
