@@ -39,13 +39,6 @@ _MOVING_SPEED_M_S = 0.002
 _CREEP_SPEED_M_S = 0.005  # a quarter of the slowest commanded speed (20 mm/s)
 _POSITION_TOL_M = 0.0015
 
-# Pad contact impedance (MuJoCo solimp: dmin, dmax, width m, midpoint, power), used for every pad contact (the
-# pads' geom priority is above the parts'). MuJoCo's default (0.9, 0.95, 1 mm) lets a light part squeezed at the
-# grip force sink most of a millimetre into each pad, so a 2 mm sheet read under 1 mm wide: as "closed on air".
-# Near-hard pads keep a squeezed part within a few tenths of a millimetre of its width, like a rubber pad on steel.
-_PAD_SOLIMP = [0.99, 0.999, 0.0005, 0.5, 2.0]
-_PAD_PRIORITY = 1
-
 _HOUSING_RGBA = (0.15, 0.15, 0.17, 1.0)
 _PAD_RGBA = (0.25, 0.25, 0.28, 1.0)
 
@@ -67,7 +60,7 @@ def add_gripper(
     """Adds the gripper to ``flange_body`` (a body whose frame is the flange frame) and returns its names.
 
     ``pad_solref``: contact time constant and damping ratio of the pads; stiff ([2 dt, 1]) so that a squeezed
-    part is not pressed into them. The pads' contact parameters win over a part's (geom priority)."""
+    part is not pressed into them."""
     names = GripperNames(
         body=prefix,
         finger_bodies=(f"{prefix}_finger_a", f"{prefix}_finger_b"),
@@ -115,8 +108,6 @@ def add_gripper(
             friction=[PAD_FRICTION, 0.005, 0.0001],
             condim=4,
             solref=pad_solref,
-            solimp=_PAD_SOLIMP,
-            priority=_PAD_PRIORITY,
             rgba=_PAD_RGBA,
         )
         finger.add_geom(

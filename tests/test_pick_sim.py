@@ -180,8 +180,9 @@ def test_a_gear_in_a_corner_is_nudged_out_and_then_picked(fresh):
 
 
 def test_an_l_bracket_standing_on_its_sheet_edges_is_picked_by_a_pinch_of_the_sheet(fresh):
-    """Standing on its sheet edges an L-bracket's only grasps pinch the 2 mm sheet: the fingers stop on it (the
-    pads do not let it sink in so far that it reads as closed on air), hold it, and it is placed."""
+    """Standing on its sheet edges an L-bracket's only grasps pinch the 2 mm sheet: the gripper's object detection
+    reads "no object" (the pads squeeze the sheet to 1.3 mm, under its 1.5 mm), but the fingers stopped apart
+    hold it, and it is placed."""
     picker, process, start = fresh
     bracket = next(i for i, name in enumerate(process.part_names()) if name.endswith("l_bracket"))
     cfg = CellConfig()

@@ -136,33 +136,9 @@ def test_part_is_grasped_and_lifted_by_friction() -> None:
     assert world.part_poses()[0][2, 3] < z_part + 0.02
 
 
-def test_a_thin_sheet_squeezed_at_full_force_reads_near_its_thickness_and_is_lifted() -> None:
-    """A 2 mm, 13 g sheet standing on its edge, squeezed at the gripper's largest force: the pads do not let it
-    sink in so far that the opening reads as fingers closed on air (under the picker's 1 mm hold threshold)."""
-    world = CellWorld()
-    sheet = ObjectModel(obj_id=1, name="sheet", mesh=trimesh.creation.box((0.002, 0.04, 0.02)))
-    world.add_parts([sheet], (world.T_world_bin @ make_T(t=(0.0, 0.0, 0.0105)))[None])
-    world.step(50)
-    xyz = world.part_poses()[0][:3, 3]
-    _move(world, _q_for_tcp(world, xyz + np.array([0, 0, 0.12])), 1.2)
-    q_grasp = _q_for_tcp(world, xyz + np.array([0, 0, 0.004]))
-    _move(world, q_grasp, 0.8)
-    world.set_gripper(0.0, 0.1, 235.0)
-    world.step(500)
-    assert world.gripper_object_detected() and not world.gripper_moving()
-    assert 0.0015 < world.gripper_width_m() <= 0.002
-    z_part, z_flange = world.part_poses()[0][2, 3], world.T_base_flange()[2, 3]
-    _move(world, _q_for_tcp(world, xyz + np.array([0, 0, 0.15]), q_near=q_grasp), 1.0)
-    world.step(100)
-    rise_flange = world.T_base_flange()[2, 3] - z_flange
-    assert rise_flange > 0.13
-    assert world.part_poses()[0][2, 3] - z_part == pytest.approx(rise_flange, abs=2e-3)
-    assert world.gripper_width_m() > 0.0012
-
-
 def test_fingers_dragged_along_the_floor_at_their_force_limit_read_as_stopped() -> None:
     """Pads pressed onto the bin floor (the TCP 4 mm above it) close against the floor's friction: MuJoCo's soft
-    friction lets them creep (under 5 mm/s) with the servo at its force limit, where a real gripper's fingers stick
+    friction lets them creep at about 2 mm/s with the servo at its force limit, where a real gripper's fingers stick
     and it reports them stopped on an object. Read as moving, a close never ended (the runtime's move deadline)."""
     world = CellWorld()
     spot = world.T_world_bin[:3, 3] + np.array([0.0, 0.0, 0.004])
@@ -177,7 +153,7 @@ def test_fingers_dragged_along_the_floor_at_their_force_limit_read_as_stopped() 
         world.step()
         readings.append((world.gripper_moving(), world.gripper_object_detected()))
     assert world.gripper_width_m() > 0.03  # held open by the floor, not closed
-    assert 0.0 < width_before - world.gripper_width_m() < 0.005  # still creeping, under 5 mm/s, over that second
+    assert 0.002 < width_before - world.gripper_width_m() < 0.005  # still creeping, above 2 mm/s, over that second
     assert not any(moving for moving, _ in readings) and all(detected for _, detected in readings)
 
 
