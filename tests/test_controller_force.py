@@ -183,15 +183,20 @@ def test_urrobot_move_until_contact_then_pressing_move(robot):
     assert robot._link.rtde_r.getActualTCPForce()[2] == 0.0
 
 
+def _line_into_the_surface(robot, *args, **kwargs):
+    """From the work pose, a straight line aimed 15 mm into the kinematic surface: (its target, the result)."""
+    robot.move_j(Q_WORK, 3.0, 6.0)
+    T = robot.T_base_tcp()
+    T[2, 3] = SURFACE_Z - 0.015
+    return T, robot.move_l(T, *args, **kwargs)
+
+
 def test_a_guarded_move_at_the_picks_approach_speed_stops_on_contact_well_below_the_force_limit(robot, surface_cell):
     """The picker's approach (0.25 m/s, 1.2 m/s2) aimed 15 mm into the stiff surface, guarded at 30 N: the arm stops
     a few millimetres in, with no protective stop (unguarded, the same move is one: the test above), and a plain
     move leaves. A guard that is not a positive force is refused before anything moves."""
     em = surface_cell[0]
-    robot.move_j(Q_WORK, 3.0, 6.0)
-    T = robot.T_base_tcp()
-    T[2, 3] = SURFACE_Z - 0.015
-    result = robot.move_l(T, 0.25, 1.2, max_force_n=30.0)
+    T, result = _line_into_the_surface(robot, 0.25, 1.2, max_force_n=30.0)
     depth = SURFACE_Z - result.T_base_tcp[2, 3]
     assert not result.reached and 30.0 < result.contact_force_n < 60.0
     assert 0.0015 < depth < 0.0075 and not em.state().protective_stopped  # 150 N is 7.5 mm deep
@@ -208,10 +213,7 @@ def test_at_the_final_approach_speed_a_guarded_move_stops_just_past_the_guard(ro
     """The picker's last stretch (0.05 m/s): the same guard stops the arm far closer to where the force passed it
     than at the approach speed (stop distance v^2 / 2a + a tick of travel): a fraction of a millimetre past it."""
     em = surface_cell[0]
-    robot.move_j(Q_WORK, 3.0, 6.0)
-    T = robot.T_base_tcp()
-    T[2, 3] = SURFACE_Z - 0.015
-    result = robot.move_l(T, 0.05, 1.2, max_force_n=30.0)
+    _, result = _line_into_the_surface(robot, 0.05, 1.2, max_force_n=30.0)
     depth = SURFACE_Z - result.T_base_tcp[2, 3]
     assert not result.reached and 30.0 < result.contact_force_n < 40.0
     # where it came to rest the surface pushes back with under 50 N (at 0.25 m/s: over 100 N, near the 150 N limit)
@@ -225,10 +227,7 @@ def test_the_controllers_contact_detection_stops_a_move_where_the_contact_began(
     millimetre of the surface, pressing on it with far less than the client-side guard's stop left; a move
     through the air reaches its target."""
     em = surface_cell[0]
-    robot.move_j(Q_WORK, 3.0, 6.0)
-    T = robot.T_base_tcp()
-    T[2, 3] = SURFACE_Z - 0.015
-    result = robot.move_l(T, 0.25, 1.2, stop_on_contact=True)
+    _, result = _line_into_the_surface(robot, 0.25, 1.2, stop_on_contact=True)
     depth = SURFACE_Z - result.T_base_tcp[2, 3]
     assert not result.reached and result.contact_force_n is not None
     assert depth < 0.001 and not em.state().protective_stopped
