@@ -30,6 +30,18 @@ STOP_DECEL_M_S2 = 3.0
 RETURN_SPEED_M_S, RETURN_ACCEL_M_S2 = 0.25, 1.2
 
 
+def stop_at_contact(arm: ArmController) -> None:
+    """The script's reaction to a contact (moveUntilContact and contact detection alike): stopl(3)."""
+    arm.stop(STOP_DECEL_M_S2, linear=True)
+    arm.contact_watch = False
+
+
+def move_back_to(arm: ArmController, q_contact: np.ndarray) -> None:
+    """Once stopped: ``movel`` with URScript's defaults back to where the contact began (``MotionError`` when the
+    arm cannot)."""
+    arm.movel(T_to_pose(forward_kinematics(q_contact, arm.T_flange_tcp)), RETURN_SPEED_M_S, RETURN_ACCEL_M_S2)
+
+
 class ContactHost(Protocol):
     def tool_contact(self, direction: np.ndarray, max_steps: int | None = None) -> int: ...
     def q_history(self, steps: int) -> np.ndarray: ...
@@ -81,14 +93,12 @@ class ContactDetection:
                 self._q_contact = self.host.q_history(steps)
                 log.info("rtde_control: contact detected (%d steps back); stopping and moving back", steps)
                 on_contact()
-                self.arm.stop(STOP_DECEL_M_S2, linear=True)
-                self.arm.contact_watch = False
+                stop_at_contact(self.arm)
                 self.phase = "stopping"
             return
         if self.phase == "stopping" and self.arm.motion is None:
-            pose = T_to_pose(forward_kinematics(self._q_contact, self.arm.T_flange_tcp))
             try:
-                self.arm.movel(pose, RETURN_SPEED_M_S, RETURN_ACCEL_M_S2)
+                move_back_to(self.arm, self._q_contact)
             except MotionError as exc:
                 self.phase = None
                 self.host.end_program(f"contact detection failed: {exc}", error=True)

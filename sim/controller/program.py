@@ -24,7 +24,7 @@ import numpy as np
 
 from sim.controller.arm import ArmController, Motion, within_joint_limits
 from sim.controller.commands import REALTIME_CODES, STOP_SCRIPT, command_name
-from sim.controller.contact_detection import ContactDetection
+from sim.controller.contact_detection import ContactDetection, move_back_to, stop_at_contact
 from sim.controller.errors import MotionError
 from sim.controller.ik_query import solve_ik
 from sim.controller.state import Registers
@@ -298,15 +298,13 @@ class ControlProgram:
                     self.arm.speedl(xd, accel)
                     return False
                 state["q"] = self.host.q_history(steps)
-                self.arm.stop(3.0, linear=True)
-                self.arm.contact_watch = False
+                stop_at_contact(self.arm)
                 state["phase"] = "stopping"
             if state["phase"] == "stopping":
                 if self.arm.motion is not None:
                     return False
-                pose = T_to_pose(forward_kinematics(state["q"], self.arm.T_flange_tcp))
                 try:
-                    self.arm.movel(pose, 0.25, 1.2)  # URScript movel(q) defaults
+                    move_back_to(self.arm, state["q"])
                 except MotionError as exc:
                     self.host.end_program(f"moveUntilContact failed: {exc}", error=True)
                     return False
