@@ -216,16 +216,11 @@ class URRobot:
         read when the client learnt of it). See the module docstring for what it raises."""
         if max_force_n is not None and not (math.isfinite(max_force_n) and max_force_n > 0):
             raise MotionRefusedError(f"max_force_n must be a positive number of newtons, got {max_force_n!r}")
-        start = self.T_base_tcp()[:3, 3] if stop_on_contact else None
+        direction = _travel_direction(self.T_base_tcp(), T_base_tcp) if stop_on_contact else None
         self.start_move_l(T_base_tcp, speed_m_s, accel_m_s2)
-        if start is not None:
-            travel = np.asarray(T_base_tcp, dtype=float)[:3, 3] - start
-            norm = float(np.linalg.norm(travel))
-            if norm > 1e-9:
-                self._link.rtde_c.startContactDetection([*(travel / norm), 0.0, 0.0, 0.0])
-            else:
-                start = None
-        return self._motion.wait(max_force_n=max_force_n, detecting_contact=start is not None)
+        if direction is not None:
+            self._link.rtde_c.startContactDetection([*direction, 0.0, 0.0, 0.0])
+        return self._motion.wait(max_force_n=max_force_n, detecting_contact=direction is not None)
 
     def move_j(
         self, q: np.ndarray, speed_rad_s: float | None = None, accel_rad_s2: float | None = None
@@ -391,3 +386,10 @@ def _io_bit(index: int, kind: str) -> int:
     if not (isinstance(index, int) and 0 <= index < count):
         raise ValueError(f"{kind} digital IO index must be 0..{count - 1}, got {index!r}")
     return offset + index
+
+
+def _travel_direction(T_from: np.ndarray, T_to: np.ndarray) -> list[float] | None:
+    """The unit vector (base frame) a straight line from ``T_from`` to ``T_to`` travels along; None in place."""
+    travel = np.asarray(T_to, dtype=float)[:3, 3] - np.asarray(T_from, dtype=float)[:3, 3]
+    norm = float(np.linalg.norm(travel))
+    return (travel / norm).tolist() if norm > 1e-9 else None
