@@ -1,7 +1,7 @@
 """``Arm``: the pick cycle's moves outside an attempt's steps: the joint move to the observe pose (where the arm waits
 while the camera looks), a nudge's strokes, and the recovery after a protective stop or a dropped link (hold the
-fingers, recover, go straight up, let go). Joint angles in radians, heights as base z in metres; the settings are
-``PickerConfig``'s."""
+fingers, recover, go straight up, let go). ``approach_legs``: how an attempt's guarded approach is split by speed.
+Joint angles in radians, heights as base z in metres; the settings are ``PickerConfig``'s."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 from robot.gripper import GripperError
 from robot.pick_config import PickerConfig
 from robot.pick_fingers import Fingers
-from robot.pick_protocols import ForceLimitedRobotLike, NudgeLike, RobotLike
+from robot.pick_protocols import ForceLimitedRobotLike, GraspLike, NudgeLike, RobotLike
 from robot.pick_report import NudgeOutcome, Outcome, Stage, StageTimer
 from robot.ur_errors import (
     ConnectionLostError,
@@ -161,3 +161,18 @@ def motion_cause(exc: MotionFailedError) -> Outcome:
     if isinstance(exc, ConnectionLostError):
         return Outcome.CONNECTION_LOST
     return Outcome.MOTION_FAILED
+
+
+def approach_legs(grasp: GraspLike, cfg: PickerConfig) -> list[tuple[np.ndarray, float | None]]:
+    """The guarded line pre-grasp -> grasp as (target, speed) legs: at the approach speed to ``final_approach_m``
+    short of the grasp, then at the final approach speed (never faster than the approach speed)."""
+    p_pre, p_grasp = grasp.T_base_pregrasp[:3, 3], grasp.T_base_grasp[:3, 3]
+    length = float(np.linalg.norm(p_grasp - p_pre))
+    final_speed = cfg.final_approach_speed_m_s
+    if cfg.approach_speed_m_s is not None:
+        final_speed = min(final_speed, cfg.approach_speed_m_s)
+    if length <= cfg.final_approach_m:
+        return [(grasp.T_base_grasp, final_speed)]
+    T_slow = grasp.T_base_grasp.copy()
+    T_slow[:3, 3] = p_grasp + (p_pre - p_grasp) * (cfg.final_approach_m / length)
+    return [(T_slow, cfg.approach_speed_m_s), (grasp.T_base_grasp, final_speed)]

@@ -41,7 +41,7 @@ import numpy as np
 
 from perception.camera import Frame
 from perception.depth_tare import apply_tare
-from robot.pick_arm import Arm, motion_cause
+from robot.pick_arm import Arm, approach_legs, motion_cause
 from robot.pick_config import PickerConfig
 from robot.pick_fingers import Fingers
 from robot.pick_memory import PartMemory
@@ -470,7 +470,7 @@ class Picker:
             # through the bin wall.
             self.robot.move_j(grasp.q_lift, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
             self.robot.move_l(grasp.T_base_pregrasp, cfg.transit_linear_speed_m_s, cfg.approach_accel_m_s2)
-            legs = _approach_legs(grasp, cfg)
+            legs = approach_legs(grasp, cfg)
             for k, (T_target, speed) in enumerate(legs):
                 detect = cfg.final_approach_contact_detection and k == len(legs) - 1
                 down = self.robot.move_l(
@@ -567,21 +567,6 @@ class Picker:
     def _retreat(self, c: _Cycle) -> CycleState:
         self.arm.to_observe()
         return _S.DONE
-
-
-def _approach_legs(grasp: GraspLike, cfg: PickerConfig) -> list[tuple[np.ndarray, float | None]]:
-    """The guarded line pre-grasp -> grasp as (target, speed) legs: at the approach speed to ``final_approach_m``
-    short of the grasp, then at the final approach speed (never faster than the approach speed)."""
-    p_pre, p_grasp = grasp.T_base_pregrasp[:3, 3], grasp.T_base_grasp[:3, 3]
-    length = float(np.linalg.norm(p_grasp - p_pre))
-    final_speed = cfg.final_approach_speed_m_s
-    if cfg.approach_speed_m_s is not None:
-        final_speed = min(final_speed, cfg.approach_speed_m_s)
-    if length <= cfg.final_approach_m:
-        return [(grasp.T_base_grasp, final_speed)]
-    T_slow = grasp.T_base_grasp.copy()
-    T_slow[:3, 3] = p_grasp + (p_pre - p_grasp) * (cfg.final_approach_m / length)
-    return [(T_slow, cfg.approach_speed_m_s), (grasp.T_base_grasp, final_speed)]
 
 
 def _fail(attempt: Attempt, cause: Outcome, detail: str) -> CycleState:

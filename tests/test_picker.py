@@ -13,9 +13,10 @@ import pytest
 from perception.camera import Frame
 from perception.results import Detection, ObjectPose
 from robot.cell_setup import load_cell_setup
+from robot.pick_arm import approach_legs
 from robot.pick_config import PickerConfig
 from robot.pick_report import CycleEnd, Outcome, StopReason
-from robot.picker import TRANSITIONS, CycleState, Picker, _approach_legs
+from robot.picker import TRANSITIONS, CycleState, Picker
 from robot.ur_errors import (
     ConnectionLostError,
     MotionRefusedError,
@@ -363,10 +364,10 @@ def test_the_last_stretch_of_the_approach_runs_at_the_final_speed():
     """At the approach speed to ``final_approach_m`` short of the grasp, then at the final speed (never faster than
     the approach speed); an approach shorter than that stretch runs slow all the way. Bad values are refused."""
     grasp = SimpleNamespace(T_base_pregrasp=make_T(t=(0.1, 0.0, 0.2)), T_base_grasp=make_T(t=(0.1, 0.0, 0.1)))
-    (T_slow, fast), (T_end, slow) = _approach_legs(grasp, PickerConfig())
+    (T_slow, fast), (T_end, slow) = approach_legs(grasp, PickerConfig())
     assert np.allclose(T_slow[:3, 3], [0.1, 0.0, 0.13]) and np.allclose(T_slow[:3, :3], np.eye(3))
     assert fast == 0.25 and slow == 0.05 and T_end is grasp.T_base_grasp
-    legs = _approach_legs(grasp, PickerConfig(approach_speed_m_s=0.02, final_approach_m=0.2))
+    legs = approach_legs(grasp, PickerConfig(approach_speed_m_s=0.02, final_approach_m=0.2))
     assert [speed for _, speed in legs] == [0.02]
     with pytest.raises(ConfigError, match="final_approach_speed_m_s must be > 0"):
         PickerConfig(final_approach_speed_m_s=0.0)
