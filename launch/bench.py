@@ -15,6 +15,7 @@ BENCHMARKS = {
     "perception": "perception.bench",
     "cell": "launch.bench_cell",
     "cell-detector": "launch.bench_cell_detector",
+    "nudge": "launch.bench_nudge",
     "detection": "perception.bench_detection",
     "training": "sygrid.bench.training",
     "transfer": "perception.bench_transfer",

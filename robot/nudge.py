@@ -12,7 +12,7 @@ A nudge (for a part the planner left for ``collision_bin`` or ``collision_parts`
    reach the part), and come straight down onto the part until the lowest pad edge sits ``press_depth_m`` below
    the part's highest point, somewhere on its top;
 3. drag straight along the floor, away from the walls and the neighbour near the part, until the nearest of them
-   would be ``target_gap_m`` away;
+   would be ``target_gap_m`` away (or slanted from that direction along the wall, see below);
 4. go straight up; the next look decides what to do.
 
 A nudge does not topple an L-bracket standing on its sheet edges (whose only grasps pinch the 2 mm sheet): pressed
@@ -20,6 +20,18 @@ on its top edge and dragged, or pushed on its side at half its height, it moved 
 simulated cell, as statics says: its centre lies about 10 mm inside its footprint and it is 20 mm tall, so a push at
 its top tips it only with a force of half its weight, which is what the floor's friction (0.5) already yields to.
 Away from a wall, standing, its sheet can be pinched.
+
+A drag must slide the part, not tip it over the leading edge of what stands on the floor. The pads pull the part's
+top along with a friction force F at its height h and press it down with N; the floor holds the underside with
+``floor_friction`` (mu) times N plus the weight. About that leading edge F tips the part (F h) against N's lever d
+(how far behind the edge the pads press, along the drag) and the weight's; the part slides once F reaches mu N.
+A force-limited press pushes with newtons, far above a small part's weight, so the part slides rather than tips
+only if d >= mu h. So the pads press where that holds; on the flat top, not beside a hole or an edge (they would
+catch its rim), or in the middle of a hole, where the lowest pad corner sinks in and the pads bear on the rim all
+round. A part lying on its side rolls under a drag across its axis (the lever is about zero), which the same test
+refuses. Drags slanted along the wall (``slants_deg``) measure the lever along other directions; they go
+``1 / cos(slant)`` times as far, to leave the same gap from the wall, and never bring the part nearer than
+``target_gap_m`` to another wall. Where no press passes, the part gets no nudge.
 
 The walls are vertical, so a gripper clear of them at the press and at the end of the drag stays clear on the way
 straight down and back up: those two poses are all the wall check needs.
@@ -46,7 +58,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from robot.grasp_geometry import GripperGeometry, box_corners
 from robot.grasp_plan import GraspPlan, PartEstimate
@@ -58,6 +70,11 @@ from sygrid.transforms import invert, make_T, transform_points
 #: The planner's causes a nudge can help with: a wall or a neighbour in the fingers' way.
 NUDGE_CAUSES = ("collision_bin", "collision_parts")
 _TOP_BAND_M = 0.003  # surface points this close to a part's highest point are its top
+_FLAT_BAND_M = 0.001  # ... and this close, its flat top, which the pads may press on
+_FLAT_RADIUS_M = 0.001  # a press point needs a flat-top sample this close (the samples lie ~0.7 mm apart)
+_RIM_CLEARANCE_M = 0.001  # ... and no sample of a surface dropping away from the top (a hole, an edge) this close
+_HOLE_SECTORS = 8  # the middle of a hole: flat top in every one of these sectors around it
+_FOOT_BAND_M = 0.0005  # surface points this close to a part's lowest point are what stands on the floor
 
 
 @dataclass(frozen=True)
@@ -65,14 +82,19 @@ class NudgeConfig:
     """Settings of the nudge planner; metres, degrees and m/s.
 
     target_gap_m: drag until the part would be this far from the walls and the neighbour near it (its nearest
-    point); min_drag_m / max_drag_m bound the drag. near_m: walls and the nearest neighbour closer to the part than
-    this set the drag direction (the sum of the directions away from them); with none (the housing, not the
-    fingers, meets a wall further away), the part is dragged ``min_drag_m`` toward the bin centre.
+    point); min_drag_m / max_drag_m bound the drag (along the direction away from them). near_m: walls and the
+    nearest neighbour closer to the part than this set that direction (the sum of the directions away from them);
+    with none (the housing, not the fingers, meets a wall further away), the part is dragged ``min_drag_m`` toward
+    the bin centre. slants_deg: the drag directions tried, as turns (degrees, about the vertical) from that
+    direction, in order.
     press_depth_m: the lowest pad edge goes this far below the part's highest point. edge_margin_m: the pressing
-    edge stays this far inside the part's top. tilts_deg / turns_deg / press_offsets / retreat_m: the candidates,
-    tried in this order (press_offsets: 0 presses the top's centre, 1 its edge farthest from the wall; retreat_m:
-    how high above the press the straight line down starts, and the line up ends). speed_m_s: the press and the
-    drag.
+    edge stays this far inside the part's top. press_offsets / press_sideways: where on the top the pads press, as
+    shares of the top's reach from its centre along the drag and across it (0: the centre; 1: ``edge_margin_m``
+    inside its edge), tried in this order and kept where the flat top is under them and the tipping lever is long
+    enough. floor_friction: the part-on-floor friction coefficient the tipping check assumes (higher is safer: it
+    asks for a longer lever); 0 turns the check off.
+    tilts_deg / turns_deg / retreat_m: the candidates, tried in this order (retreat_m: how high above the press the
+    straight line down starts, and the line up ends). speed_m_s: the press and the drag.
     max_joint_step_rad: the largest joint change along each straight line.
     """
 
@@ -82,9 +104,12 @@ class NudgeConfig:
     near_m: float = 0.035
     press_depth_m: float = 0.002
     edge_margin_m: float = 0.004
+    floor_friction: float = 0.7
+    slants_deg: tuple[float, ...] = (0.0, 30.0, -30.0, 45.0, -45.0, 60.0, -60.0)
     tilts_deg: tuple[float, ...] = (0.0, 15.0, 30.0, 40.0, 45.0, 50.0, 55.0, 60.0, 65.0, 70.0)
     turns_deg: tuple[float, ...] = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0)
     press_offsets: tuple[float, ...] = (0.0, 0.5, 1.0)
+    press_sideways: tuple[float, ...] = (0.0, 0.5, -0.5, 1.0, -1.0)
     retreat_m: tuple[float, ...] = (0.05, 0.10, 0.15)
     speed_m_s: float = 0.05
     max_joint_step_rad: float = 1.0
@@ -95,10 +120,14 @@ class NudgeConfig:
                 raise ConfigError(f"NudgeConfig.{name} must be > 0, got {getattr(self, name)}")
         if self.min_drag_m > self.max_drag_m:
             raise ConfigError(f"NudgeConfig.min_drag_m {self.min_drag_m} is above max_drag_m {self.max_drag_m}")
-        if self.press_depth_m < 0 or self.edge_margin_m < 0:
-            raise ConfigError("NudgeConfig.press_depth_m and edge_margin_m must be >= 0")
-        if not (self.tilts_deg and self.turns_deg and self.press_offsets and self.retreat_m):
-            raise ConfigError("NudgeConfig: tilts_deg, turns_deg, press_offsets and retreat_m need a value each")
+        if self.press_depth_m < 0 or self.edge_margin_m < 0 or self.floor_friction < 0:
+            raise ConfigError("NudgeConfig.press_depth_m, edge_margin_m and floor_friction must be >= 0")
+        if not self.slants_deg or not all(abs(a) < 90.0 for a in self.slants_deg):
+            raise ConfigError(f"NudgeConfig.slants_deg needs values in (-90, 90), got {self.slants_deg}")
+        if not (self.tilts_deg and self.turns_deg and self.press_offsets and self.press_sideways and self.retreat_m):
+            raise ConfigError(
+                "NudgeConfig: tilts_deg, turns_deg, press_offsets, press_sideways and retreat_m need a value each"
+            )
         if not all(0.0 <= t < 90.0 for t in self.tilts_deg) or not all(r > 0 for r in self.retreat_m):
             raise ConfigError("NudgeConfig: tilts_deg must lie in [0, 90) and retreat_m be > 0")
 
@@ -194,20 +223,41 @@ class NudgePlanner:
         T_bin_base = invert(b.T_base_bin)
         points = transform_points(T_bin_base, surface)
         neighbours = None if neighbours_base is None else transform_points(T_bin_base, neighbours_base)
-        direction, distance = self._drag(points, np.array(b.inner_size_m[:2]) / 2.0, neighbours)
-        for T_start, T_end, tilt in self._drag_poses(points, direction, distance):
-            T_start, T_end = b.T_base_bin @ T_start, b.T_base_bin @ T_end
-            if not self._clear_of_bin(T_start, T_end):
-                continue
-            for back in self.config.retreat_m:
-                waypoints = self._waypoints(T_start, T_end, back, q_from, q_after)
-                if waypoints is not None:
-                    return PlannedNudge(
-                        part_index=part_index, obj_id=part.obj_id, cause=cause,
-                        T_base_obj=np.array(part.T_base_obj, dtype=float), direction=b.T_base_bin[:3, :3] @ direction,
-                        distance_m=distance, tilt_deg=tilt, speed_m_s=self.config.speed_m_s, **waypoints,
-                    )  # fmt: skip
+        half_xy = np.array(b.inner_size_m[:2]) / 2.0
+        away, distance = self._drag(points, half_xy, neighbours)
+        for direction, length in self._slanted(points, half_xy, away, distance):
+            for T_start, T_end, tilt in self._drag_poses(points, direction, length):
+                T_start, T_end = b.T_base_bin @ T_start, b.T_base_bin @ T_end
+                if not self._clear_of_bin(T_start, T_end):
+                    continue
+                for back in self.config.retreat_m:
+                    waypoints = self._waypoints(T_start, T_end, back, q_from, q_after)
+                    if waypoints is not None:
+                        return PlannedNudge(
+                            part_index=part_index, obj_id=part.obj_id, cause=cause,
+                            T_base_obj=np.array(part.T_base_obj, dtype=float),
+                            direction=b.T_base_bin[:3, :3] @ direction, distance_m=length, tilt_deg=tilt,
+                            speed_m_s=self.config.speed_m_s, **waypoints,
+                        )  # fmt: skip
         return None
+
+    def _slanted(
+        self, points: np.ndarray, half_xy: np.ndarray, away: np.ndarray, distance: float
+    ) -> Iterator[tuple[np.ndarray, float]]:
+        """The drags to try, ``(direction, length)`` in the bin frame: ``away`` turned by each of ``slants_deg``,
+        as long as it takes to move the part ``distance`` along ``away``; a slanted one only if it leaves the part
+        at least ``target_gap_m`` (or its present gap, if smaller) from every wall."""
+        cfg = self.config
+        before = _wall_gaps(points, half_xy)
+        for slant in cfg.slants_deg:
+            c, s = math.cos(math.radians(slant)), math.sin(math.radians(slant))
+            direction = np.array([c * away[0] - s * away[1], s * away[0] + c * away[1], 0.0])
+            length = distance / c
+            if slant != 0.0:
+                after = _wall_gaps(points + length * direction, half_xy)
+                if np.any(after < np.minimum(before, cfg.target_gap_m) - 1e-9):
+                    continue
+            yield direction, length
 
     def _drag_poses(
         self, points: np.ndarray, direction: np.ndarray, distance: float
@@ -218,10 +268,23 @@ class NudgePlanner:
         z_top = float(points[:, 2].max())
         top = points[points[:, 2] > z_top - _TOP_BAND_M, :2]
         centre = top.mean(axis=0)
-        reach = max(float(((top - centre) @ direction[:2]).max()) - cfg.edge_margin_m, 0.0)
-        for offset, tilt, turn in itertools.product(cfg.press_offsets, cfg.tilts_deg, cfg.turns_deg):
+        u = direction[:2]
+        side = np.array([-u[1], u[0]])
+        reach = max(float(((top - centre) @ u).max()) - cfg.edge_margin_m, 0.0)
+        reach_side = max(float(np.abs((top - centre) @ side).max()) - cfg.edge_margin_m, 0.0)
+        # statics (module docstring): at the onset of sliding the floor's centre of pressure lies mu h ahead of the
+        # press; the part tips unless that point is inside its footprint
+        z_floor = float(points[:, 2].min())
+        footprint = points[points[:, 2] < z_floor + _FOOT_BAND_M, :2]
+        shift = cfg.floor_friction * (z_top - z_floor) * u
+        presses = [
+            centre + o * reach * u + s * reach_side * side
+            for o, s in itertools.product(cfg.press_offsets, cfg.press_sideways)
+        ]
+        presses = _pressable(points, z_top, [p for p in presses if _inside(footprint, p + shift)])
+        for press, tilt, turn in itertools.product(presses, cfg.tilts_deg, cfg.turns_deg):
             R = _paddle_rotation(direction, tilt, turn)
-            edge = np.array([*(centre + offset * reach * direction[:2]), z_top - cfg.press_depth_m])
+            edge = np.array([*press, z_top - cfg.press_depth_m])
             T_press = make_T(R, edge - _lowest_pad_point(R, g))
             yield T_press, make_T(R, T_press[:3, 3] + distance * direction), float(tilt)
 
@@ -234,10 +297,7 @@ class NudgePlanner:
         from the walls and the nearest neighbour closer than ``near_m`` (the sum of those directions), until
         the nearest of them would be ``target_gap_m`` away."""
         cfg = self.config
-        gaps = [
-            half_xy[0] - points_bin[:, 0].max(), half_xy[0] + points_bin[:, 0].min(),
-            half_xy[1] - points_bin[:, 1].max(), half_xy[1] + points_bin[:, 1].min(),
-        ]  # fmt: skip
+        gaps = list(_wall_gaps(points_bin, half_xy))
         away = [[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]]  # from each wall, inwards
         if neighbours_bin is not None and len(neighbours_bin):
             dist, nearest = cKDTree(points_bin[:, :2]).query(neighbours_bin[:, :2])
@@ -301,6 +361,44 @@ class NudgePlanner:
             "T_base_above": T_above, "T_base_press": T_press, "T_base_end": T_end, "T_base_retreat": T_retreat,
             "q_above": q[0], "q_press": q[1], "q_end": q[2], "q_retreat": q[3],
         }  # fmt: skip
+
+
+def _pressable(points: np.ndarray, z_top: float, presses: list[np.ndarray]) -> list[np.ndarray]:
+    """The press points (bin-frame xy) where the pads may press on a part (its surface samples ``points``, bin
+    frame): on its flat top, no hole or edge next to them; or the middle of a hole in the top (the flat top rings
+    it within ``_RIM_CLEARANCE_M``, all round), where the lowest pad corner sinks in and the pads bear on the rim all
+    round it. Off the middle of a hole the pads would catch its far rim and push the part over."""
+    top = points[:, 2] > z_top - _TOP_BAND_M
+    flat = points[:, 2] > z_top - _FLAT_BAND_M
+    flat_xy = points[flat, :2]
+    on_flat = cKDTree(flat_xy)
+    dropping = cKDTree(points[top & ~flat, :2]) if np.any(top & ~flat) else None
+    kept = []
+    for p in presses:
+        gap = float(on_flat.query(p)[0])
+        if gap <= _FLAT_RADIUS_M:
+            if dropping is None or dropping.query(p)[0] >= _RIM_CLEARANCE_M:
+                kept.append(p)
+            continue
+        ring = flat_xy[on_flat.query_ball_point(p, gap + _RIM_CLEARANCE_M)] - p
+        sectors = np.unique(np.floor((np.arctan2(ring[:, 1], ring[:, 0]) + np.pi) / (2 * np.pi) * _HOLE_SECTORS))
+        if len(sectors) == _HOLE_SECTORS:
+            kept.append(p)
+    return kept
+
+
+def _inside(footprint: np.ndarray, point: np.ndarray) -> bool:
+    """``point`` (xy) lies in the convex hull of the ``footprint`` points (xy); False for a degenerate footprint."""
+    try:
+        return bool(Delaunay(footprint).find_simplex(point) >= 0)
+    except QhullError:  # fewer than 3 points, or all on a line: nothing to stand on
+        return False
+
+
+def _wall_gaps(points_bin: np.ndarray, half_xy: np.ndarray) -> np.ndarray:
+    """The gaps (m) from a part's points (bin frame) to the walls at +x, -x, +y and -y."""
+    lo, hi = points_bin[:, :2].min(axis=0), points_bin[:, :2].max(axis=0)
+    return np.array([half_xy[0] - hi[0], half_xy[0] + lo[0], half_xy[1] - hi[1], half_xy[1] + lo[1]])
 
 
 def _paddle_rotation(direction: np.ndarray, tilt_deg: float, turn_deg: float) -> np.ndarray:

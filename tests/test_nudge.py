@@ -28,7 +28,7 @@ GEAR_RADIUS = GEAR.extents_m[0] / 2
 @pytest.fixture(scope="module")
 def nudger(tmp_path_factory: pytest.TempPathFactory) -> NudgePlanner:
     cache = tmp_path_factory.mktemp("grasp_cache")
-    models = [GEAR, builtin_part("hex_nut")]
+    models = [GEAR, builtin_part("hex_nut"), builtin_part("pipe")]
     planner = GraspPlanner(models, PlannerConfig(grasp_params=PARAMS), cache_dir=cache)
     return NudgePlanner(planner)
 
@@ -60,8 +60,7 @@ def test_a_gear_in_a_corner_is_pressed_on_its_top_and_dragged_away_from_both_wal
     # the tool leans away from the walls (the housing clears them) and the lowest pad edge presses on the gear's top
     assert nudge.tilt_deg > 0 and nudge.T_base_press[:3, 2] @ nudge.direction < 0
     g = planner.config.gripper
-    pads = transform_points(nudge.T_base_press, box_corners(g.boxes(0.0)[:2]))
-    lowest = pads[pads[:, 2] < pads[:, 2].min() + 1e-4].mean(axis=0)
+    lowest = _lowest_pad_point(nudger, nudge)
     assert lowest[2] == pytest.approx(FLOOR_Z + GEAR.extents_m[2] - NudgeConfig().press_depth_m, abs=2e-4)
     assert np.linalg.norm(lowest[:2] - T[:2, 3]) < GEAR_RADIUS - NudgeConfig().edge_margin_m + 1e-6
     # every pose of the motion keeps the closed gripper off the walls, and the joint solutions reach the poses
@@ -87,25 +86,56 @@ def test_only_parts_left_for_a_wall_or_the_cone_are_nudged_and_skip_is_honoured(
     assert nudger.plan(corner, np.eye(4), plan, q, q, skip=lambda i: i == 0) is None
 
 
-def test_a_nut_near_the_middle_of_a_wall_is_dragged_straight_out_but_not_one_flush_against_it(nudger):
+def test_a_nut_near_a_long_wall_is_not_dragged_where_the_drag_would_tip_it(nudger):
     planner = nudger.planner
     q = planner.q_reference
     nut = builtin_part("hex_nut")
-
-    def nut_at(gap_m: float) -> list[ObjectPose]:
-        return _poses(make_T(t=(-0.5, WALL_YN + gap_m + nut.extents_m[1] / 2, FLOOR_Z + nut.extents_m[2] / 2)),
-                      obj_id=nut.obj_id)  # fmt: skip
-
-    near, flush = nut_at(0.008), nut_at(0.001)
+    T = make_T(t=(-0.5, WALL_YN + 0.008 + nut.extents_m[1] / 2, FLOOR_Z + nut.extents_m[2] / 2))
+    near = _poses(T, obj_id=nut.obj_id)
     plan = planner.plan(near, np.eye(4))
     assert plan.parts[0].status == "collision_bin"
-    nudge = nudger.plan(near, np.eye(4), plan, q, q)
+    # the only presses that keep the gripper off both long walls are near the nut's edge away from the wall ...
+    unchecked = NudgePlanner(planner, NudgeConfig(floor_friction=0.0)).plan(near, np.eye(4), plan, q, q)
+    np.testing.assert_allclose(unchecked.direction, [0.0, 1.0, 0.0], atol=1e-9)
+    lever = T[1, 3] + nut.extents_m[1] / 2 - _lowest_pad_point(nudger, unchecked)[1]
+    # ... less than the simulated floor's friction (0.5) x the nut's height behind its leading flat: it would tip
+    assert lever < 0.5 * nut.extents_m[2]
+    assert nudger.plan(near, np.eye(4), plan, q, q) is None
+
+
+def test_a_nut_is_pressed_in_the_middle_of_its_hole_and_the_drag_keeps_it_standing(nudger):
+    q = nudger.planner.q_reference
+    nut = builtin_part("hex_nut")
+    cfg = NudgeConfig()
+    T = make_T(t=(WALL_XP - 0.006 - nut.extents_m[0] / 2, 0.0, FLOOR_Z + nut.extents_m[2] / 2))
+    nudge = nudger.plan_part(PartEstimate(nut.obj_id, T), 0, "collision_bin", q, q)
     assert nudge is not None
-    np.testing.assert_allclose(nudge.direction, [0.0, 1.0, 0.0], atol=1e-9)
-    assert nudge.distance_m == pytest.approx(NudgeConfig().target_gap_m - 0.008, abs=1e-3)
-    # flush against the wall, the pads cannot reach the nut's top without touching the wall: no nudge
-    plan = planner.plan(flush, np.eye(4))
-    assert plan.parts[0].status == "collision_bin" and nudger.plan(flush, np.eye(4), plan, q, q) is None
+    np.testing.assert_allclose(nudge.direction, [-1.0, 0.0, 0.0], atol=1e-9)
+    press = _lowest_pad_point(nudger, nudge)
+    assert np.linalg.norm(press[:2] - T[:2, 3]) < 1e-3  # the middle of the hole (the nut's axis)
+    assert press[2] == pytest.approx(FLOOR_Z + nut.extents_m[2] - cfg.press_depth_m, abs=2e-4)
+    # where the floor's reaction acts when the nut starts to slide: inside its bearing face (0.95 x 18 mm across)
+    pressure = press[:2] + cfg.floor_friction * nut.extents_m[2] * nudge.direction[:2]
+    assert np.linalg.norm(pressure - T[:2, 3]) < 0.95 * 0.018 / 2
+
+
+def test_a_pipe_lying_along_a_wall_is_not_dragged_across_its_axis_where_it_would_roll(nudger):
+    q = nudger.planner.q_reference
+    pipe = builtin_part("pipe")
+    radius = pipe.extents_m[0] / 2
+    # lying along the +x wall (its axis along y), 6 mm from it: every drag away from the wall has a part across
+    lying = make_T(np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]]),
+                   (WALL_XP - 0.006 - radius, 0.0, FLOOR_Z + radius))  # fmt: skip
+    part = PartEstimate(pipe.obj_id, lying)
+    assert nudger.plan_part(part, 0, "collision_bin", q, q) is None
+    unchecked = NudgePlanner(nudger.planner, NudgeConfig(floor_friction=0.0))
+    assert unchecked.plan_part(part, 0, "collision_bin", q, q) is not None
+
+
+def _lowest_pad_point(nudger: NudgePlanner, nudge) -> np.ndarray:
+    """Where the closed pads are lowest at the press (base frame): the middle of their lowest edge or corner."""
+    pads = transform_points(nudge.T_base_press, box_corners(nudger.planner.config.gripper.boxes(0.0)[:2]))
+    return pads[pads[:, 2] < pads[:, 2].min() + 1e-4].mean(axis=0)
 
 
 def test_a_part_pressed_against_a_neighbour_is_dragged_away_from_it(nudger):
@@ -129,6 +159,10 @@ def test_bad_nudge_settings_name_the_field(nudger):
         NudgeConfig(speed_m_s=0.0)
     with pytest.raises(ConfigError, match="tilts_deg"):
         NudgeConfig(tilts_deg=(95.0,))
+    with pytest.raises(ConfigError, match="slants_deg"):
+        NudgeConfig(slants_deg=(0.0, 90.0))
+    with pytest.raises(ConfigError, match="floor_friction"):
+        NudgeConfig(floor_friction=-0.1)
     with pytest.raises(ConfigError, match="no bin"):
         NudgePlanner(GraspPlanner([GEAR], PlannerConfig(grasp_params=PARAMS, bin=None),
                                   cache_dir=nudger.planner.cache_dir))  # fmt: skip

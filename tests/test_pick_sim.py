@@ -179,6 +179,29 @@ def test_a_gear_in_a_corner_is_nudged_out_and_then_picked(fresh):
     _assert_complete(report)
 
 
+def test_a_nut_near_a_wall_is_dragged_out_by_the_middle_of_its_hole_without_tipping_and_then_picked(fresh):
+    picker, process, start = fresh
+    nut = _nut(process)
+    cfg = CellConfig()
+    extents = builtin_part("hex_nut").extents_m
+    # flat, 12 mm from the +y wall (bin frame): too close for a finger. The press is the middle of the nut's hole
+    # (robot.nudge): a press on the top's ring nearer its leading edge would tip it over.
+    T_bin_nut = make_T(t=(0.0, cfg.bin_inner_size_m[1] / 2 - 0.012 - extents[1] / 2, extents[2] / 2 + 0.0005))
+    _keep_only(process, start, nut, cfg.T_world_bin @ T_bin_nut)
+    time.sleep(0.3)
+    nudged = picker.run(max_cycles=1).cycles[0]
+    assert nudged.end == "nudged" and nudged.nudge["cause"] == "collision_bin", nudged.plan_summary
+    assert nudged.nudge["outcome"] == "done", nudged.nudge
+    time.sleep(0.3)
+    T_bin_after = invert(cfg.T_world_bin) @ process.part_poses()[nut]
+    assert abs(T_bin_after[2, 2]) > 0.95, "the nut still lies flat"
+    assert T_bin_after[1, 3] < T_bin_nut[1, 3] - 0.01, "the nut has moved away from the wall"
+    report = picker.run(max_cycles=3)
+    assert report.stop_reason == "bin_empty", (report.stop_detail, [c.end for c in report.cycles])
+    assert report.n_picked == 1
+    _assert_no_protective_stop(picker, report)
+
+
 def test_an_l_bracket_standing_on_its_sheet_edges_is_picked_by_a_pinch_of_the_sheet(fresh):
     """Standing on its sheet edges an L-bracket's only grasps pinch the 2 mm sheet: the gripper's object detection
     reads "no object" (the pads squeeze the sheet to 1.3 mm, under its 1.5 mm), but the fingers stopped apart
