@@ -225,11 +225,15 @@ class NudgePlanner:
         neighbours = None if neighbours_base is None else transform_points(T_bin_base, neighbours_base)
         half_xy = np.array(b.inner_size_m[:2]) / 2.0
         away, distance = self._drag(points, half_xy, neighbours)
+        footprint = _footprint(points)
         for direction, length in self._slanted(points, half_xy, away, distance):
-            for T_start, T_end, tilt in self._drag_poses(points, direction, length):
-                T_start, T_end = b.T_base_bin @ T_start, b.T_base_bin @ T_end
-                if not self._clear_of_bin(T_start, T_end):
-                    continue
+            candidates = list(self._drag_poses(points, footprint, direction, length))
+            if not candidates:
+                continue
+            T_starts = b.T_base_bin @ np.stack([c[0] for c in candidates])
+            T_ends = b.T_base_bin @ np.stack([c[1] for c in candidates])
+            for k in np.flatnonzero(self._clear_of_bin(T_starts, T_ends)):
+                T_start, T_end, tilt = T_starts[k], T_ends[k], candidates[k][2]
                 for back in self.config.retreat_m:
                     waypoints = self._waypoints(T_start, T_end, back, q_from, q_after)
                     if waypoints is not None:
@@ -260,10 +264,10 @@ class NudgePlanner:
             yield direction, length
 
     def _drag_poses(
-        self, points: np.ndarray, direction: np.ndarray, distance: float
+        self, points: np.ndarray, footprint: Delaunay | None, direction: np.ndarray, distance: float
     ) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
-        """The candidate ``(T_press, T_end, tilt_deg)`` of a drag of a part (surface points in the bin frame) along
-        ``direction`` by ``distance``, in the order to try them; TCP poses in the bin frame."""
+        """The candidate ``(T_press, T_end, tilt_deg)`` of a drag of a part (surface points in the bin frame,
+        ``_footprint``) along ``direction`` by ``distance``, in the order to try them; TCP poses in the bin frame."""
         cfg, g = self.config, self.planner.config.gripper
         z_top = float(points[:, 2].max())
         top = points[points[:, 2] > z_top - _TOP_BAND_M, :2]
@@ -274,14 +278,15 @@ class NudgePlanner:
         reach_side = max(float(np.abs((top - centre) @ side).max()) - cfg.edge_margin_m, 0.0)
         # statics (module docstring): at the onset of sliding the floor's centre of pressure lies mu h ahead of the
         # press; the part tips unless that point is inside its footprint
-        z_floor = float(points[:, 2].min())
-        footprint = points[points[:, 2] < z_floor + _FOOT_BAND_M, :2]
-        shift = cfg.floor_friction * (z_top - z_floor) * u
+        shift = cfg.floor_friction * (z_top - float(points[:, 2].min())) * u
         presses = [
             centre + o * reach * u + s * reach_side * side
             for o, s in itertools.product(cfg.press_offsets, cfg.press_sideways)
         ]
-        presses = _pressable(points, z_top, [p for p in presses if _inside(footprint, p + shift)])
+        if footprint is None:
+            return
+        standing = footprint.find_simplex(np.array(presses) + shift) >= 0
+        presses = _pressable(points, z_top, [p for p, ok in zip(presses, standing, strict=True) if ok])
         for press, tilt, turn in itertools.product(presses, cfg.tilts_deg, cfg.turns_deg):
             R = _paddle_rotation(direction, tilt, turn)
             edge = np.array([*press, z_top - cfg.press_depth_m])
@@ -317,15 +322,19 @@ class NudgePlanner:
         direction = direction / norm if norm > 1e-9 else np.array([1.0, 0.0])
         return np.array([direction[0], direction[1], 0.0]), distance
 
-    def _clear_of_bin(self, T_press: np.ndarray, T_end: np.ndarray) -> bool:
-        """The closed gripper keeps ``bin_clearance_m`` from the walls at the press and the end of the drag, and
-        stays above the floor at the press (the part is not too thin to press)."""
+    def _clear_of_bin(self, T_press: np.ndarray, T_end: np.ndarray) -> np.ndarray:
+        """``(k,)`` per candidate (``(k, 4, 4)`` TCP poses at the press and the end of the drag): the closed
+        gripper keeps ``bin_clearance_m`` from the walls at both, and stays above the floor at the press (the part
+        is not too thin to press)."""
         pcfg = self.planner.config
         closed = pcfg.gripper.boxes(0.0)
-        gap = self.planner.collision.wall_gap_m(np.stack([T_press, T_end]), np.stack([closed, closed]))
-        if gap.min() < pcfg.bin_clearance_m:
-            return False
-        return bool(pcfg.bin.height_above_floor_m(transform_points(T_press, box_corners(closed))).min() >= 0.0)
+        k = len(T_press)
+        boxes = np.broadcast_to(closed, (2 * k, *closed.shape))
+        gap = self.planner.collision.wall_gap_m(np.concatenate([T_press, T_end]), boxes).reshape(2, k).min(axis=0)
+        corners = box_corners(closed).reshape(-1, 3)
+        at_press = corners @ T_press[:, :3, :3].transpose(0, 2, 1) + T_press[:, None, :3, 3]
+        lowest = pcfg.bin.height_above_floor_m(at_press)
+        return (gap >= pcfg.bin_clearance_m) & (lowest.min(axis=1) >= 0.0)
 
     def _waypoints(
         self, T_press: np.ndarray, T_end: np.ndarray, back: float, q_from: np.ndarray, q_after: np.ndarray
@@ -387,12 +396,13 @@ def _pressable(points: np.ndarray, z_top: float, presses: list[np.ndarray]) -> l
     return kept
 
 
-def _inside(footprint: np.ndarray, point: np.ndarray) -> bool:
-    """``point`` (xy) lies in the convex hull of the ``footprint`` points (xy); False for a degenerate footprint."""
+def _footprint(points: np.ndarray) -> Delaunay | None:
+    """What a part (surface samples, bin frame) stands on: the convex hull of its lowest points (xy), for point
+    tests; None when they span no area (nothing to stand on)."""
     try:
-        return bool(Delaunay(footprint).find_simplex(point) >= 0)
-    except QhullError:  # fewer than 3 points, or all on a line: nothing to stand on
-        return False
+        return Delaunay(points[points[:, 2] < float(points[:, 2].min()) + _FOOT_BAND_M, :2])
+    except (QhullError, ValueError):  # fewer than 3 points, or all on a line
+        return None
 
 
 def _wall_gaps(points_bin: np.ndarray, half_xy: np.ndarray) -> np.ndarray:
