@@ -9,7 +9,7 @@ reports the parts cleared (picked out of the bin), the first cycle's end, how th
 (tipped: its up axis turned by more than ``TIP_DEG``; stayed: moved less than ``STAYED_MM`` away from the wall)
 and the nudges per trial.
 
-Variants: ``straight`` (the drags straight away from the wall, pressed anywhere on the flat top: no tipping check),
+Variants: ``straight`` (drags straight away from the wall only, no tipping check: the planner before it had one),
 ``statics_0.5`` (the tipping check with the simulated floor's friction, 0.5) and ``statics`` (the planner's
 default). Writes ``bench/results/nudge.json`` and ``nudge.png``; the emulator runs in real time (a trial takes
 up to half a minute).
@@ -42,7 +42,7 @@ PARTS = ("hex_nut", "spur_gear", "hex_bolt", "pipe")
 # the resting pose of each part on the floor, before the turn about the vertical: flat, or lying on its side
 _LYING = {"hex_nut": False, "spur_gear": False, "hex_bolt": True, "pipe": True}
 VARIANTS: dict[str, NudgeConfig] = {
-    "straight": NudgeConfig(floor_friction=0.0, slants_deg=(0.0,), press_sideways=(0.0,)),
+    "straight": NudgeConfig(floor_friction=0.0, roll_deg=90.0, slants_deg=(0.0,), press_sideways=(0.0,)),
     "statics_0.5": NudgeConfig(floor_friction=0.5),
     "statics": NudgeConfig(),
 }
@@ -101,7 +101,10 @@ def _names(text: str, known: Any, option: str) -> list[str]:
 
 
 def _config_summary(cfg: NudgeConfig) -> dict[str, Any]:
-    return {"floor_friction": cfg.floor_friction, "slants_deg": cfg.slants_deg, "press_sideways": cfg.press_sideways}
+    return {
+        "floor_friction": cfg.floor_friction, "roll_deg": cfg.roll_deg, "slants_deg": cfg.slants_deg,
+        "press_sideways": cfg.press_sideways,
+    }  # fmt: skip
 
 
 def _cell(parts: list[str]):

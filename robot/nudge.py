@@ -28,10 +28,12 @@ top along with a friction force F at its height h and press it down with N; the 
 A force-limited press pushes with newtons, far above a small part's weight, so the part slides rather than tips
 only if d >= mu h. So the pads press where that holds; on the flat top, not beside a hole or an edge (they would
 catch its rim), or in the middle of a hole, where the lowest pad corner sinks in and the pads bear on the rim all
-round. A part lying on its side rolls under a drag across its axis (the lever is about zero), which the same test
-refuses. Drags slanted along the wall (``slants_deg``) measure the lever along other directions; they go
-``1 / cos(slant)`` times as far, to leave the same gap from the wall, and never bring the part nearer than
-``target_gap_m`` to another wall. Where no press passes, the part gets no nudge.
+round. A part that topples easily is not held to this: one lying on its side (a bolt, a pipe), whose centre
+passes over the leading edge of its footprint within ``roll_deg`` of tilt, rolls on under the drag, away from the
+wall, which is what the drag is for; a flat nut has to tip by about 60 degrees, so the pads lift it onto its edge
+and it falls back where it was. Drags slanted along the wall (``slants_deg``) measure the lever along other
+directions; they go ``1 / cos(slant)`` times as far, to leave the same gap from the wall, and never bring the part
+nearer than ``target_gap_m`` to another wall. Where no press passes, the part gets no nudge.
 
 The walls are vertical, so a gripper clear of them at the press and at the end of the drag stays clear on the way
 straight down and back up: those two poses are all the wall check needs.
@@ -58,7 +60,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from robot.grasp_geometry import GripperGeometry, box_corners
 from robot.grasp_plan import GraspPlan, PartEstimate
@@ -92,7 +94,10 @@ class NudgeConfig:
     shares of the top's reach from its centre along the drag and across it (0: the centre; 1: ``edge_margin_m``
     inside its edge), tried in this order and kept where the flat top is under them and the tipping lever is long
     enough. floor_friction: the part-on-floor friction coefficient the tipping check assumes (higher is safer: it
-    asks for a longer lever); 0 turns the check off.
+    asks for a longer lever; 0 asks only that the pads press above the footprint). roll_deg: a part whose centre
+    passes over the leading edge of its footprint within this tilt is not held to the check: tipped, it rolls or
+    topples on, away from the wall (a bolt or a pipe lying on its side), where a part that needs more is only
+    lifted onto the edge and falls back.
     tilts_deg / turns_deg / retreat_m: the candidates, tried in this order (retreat_m: how high above the press the
     straight line down starts, and the line up ends). speed_m_s: the press and the drag.
     max_joint_step_rad: the largest joint change along each straight line.
@@ -105,6 +110,7 @@ class NudgeConfig:
     press_depth_m: float = 0.002
     edge_margin_m: float = 0.004
     floor_friction: float = 0.7
+    roll_deg: float = 45.0
     slants_deg: tuple[float, ...] = (0.0, 30.0, -30.0, 45.0, -45.0, 60.0, -60.0)
     tilts_deg: tuple[float, ...] = (0.0, 15.0, 30.0, 40.0, 45.0, 50.0, 55.0, 60.0, 65.0, 70.0)
     turns_deg: tuple[float, ...] = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0)
@@ -122,6 +128,8 @@ class NudgeConfig:
             raise ConfigError(f"NudgeConfig.min_drag_m {self.min_drag_m} is above max_drag_m {self.max_drag_m}")
         if self.press_depth_m < 0 or self.edge_margin_m < 0 or self.floor_friction < 0:
             raise ConfigError("NudgeConfig.press_depth_m, edge_margin_m and floor_friction must be >= 0")
+        if not 0.0 <= self.roll_deg <= 90.0:
+            raise ConfigError(f"NudgeConfig.roll_deg must lie in [0, 90], got {self.roll_deg}")
         if not self.slants_deg or not all(abs(a) < 90.0 for a in self.slants_deg):
             raise ConfigError(f"NudgeConfig.slants_deg needs values in (-90, 90), got {self.slants_deg}")
         if not (self.tilts_deg and self.turns_deg and self.press_offsets and self.press_sideways and self.retreat_m):
@@ -264,10 +272,11 @@ class NudgePlanner:
             yield direction, length
 
     def _drag_poses(
-        self, points: np.ndarray, footprint: Delaunay | None, direction: np.ndarray, distance: float
+        self, points: np.ndarray, footprint: np.ndarray | None, direction: np.ndarray, distance: float
     ) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
-        """The candidate ``(T_press, T_end, tilt_deg)`` of a drag of a part (surface points in the bin frame,
-        ``_footprint``) along ``direction`` by ``distance``, in the order to try them; TCP poses in the bin frame."""
+        """The candidate ``(T_press, T_end, tilt_deg)`` of a drag of a part (surface points in the bin frame, what
+        it stands on as ``_footprint``) along ``direction`` by ``distance``, in the order to try them; TCP poses in
+        the bin frame."""
         cfg, g = self.config, self.planner.config.gripper
         z_top = float(points[:, 2].max())
         top = points[points[:, 2] > z_top - _TOP_BAND_M, :2]
@@ -276,17 +285,17 @@ class NudgePlanner:
         side = np.array([-u[1], u[0]])
         reach = max(float(((top - centre) @ u).max()) - cfg.edge_margin_m, 0.0)
         reach_side = max(float(np.abs((top - centre) @ side).max()) - cfg.edge_margin_m, 0.0)
-        # statics (module docstring): at the onset of sliding the floor's centre of pressure lies mu h ahead of the
-        # press; the part tips unless that point is inside its footprint
-        shift = cfg.floor_friction * (z_top - float(points[:, 2].min())) * u
         presses = [
             centre + o * reach * u + s * reach_side * side
             for o, s in itertools.product(cfg.press_offsets, cfg.press_sideways)
         ]
-        if footprint is None:
-            return
-        standing = footprint.find_simplex(np.array(presses) + shift) >= 0
-        presses = _pressable(points, z_top, [p for p, ok in zip(presses, standing, strict=True) if ok])
+        if footprint is not None and _roll_deg(points, footprint, u) >= cfg.roll_deg:
+            # statics (module docstring): at the onset of sliding the floor's centre of pressure lies mu h ahead of
+            # the press; the part tips (and falls back) unless that point is inside its footprint
+            shift = cfg.floor_friction * (z_top - float(points[:, 2].min())) * u
+            standing = np.all((np.array(presses) + shift) @ footprint[:, :2].T + footprint[:, 2] <= 0.0, axis=1)
+            presses = [p for p, ok in zip(presses, standing, strict=True) if ok]
+        presses = _pressable(points, z_top, presses)
         for press, tilt, turn in itertools.product(presses, cfg.tilts_deg, cfg.turns_deg):
             R = _paddle_rotation(direction, tilt, turn)
             edge = np.array([*press, z_top - cfg.press_depth_m])
@@ -396,13 +405,27 @@ def _pressable(points: np.ndarray, z_top: float, presses: list[np.ndarray]) -> l
     return kept
 
 
-def _footprint(points: np.ndarray) -> Delaunay | None:
-    """What a part (surface samples, bin frame) stands on: the convex hull of its lowest points (xy), for point
-    tests; None when they span no area (nothing to stand on)."""
+def _footprint(points: np.ndarray) -> np.ndarray | None:
+    """What a part (surface samples, bin frame) stands on: the convex hull of its lowest points (xy) as ``(k, 3)``
+    edge lines ``(nx, ny, c)``, ``n . p + c <= 0`` inside, ``n`` a unit outward normal; None for a line contact
+    (the points span no area: a lying cylinder), which rolls whichever way it is dragged."""
+    foot = points[points[:, 2] < float(points[:, 2].min()) + _FOOT_BAND_M, :2]
     try:
-        return Delaunay(points[points[:, 2] < float(points[:, 2].min()) + _FOOT_BAND_M, :2])
+        return ConvexHull(foot).equations
     except (QhullError, ValueError):  # fewer than 3 points, or all on a line
         return None
+
+
+def _roll_deg(points: np.ndarray, footprint: np.ndarray, direction_xy: np.ndarray) -> float:
+    """How far (degrees) a part (surface samples, bin frame; ``footprint`` from ``_footprint``) must tip about the
+    edge of its footprint that a drag along ``direction_xy`` tips it over (the edge the drag's line through its
+    centre leaves by) before its centre (the samples' mean, for the centre of mass) passes over that edge."""
+    centre = points.mean(axis=0)
+    inside = -(footprint[:, :2] @ centre[:2] + footprint[:, 2])  # the centre's distance to each edge (> 0 inside)
+    ahead = footprint[:, :2] @ direction_xy
+    edges = np.flatnonzero(ahead > 1e-9)
+    lever = float(inside[edges[np.argmin(inside[edges] / ahead[edges])]]) if len(edges) else 0.0
+    return math.degrees(math.atan2(max(lever, 0.0), centre[2] - float(points[:, 2].min())))
 
 
 def _wall_gaps(points_bin: np.ndarray, half_xy: np.ndarray) -> np.ndarray:

@@ -119,17 +119,19 @@ def test_a_nut_is_pressed_in_the_middle_of_its_hole_and_the_drag_keeps_it_standi
     assert np.linalg.norm(pressure - T[:2, 3]) < 0.95 * 0.018 / 2
 
 
-def test_a_pipe_lying_along_a_wall_is_not_dragged_across_its_axis_where_it_would_roll(nudger):
+def test_a_pipe_lying_along_a_wall_is_rolled_away_from_it_where_a_flat_part_would_be_refused(nudger):
     q = nudger.planner.q_reference
     pipe = builtin_part("pipe")
     radius = pipe.extents_m[0] / 2
-    # lying along the +x wall (its axis along y), 6 mm from it: every drag away from the wall has a part across
+    # lying along the +x wall (its axis along y), 6 mm from it: a drag away from the wall rolls it (its centre is
+    # over its line of contact), which moves it away from the wall as a slide would
     lying = make_T(np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]]),
                    (WALL_XP - 0.006 - radius, 0.0, FLOOR_Z + radius))  # fmt: skip
     part = PartEstimate(pipe.obj_id, lying)
-    assert nudger.plan_part(part, 0, "collision_bin", q, q) is None
-    unchecked = NudgePlanner(nudger.planner, NudgeConfig(floor_friction=0.0))
-    assert unchecked.plan_part(part, 0, "collision_bin", q, q) is not None
+    nudge = nudger.plan_part(part, 0, "collision_bin", q, q)
+    assert nudge is not None and nudge.direction @ np.array([-1.0, 0.0, 0.0]) > 0.5
+    # held to the tipping check like a flat part, it would get none: no press keeps a lying pipe from rolling
+    assert NudgePlanner(nudger.planner, NudgeConfig(roll_deg=0.0)).plan_part(part, 0, "collision_bin", q, q) is None
 
 
 def _lowest_pad_point(nudger: NudgePlanner, nudge) -> np.ndarray:
@@ -163,6 +165,8 @@ def test_bad_nudge_settings_name_the_field(nudger):
         NudgeConfig(slants_deg=(0.0, 90.0))
     with pytest.raises(ConfigError, match="floor_friction"):
         NudgeConfig(floor_friction=-0.1)
+    with pytest.raises(ConfigError, match="roll_deg"):
+        NudgeConfig(roll_deg=120.0)
     with pytest.raises(ConfigError, match="no bin"):
         NudgePlanner(GraspPlanner([GEAR], PlannerConfig(grasp_params=PARAMS, bin=None),
                                   cache_dir=nudger.planner.cache_dir))  # fmt: skip
