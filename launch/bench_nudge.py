@@ -252,7 +252,7 @@ def format_results(results: dict[str, Any]) -> str:
 
 
 def chart(results: dict[str, Any]):
-    """Per variant and part: the share cleared, and how the first nudges left the parts (moved, tipped, stayed)."""
+    """Per variant and part: the share cleared, and how the first nudges left the parts (turned over, not moved)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -269,15 +269,16 @@ def chart(results: dict[str, Any]):
         nudged = np.array([max(s[p]["first_nudged"], 1) for p in parts], dtype=float)
         tipped = np.array([s[p]["tipped"] for p in parts]) / nudged
         stayed = np.array([s[p]["stayed"] for p in parts]) / nudged
-        ax2.bar(x + k * width, tipped, width, color=f"C{k}", label=f"{name}: tipped")
+        ax2.bar(x + k * width, tipped, width, color=f"C{k}", label=f"{name}: turned over")
         ax2.bar(x + k * width, stayed, width, bottom=tipped, color=f"C{k}", alpha=0.4, hatch="//",
-                label=f"{name}: stayed")  # fmt: skip
-    for ax, title in ((ax1, "parts cleared"), (ax2, "first nudges that tipped or did not move the part")):
+                label=f"{name}: not moved")  # fmt: skip
+    titles = (ax1, "parts cleared"), (ax2, "first nudges: the part turned over (rolled, tipped) or not moved")
+    for ax, title in titles:
         ax.set_xticks(x + width * (len(names) - 1) / 2, parts)
         ax.set_ylim(0, 1.05)
         ax.set_title(title)
-    ax1.legend(fontsize=8)
-    ax2.legend(fontsize=7)
+    ax1.legend(fontsize=8, loc="lower left")
+    ax2.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.suptitle(
         f"sygrid bench nudge: {results['trials_per_part']} trials per part, gap to the wall "
         f"{results['gap_mm'][0]:.0f}-{results['gap_mm'][1]:.0f} mm, up to {results['max_cycles']} cycles"
