@@ -23,7 +23,9 @@ The verification allows the depth noise of each dataset's sensor (``VerifyConfig
 Writes ``bench/results/perception.{json,png}``: accuracy against median milliseconds per object, one point per
 strategy, one panel per dataset, the targets (``TARGETS``) drawn, and with ``--thresholds`` a second row: end-to-end
 accuracy against the pipeline's median milliseconds per frame, one point per detector threshold; the printed table
-ends with every target and its measured value.
+ends with every target and its measured value. Each dataset's pass and each threshold's is saved when done in
+``perception.partial.json`` beside the results: ``--resume`` goes on with a stopped run of the same settings (models,
+datasets and options; another run's checkpoint is refused).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import argparse
 import math
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import matplotlib
@@ -47,7 +50,7 @@ from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
 from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize
 from perception.verify import PoseVerifier
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, replot, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, StageCheckpoint, folder_digest, replot, save_results
 from sygrid.errors import ConfigError
 
 # issue 21's targets on builtin_test and its noisy twin; recall as fractions, time per object in milliseconds
@@ -71,10 +74,13 @@ def run_benchmark(
     wrong_class: bool = False,
     thresholds: tuple[float, ...] = (),
     progress: bool = True,
+    checkpoint: StageCheckpoint | None = None,
 ) -> dict:
     """Measures ``strategies`` (and the manifest's chosen ones) with ground-truth masks and the folder's pipeline end
     to end on each dataset, also at each detector confidence threshold of ``thresholds``; returns the results as a
-    JSON-able dict (``conditions`` "ideal" and, with ``noisy_dir``, "noisy")."""
+    JSON-able dict (``conditions`` "ideal" and, with ``noisy_dir``, "noisy"). With a ``checkpoint``, each dataset's
+    pass and each threshold's is a stage: saved when done, not measured again when the checkpoint has it."""
+    stages = checkpoint or StageCheckpoint.in_memory()
     datasets = {"ideal": Path(data_dir), **({"noisy": Path(noisy_dir)} if noisy_dir is not None else {})}
     sensors = {name: checked_sensor(name, path) for name, path in datasets.items()}
     manifest = load_manifest(models_dir)
@@ -91,12 +97,15 @@ def run_benchmark(
         pipeline.use_sensor(sensor)  # evaluate does it too; the ground-truth pass shares the pipeline's runner
         runner = pipeline.runner if pipeline.runner is not None else StrategyRunner(verifier=PoseVerifier(
             verify.for_sensor(sensor)))  # fmt: skip
+        one_pass = partial(measure, pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress)
         conditions[name] = {
             "dataset_sensor": sensors[name],
             "region": settings.region,
-            **measure(pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress),
-            "end_to_end_thresholds": {f"{t:g}": end_to_end_at(pipeline, t, path, settings, progress) for t in thresholds
-                                      if t != pipeline.detector.conf_threshold},
+            **stages.run(name, one_pass),
+            "end_to_end_thresholds": {
+                f"{t:g}": stages.run(f"{name} at {t:g}", partial(end_to_end_at, pipeline, t, path, settings, progress))
+                for t in thresholds if t != pipeline.detector.conf_threshold
+            },
         }  # fmt: skip
     return {
         "models": str(models_dir),
@@ -427,6 +436,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--quick", action="store_true", help="20 images")
     parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved perception.json")
+    parser.add_argument(
+        "--resume", action="store_true",
+        help="go on with a stopped run of the same settings from its checkpoint (perception.partial.json)",
+    )  # fmt: skip
 
 
 def parse_strategies(value: str | None) -> tuple[str, ...]:
@@ -459,17 +472,23 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     if args.replot:
         replot("perception", chart, out_dir)
         return 0
+    strategies, thresholds = parse_strategies(args.strategies), parse_thresholds(args.thresholds)
+    max_images = 20 if args.quick and args.max_images is None else args.max_images
+    settings = {
+        "models": folder_digest(args.models), "data": folder_digest(args.data, "dataset.json"),
+        "noisy_data": None if args.noisy_data is None else folder_digest(args.noisy_data, "dataset.json"),
+        "strategies": strategies, "max_images": max_images, "threads": args.threads, "wrong_class": args.wrong_class,
+        "thresholds": thresholds,
+    }  # fmt: skip
+    checkpoint = StageCheckpoint(out_dir / "perception.partial.json", settings, resume=args.resume)
+    if checkpoint.done:
+        print(f"resuming from {checkpoint.path}: {', '.join(checkpoint.done)} already measured")
     results = run_benchmark(
-        args.models,
-        args.data,
-        args.noisy_data,
-        strategies=parse_strategies(args.strategies),
-        max_images=20 if args.quick and args.max_images is None else args.max_images,
-        threads=args.threads,
-        wrong_class=args.wrong_class,
-        thresholds=parse_thresholds(args.thresholds),
-    )
+        args.models, args.data, args.noisy_data, strategies=strategies, max_images=max_images, threads=args.threads,
+        wrong_class=args.wrong_class, thresholds=thresholds, checkpoint=checkpoint,
+    )  # fmt: skip
     print(format_results(results))
     json_path, png_path = save_results("perception", results, chart(results), out_dir)
+    checkpoint.finish()
     print(f"wrote {json_path} and {png_path}")
     return 0

@@ -170,6 +170,49 @@ def test_the_command_on_the_shipped_models(tiny_dataset: Path, noisy_dataset: Pa
     assert (tmp_path / "perception.png").stat().st_size > 0
 
 
+def test_a_stopped_run_resumes_from_its_checkpoint_without_measuring_a_finished_stage_again(
+    tiny_dataset: Path, noisy_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    import perception.bench as bench
+
+    argv = ["bench", "--out-dir", str(tmp_path), "perception", "--models", str(ROOT / "models" / "builtin"),
+            "--data", str(tiny_dataset), "--noisy-data", str(noisy_dataset), "--max-images", "1",
+            "--strategies", "depth"]  # fmt: skip
+    passes: list[str] = []
+    real_measure = bench.measure
+
+    def counted(pipeline, runner, path, *rest):
+        passes.append(Path(path).name)
+        return real_measure(pipeline, runner, path, *rest)
+
+    def stopped_at_noisy(pipeline, runner, path, *rest):
+        passes.append(Path(path).name)
+        if Path(path) == noisy_dataset:
+            raise KeyboardInterrupt  # the run is stopped during its second stage
+        return real_measure(pipeline, runner, path, *rest)
+
+    monkeypatch.setattr(bench, "measure", stopped_at_noisy)
+    with pytest.raises(KeyboardInterrupt):
+        run(build_parser("bench").parse_args(argv), out_dir=tmp_path)
+    checkpoint = json.loads((tmp_path / "perception.partial.json").read_text())
+    assert list(checkpoint["stages"]) == ["ideal"] and not (tmp_path / "perception.json").exists()
+    # another run's settings: refused, naming what differs; the checkpoint is kept
+    other = build_parser("bench").parse_args([*argv[:-1], "rgb", "--resume"])
+    with pytest.raises(
+        ConfigError, match=r"perception\.partial\.json: a checkpoint of a run with other settings \(strategies\)"
+    ):
+        run(other, out_dir=tmp_path)
+    # resumed: only the noisy set is measured; the result is whole and the checkpoint gone
+    passes.clear()
+    monkeypatch.setattr(bench, "measure", counted)
+    assert run(build_parser("bench").parse_args([*argv, "--resume"]), out_dir=tmp_path) == 0
+    assert passes == [noisy_dataset.name]
+    results = json.loads((tmp_path / "perception.json").read_text())
+    assert list(results["conditions"]) == ["ideal", "noisy"]
+    assert results["conditions"]["ideal"]["gt_masks"] == checkpoint["stages"]["ideal"]["gt_masks"]
+    assert not (tmp_path / "perception.partial.json").exists()
+
+
 def test_bad_arguments_name_the_flag(tiny_dataset: Path, noisy_dataset: Path):
     with pytest.raises(ConfigError, match="--strategies: unknown pose strategy 'icp'"):
         parse_strategies("rgb,icp")

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import platform
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 
 DEFAULT_RESULTS_DIR = Path("bench/results")
@@ -47,3 +52,70 @@ def replot(name: str, chart, out_dir: Path = DEFAULT_RESULTS_DIR) -> Path:
     path = save_chart(name, chart(saved), out_dir)
     print(f"redrew {path} from {out_dir / f'{name}.json'}")
     return path
+
+
+class StageCheckpoint:
+    """The finished stages of a long benchmark, kept in a JSON file so that a stopped run goes on where it stopped.
+
+    ``settings`` (JSON-able) names what the stages measure; a checkpoint written for other settings is refused when
+    resuming (ConfigError naming the file and the settings that differ), and overwritten when not. Each stage's
+    result (JSON-able) is written as soon as it is done (atomically: a run killed while writing keeps the previous
+    file); ``finish`` removes the file once the whole result is saved. Hand-written: the stages are a benchmark's
+    own steps (seconds to hours each), which no job library would know how to split.
+    """
+
+    def __init__(self, path: Path | None, settings: dict, resume: bool) -> None:
+        self.path, self.settings = (None if path is None else Path(path)), json_roundtrip(settings)
+        self.done: dict = {}
+        if resume and self.path is not None and self.path.exists():
+            saved = read_json(self.path, "benchmark checkpoint")
+            if not isinstance(saved, dict) or saved.get("settings") != self.settings:
+                theirs = saved.get("settings", {}) if isinstance(saved, dict) else {}
+                differ = sorted(k for k in {*self.settings, *theirs} if self.settings.get(k) != theirs.get(k))
+                raise ConfigError(
+                    f"{self.path}: a checkpoint of a run with other settings ({', '.join(differ) or 'unreadable'}); "
+                    "run without --resume to start over"
+                )
+            self.done = saved.get("stages", {})
+
+    @classmethod
+    def in_memory(cls) -> StageCheckpoint:
+        """A checkpoint that keeps nothing on disk (a run that cannot be resumed)."""
+        return cls(None, {}, resume=False)
+
+    def run(self, stage: str, measure: Callable[[], Any]) -> Any:
+        """The stage's saved result, or ``measure()``'s, saved before it is returned."""
+        if stage not in self.done:
+            self.done[stage] = json_roundtrip(measure())
+            if self.path is not None:
+                write_json_atomic(self.path, {"settings": self.settings, "stages": self.done})
+        return self.done[stage]
+
+    def finish(self) -> None:
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
+
+
+def folder_digest(folder: Path, *names: str) -> str:
+    """SHA-256 over a folder's files (``names``: only these, relative to it; default: every file, recursively), by
+    relative path and content: what a checkpoint's settings name a model folder or a dataset by."""
+    folder = Path(folder)
+    files = [folder / n for n in names] if names else sorted(p for p in folder.rglob("*") if p.is_file())
+    digest = hashlib.sha256()
+    for path in files:
+        if not path.is_file():
+            raise ConfigError(f"{path}: not found (expected a file of {folder})")
+        digest.update(str(path.relative_to(folder)).encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
+def json_roundtrip(data: Any) -> Any:
+    """``data`` as it reads back from JSON (tuples as lists, numpy scalars as floats), so that a resumed run and a
+    fresh one hand the same values on."""
+    return json.loads(json.dumps(data, default=_json_default))
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    raise TypeError(f"not JSON-able: {type(x).__name__}")
