@@ -25,7 +25,7 @@ strategy, one panel per dataset, the targets (``TARGETS``) drawn, and with ``--t
 accuracy against the pipeline's median milliseconds per frame, one point per detector threshold; the printed table
 ends with every target and its measured value. Each dataset's pass and each threshold's is saved when done in
 ``perception.partial.json`` beside the results: ``--resume`` goes on with a stopped run of the same settings (models,
-datasets and options; another run's checkpoint is refused).
+datasets, options and this package's code; another run's checkpoint is refused).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ from perception.evaluation import EvalSettings, dataset_sensor, evaluate, frames
 from perception.manifest import load_manifest
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
-from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize
+from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize, visibility_gates
 from perception.verify import PoseVerifier
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, StageCheckpoint, folder_digest, replot, save_results
 from sygrid.errors import ConfigError
@@ -62,6 +62,8 @@ TARGETS = {
     "ms_per_object": 15.0,
 }
 Records = dict[tuple[int, str], list[StrategyRecord]]
+PACKAGE = Path(__file__).parent
+VISIBILITY_GATES = (0.1, 0.2, 0.3, 0.4, 0.5)  # the reference's false accepts if instances below each were refused
 
 
 def run_benchmark(
@@ -205,10 +207,11 @@ def gt_mask_summary(
     if choice is None:
         choice, label = choose(records, math.inf, min_confidence), "most accurate per part"
     reference = summary_by_part(records, lambda o, t: choice.get(o) == t, min_confidence, names)
+    chosen = [r for (o, t), recs in records.items() if choice.get(o) == t for r in recs]
     return {
         "strategies": rows,
         "reference": {"label": label, "choice": {part_key(o, names): s for o, s in sorted(choice.items())},
-                      **reference},
+                      **reference, "visibility_gates": visibility_gates(chosen, min_confidence, VISIBILITY_GATES)},
     }  # fmt: skip
 
 
@@ -377,6 +380,11 @@ def _gt_mask_lines(g: dict) -> list[str]:
     for p in parts:
         cells = [g["strategies"][s]["per_part"].get(p, {}).get("accepted_recall", math.nan) for s in g["strategies"]]
         lines.append(f"{p:<24}" + "".join(f"{_pct(x):>14}" for x in cells))
+    gates = g["reference"].get("visibility_gates", [])
+    if gates:
+        lines.append("the reference if instances less visible than a gate were refused (ground-truth visibility):")
+        lines += [f"  >= {x['min_visible']:.0%} visible: false accepts {_pct(x['false_accept'])}, accepted recall "
+                  f"{_pct(x['accepted_recall'])}" for x in gates]  # fmt: skip
     return lines
 
 
@@ -479,6 +487,8 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         "noisy_data": None if args.noisy_data is None else folder_digest(args.noisy_data, "dataset.json"),
         "strategies": strategies, "max_images": max_images, "threads": args.threads, "wrong_class": args.wrong_class,
         "thresholds": thresholds,
+        # the code that measures: a checkpoint of an older version is measured again, not mixed in
+        "code": folder_digest(PACKAGE, *sorted(p.name for p in PACKAGE.glob("*.py"))),
     }  # fmt: skip
     checkpoint = StageCheckpoint(out_dir / "perception.partial.json", settings, resume=args.resume)
     if checkpoint.done:

@@ -83,6 +83,20 @@ def summarize(records: list[StrategyRecord], min_confidence: float) -> dict:
     }
 
 
+def visibility_gates(records: list[StrategyRecord], min_confidence: float, gates: tuple[float, ...]) -> list[dict]:
+    """What refusing every instance less visible than a gate would trade (the ground truth's visible fraction, an
+    oracle a runtime does not have): per gate, the false accepts among the accepted instances at least that visible
+    and the accepted recall over all instances (a refused instance counts as a failure)."""
+    n = len(records)
+    rows = []
+    for gate in gates:
+        kept = [x for x in records if x.confidence >= min_confidence and x.visib_fract >= gate]
+        right = sum(x.correct for x in kept)
+        rows.append({"min_visible": gate, "accepted": len(kept), "false_accept": _ratio(len(kept) - right, len(kept)),
+                     "accepted_recall": _ratio(right, n)})  # fmt: skip
+    return rows
+
+
 def _ratio(a: int, b: int) -> float:
     return float(a) / float(b) if b else math.nan
 

@@ -3,6 +3,7 @@ perfect pose source scoring 1.0 with ground-truth masks and end to end."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -160,6 +161,10 @@ def test_the_command_on_the_shipped_models(tiny_dataset: Path, noisy_dataset: Pa
         # the choice measured again without the resting search: the same instances
         ablation, reference = condition["gt_masks"]["reference_without_rest"], condition["gt_masks"]["reference"]
         assert ablation["all"]["n"] == reference["all"]["n"] and set(ablation["per_part"]) == set(reference["per_part"])
+        # the visibility gates: the ungated row is the reference's own, gating never accepts more
+        gates = reference["visibility_gates"]
+        assert [g["min_visible"] for g in gates] == [0.1, 0.2, 0.3, 0.4, 0.5]
+        assert all(a["accepted"] >= b["accepted"] for a, b in itertools.pairwise(gates))
         # the pipeline again with the detector at 0.1: the same instances, at least the detections and parts found
         low, own = condition["end_to_end_thresholds"]["0.1"], condition["end_to_end"]
         assert low["conf_threshold"] == 0.1 < own["conf_threshold"] and low["all"]["n"] == own["all"]["n"]

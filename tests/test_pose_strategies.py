@@ -19,7 +19,14 @@ from perception.observation import Observation
 from perception.pipeline import PerceptionPipeline
 from perception.pose_strategies import STRATEGIES, StrategyRunner, axis_rotations
 from perception.results import ObjectPose
-from perception.strategy_eval import StrategyRecord, choose, choose_all, choose_threshold, summarize
+from perception.strategy_eval import (
+    StrategyRecord,
+    choose,
+    choose_all,
+    choose_threshold,
+    summarize,
+    visibility_gates,
+)
 from sygrid.errors import ConfigError
 from sygrid.metrics import pose_errors
 from sygrid.objects.parts import builtin_part
@@ -118,6 +125,18 @@ def test_a_floor_plane_given_by_the_cell_is_used_as_it_is(scene):
 
 def _record(obj_id: int, strategy: str, correct: bool, cpu_ms: float, confidence: float) -> StrategyRecord:
     return StrategyRecord(obj_id, strategy, correct, 1.0, 0.001, cpu_ms, cpu_ms, confidence, 0.2)
+
+
+def test_visibility_gates_count_the_false_accepts_left_above_each_gate():
+    def rec(correct: bool, confidence: float, visible: float) -> StrategyRecord:
+        return StrategyRecord(1, "s", correct, 1.0, 0.001, 1.0, 1.0, confidence, visib_fract=visible)
+
+    records = [rec(True, 0.95, 0.9)] * 6 + [rec(False, 0.97, 0.15), rec(False, 0.96, 0.35), rec(True, 0.95, 0.25),
+                                            rec(True, 0.5, 0.8)]  # fmt: skip
+    low, mid, high = visibility_gates(records, 0.9, (0.1, 0.3, 0.5))
+    assert (low["accepted"], low["false_accept"], low["accepted_recall"]) == (9, 2 / 9, 7 / 10)
+    assert (mid["accepted"], mid["false_accept"], mid["accepted_recall"]) == (7, 1 / 7, 6 / 10)
+    assert (high["accepted"], high["false_accept"], high["accepted_recall"]) == (6, 0.0, 6 / 10)
 
 
 def test_the_choice_is_the_cheapest_strategy_that_meets_the_bar_else_the_most_accurate():
