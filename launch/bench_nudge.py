@@ -18,8 +18,10 @@ up to half a minute).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
+import tempfile
 import time
 from collections import Counter
 from pathlib import Path
@@ -74,9 +76,17 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         "trials_per_part": args.trials, "gap_mm": [1e3 * g for g in gap], "max_cycles": args.max_cycles,
         "variants": {name: {"config": _config_summary(VARIANTS[name]), "trials": []} for name in variants},
     }  # fmt: skip
+    if args.trials < 1 or args.max_cycles < 1:
+        raise ConfigError(f"--trials and --max-cycles must be >= 1, got {args.trials} and {args.max_cycles}")
     meshes = {kind: np.asarray(builtin_part(kind).mesh.vertices) for kind in parts}
     start = time.perf_counter()
-    with _cell(parts) as (picker, process):
+    with (
+        tempfile.TemporaryDirectory(prefix="sygrid_nudge_") as folder,
+        _cell(parts, Path(folder)) as (
+            picker,
+            process,
+        ),
+    ):
         for kind, seed in trials:
             T_bin_part, wall = placement(kind, seed, gap)
             for name in variants:
@@ -107,16 +117,13 @@ def _config_summary(cfg: NudgeConfig) -> dict[str, Any]:
     }  # fmt: skip
 
 
-def _cell(parts: list[str]):
-    """The simulated cell (``launch/cells/sim.toml``, oracle perception) with one of each part, on ``HOST``."""
-    import json
-    import tempfile
-
+def _cell(parts: list[str], folder: Path):
+    """The simulated cell (``launch/cells/sim.toml``, oracle perception) with one of each part, on ``HOST``; its
+    scene file is written into ``folder``."""
     from launch.cell_variants import VARIANTS as CELL_VARIANTS
     from launch.cell_variants import cell_for_bin
     from launch.pick import open_cell
 
-    folder = Path(tempfile.mkdtemp(prefix="sygrid_nudge_"))
     scene = folder / "scene.json"
     scene.write_text(json.dumps({"name": "nudge", "objects": [{"builtin": k, "count": 1} for k in parts]}))
     setup = cell_for_bin(load_cell_setup(CELL_FILE), CELL_VARIANTS["oracle"], 0, scene, HOST)

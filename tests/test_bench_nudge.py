@@ -63,6 +63,7 @@ def test_unknown_parts_variants_and_gaps_name_the_option(tmp_path):
         (["--parts", "hex_nut,washer"], "--parts"),
         (["--variants", "magic"], "--variants"),
         (["--gap-mm", "12,3"], "--gap-mm"),
+        (["--trials", "0"], "--trials"),
     ):
         args = parser.parse_args(["bench", "--out-dir", str(tmp_path), "nudge", *argv])
         with pytest.raises(ConfigError, match=option):
