@@ -47,8 +47,9 @@ to ``T_base_press`` (``press_depth_m`` into the estimated top: simulated cells o
 Candidates (tilt, turn of the paddle about the approach, where on the part's top to press, how far back the
 straight lines start) are tried in ``NudgeConfig``'s order; the first whose gripper boxes keep ``bin_clearance_m``
 from the walls along the whole motion, whose wrist links clear the walls, whose joint moves in and out are clear
-(``CollisionChecker.transit_gap_m``, ``elbow_clear``) and whose straight lines stay on one IK branch is the nudge.
-Hand-written, like the grasp planner's checks, for the same reason: these are a few box-against-box tests per
+(``CollisionChecker.transit_gap_m``, ``elbow_clear``), whose straight lines stay on one IK branch and along which
+the closed gripper keeps ``clearance_m`` from the other parts (their surface points, checked every few millimetres:
+a neighbour under the tilted tool is what the press would otherwise hit) is the nudge. Hand-written, like the grasp planner's checks, for the same reason: these are a few box-against-box tests per
 candidate, which the planner's numpy maths already answers.
 """
 
@@ -62,7 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from robot.grasp_geometry import GripperGeometry, box_corners
+from robot.grasp_geometry import GripperGeometry, box_corners, points_box_distance_m
 from robot.grasp_plan import GraspPlan, PartEstimate
 from robot.grasp_planner import GraspPlanner
 from sygrid.errors import ConfigError
@@ -77,6 +78,7 @@ _FLAT_RADIUS_M = 0.001  # a press point needs a flat-top sample this close (the 
 _RIM_CLEARANCE_M = 0.001  # ... and no sample of a surface dropping away from the top (a hole, an edge) this close
 _HOLE_SECTORS = 8  # the middle of a hole: flat top in every one of these sectors around it
 _FOOT_BAND_M = 0.0005  # surface points this close to a part's lowest point are what stands on the floor
+_PATH_STEP_M = 0.005  # the gripper is checked against the other parts at poses this far apart along its lines
 
 
 @dataclass(frozen=True)
@@ -243,7 +245,7 @@ class NudgePlanner:
             for k in np.flatnonzero(self._clear_of_bin(T_starts, T_ends)):
                 T_start, T_end, tilt = T_starts[k], T_ends[k], candidates[k][2]
                 for back in self.config.retreat_m:
-                    waypoints = self._waypoints(T_start, T_end, back, q_from, q_after)
+                    waypoints = self._waypoints(T_start, T_end, back, q_from, q_after, neighbours_base)
                     if waypoints is not None:
                         return PlannedNudge(
                             part_index=part_index, obj_id=part.obj_id, cause=cause,
@@ -346,10 +348,17 @@ class NudgePlanner:
         return (gap >= pcfg.bin_clearance_m) & (lowest.min(axis=1) >= 0.0)
 
     def _waypoints(
-        self, T_press: np.ndarray, T_end: np.ndarray, back: float, q_from: np.ndarray, q_after: np.ndarray
+        self,
+        T_press: np.ndarray,
+        T_end: np.ndarray,
+        back: float,
+        q_from: np.ndarray,
+        q_after: np.ndarray,
+        neighbours_base: np.ndarray | None = None,
     ) -> dict | None:
         """The poses and joint solutions of a candidate that ``_clear_of_bin`` passed, coming down from and going
-        back up to ``back`` above it, if the rest of the checks pass; else None."""
+        back up to ``back`` above it, if the rest of the checks pass (the last: the closed gripper along the three
+        straight lines keeps ``clearance_m`` from the other parts' surface points ``neighbours_base``); else None."""
         cfg, planner = self.config, self.planner
         pcfg = planner.config
         g = pcfg.gripper
@@ -374,6 +383,10 @@ class NudgePlanner:
         clearance = pcfg.transit_clearance_m or 0.0
         for qa, qb in ((q_from, q[0]), (q[3], q_after)):
             if planner.collision.transit_gap_m(qa, qb, closed) < clearance or not planner.collision.elbow_clear(qa, qb):
+                return None
+        if neighbours_base is not None and len(neighbours_base):
+            path = _straight_lines([T_above, T_press, T_end, T_retreat], _PATH_STEP_M)
+            if _gap_to_points_m(path, closed, neighbours_base) < pcfg.clearance_m:
                 return None
         return {
             "T_base_above": T_above, "T_base_press": T_press, "T_base_end": T_end, "T_base_retreat": T_retreat,
@@ -426,6 +439,33 @@ def _roll_deg(points: np.ndarray, footprint: np.ndarray, direction_xy: np.ndarra
     edges = np.flatnonzero(ahead > 1e-9)
     lever = float(inside[edges[np.argmin(inside[edges] / ahead[edges])]]) if len(edges) else 0.0
     return math.degrees(math.atan2(max(lever, 0.0), centre[2] - float(points[:, 2].min())))
+
+
+def _straight_lines(poses: list[np.ndarray], step_m: float) -> np.ndarray:
+    """``(k, 4, 4)`` poses along the straight lines between consecutive ``poses`` (one orientation along each, as
+    a nudge's moves keep it), at most ``step_m`` apart, both ends included."""
+    out = [poses[0]]
+    for a, b in itertools.pairwise(poses):
+        n = max(1, math.ceil(np.linalg.norm(b[:3, 3] - a[:3, 3]) / step_m))
+        for s in np.linspace(0.0, 1.0, n + 1)[1:]:
+            T = b.copy()
+            T[:3, 3] = (1.0 - s) * a[:3, 3] + s * b[:3, 3]
+            out.append(T)
+    return np.stack(out)
+
+
+def _gap_to_points_m(T_base_tcp: np.ndarray, boxes: np.ndarray, points_base: np.ndarray) -> float:
+    """The smallest distance (m) from ``points_base`` ``(n, 3)`` to ``boxes`` ``(b, 2, 3)`` (TCP frame) at any of the
+    poses ``(k, 4, 4)``; points farther than the boxes reach from every pose are skipped first."""
+    corners = box_corners(boxes).reshape(-1, 3)
+    reach = float(np.linalg.norm(corners, axis=1).max())
+    positions = T_base_tcp[:, :3, 3]
+    lo, hi = positions.min(axis=0) - reach, positions.max(axis=0) + reach
+    near = points_base[np.all((points_base >= lo) & (points_base <= hi), axis=1)]
+    if not len(near):
+        return math.inf
+    local = (near[None, :, :] - positions[:, None, :]) @ T_base_tcp[:, :3, :3]  # (k, n, 3) in each TCP frame
+    return float(points_box_distance_m(local, boxes[None]).min())
 
 
 def _wall_gaps(points_bin: np.ndarray, half_xy: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ from robot.grasp_geometry import box_corners
 from robot.grasp_plan import PartEstimate
 from robot.grasp_planner import GraspPlanner
 from robot.grasp_set import GraspSetParams
-from robot.nudge import NudgeConfig, NudgePlanner
+from robot.nudge import NudgeConfig, NudgePlanner, _gap_to_points_m, _straight_lines
 from sygrid.errors import ConfigError
 from sygrid.objects import builtin_part
 from sygrid.robots.kinematics import forward_kinematics
@@ -138,6 +138,28 @@ def _lowest_pad_point(nudger: NudgePlanner, nudge) -> np.ndarray:
     """Where the closed pads are lowest at the press (base frame): the middle of their lowest edge or corner."""
     pads = transform_points(nudge.T_base_press, box_corners(nudger.planner.config.gripper.boxes(0.0)[:2]))
     return pads[pads[:, 2] < pads[:, 2].min() + 1e-4].mean(axis=0)
+
+
+def test_a_nudge_keeps_the_tilted_gripper_off_a_part_standing_where_it_leans(nudger):
+    planner = nudger.planner
+    q = planner.q_reference
+    pipe = builtin_part("pipe")
+    corner = PartEstimate(GEAR.obj_id, _flat_gear(WALL_XP - 0.024 - GEAR_RADIUS, WALL_YN + 0.005 + GEAR_RADIUS))
+    # a pipe standing on its end 72 mm from the gear, toward the bin's middle: under the tool, which leans that way
+    standing = planner.surface_base(
+        PartEstimate(pipe.obj_id, make_T(t=(-0.445, -0.03, FLOOR_Z + pipe.extents_m[2] / 2)))
+    )
+    closed = planner.config.gripper.boxes(0.0)
+
+    def gap_to_pipe(nudge) -> float:
+        path = np.stack([nudge.T_base_above, nudge.T_base_press, nudge.T_base_end, nudge.T_base_retreat])
+        return _gap_to_points_m(_straight_lines(list(path), 0.002), closed, standing)
+
+    blind = nudger.plan_part(corner, 0, "collision_bin", q, q)  # planned without the pipe: its gripper hits it
+    assert blind is not None and gap_to_pipe(blind) <= 0.0
+    seeing = nudger.plan_part(corner, 0, "collision_bin", q, q, standing)
+    # another candidate (a slanted drag, less tilt) passes beside it
+    assert seeing is not None and gap_to_pipe(seeing) >= planner.config.clearance_m - 1e-6
 
 
 def test_a_part_pressed_against_a_neighbour_is_dragged_away_from_it(nudger):
