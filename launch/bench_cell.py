@@ -236,7 +236,13 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
 
         picker.planner.plan = keep_last
         T_start = process.part_poses()
-        report = picker.run(max_cycles)
+        try:
+            report = picker.run(max_cycles)
+        except Exception as exc:  # an unexpected error ends this bin (StopReason.ERROR, in the report): the bench
+            if picker.last_report is None:  # counts it with the rest and goes on with the next bin
+                raise
+            log.error("%s seed %d: the run raised %s: %s", variant.perception, seed, type(exc).__name__, exc)
+            report = picker.last_report
         T_end = process.part_poses()
         thrown = process.thrown_parts()
         dropped = process.state().backend_dropped_targets
