@@ -209,3 +209,45 @@ def test_each_attempt_is_judged_against_the_true_pose_of_the_nearest_part_of_its
         "abs_dz_median_mm": pytest.approx(20.0), "re_median_deg": pytest.approx(0.0),
     }  # fmt: skip
     assert "gripper_empty 1/1 wrong" in format_attempt_errors("v", summary)
+
+
+def test_a_bin_whose_run_raises_is_counted_as_an_error_and_the_bench_goes_on(monkeypatch):
+    """``run_bin`` with the cell faked: the picker's run raises after recording its report (``last_report``, as
+    ``robot.picker`` does); the bin comes back with stop reason ``error`` and the part left in the bin."""
+    import contextlib
+    from types import SimpleNamespace
+
+    import launch.bench_cell as bench_cell
+    import launch.pick
+    from launch.cell_variants import VARIANTS
+    from robot.cell_setup import load_cell_setup
+    from robot.pick_report import RunReport, StopReason
+    from sim.cell_config import CellConfig
+
+    T = CellConfig().T_world_bin.copy()
+    T[2, 3] += 0.01  # one part, in the bin
+    process = SimpleNamespace(
+        part_names=lambda: ["p0_hex_nut"], part_poses=lambda: T[None].copy(), thrown_parts=lambda: {},
+        state=lambda: SimpleNamespace(backend_dropped_targets=0),
+    )  # fmt: skip
+
+    class Picker:
+        planner = SimpleNamespace(plan=lambda *a, **k: None)
+        last_report = RunReport([], StopReason.ERROR, "GripperError: the fingers did not stop")
+
+        def run(self, max_cycles):
+            raise RuntimeError("the fingers did not stop")
+
+    @contextlib.contextmanager
+    def fake_cell(*args, **kwargs):
+        yield Picker(), process
+
+    monkeypatch.setattr(launch.pick, "open_cell", fake_cell)
+    base = load_cell_setup(bench_cell.CELL_FILE)
+    result = bench_cell.run_bin(base, VARIANTS["oracle"], 0, None, 3)
+    assert result["stop_reason"] == "error" and "did not stop" in result["stop_detail"]
+    assert result["n_parts"] == 1 and result["n_left"] == 1 and result["n_picked"] == 0
+    # without a report to keep (the error came before the run began), the error is raised on
+    Picker.last_report = None
+    with pytest.raises(RuntimeError, match="did not stop"):
+        bench_cell.run_bin(base, VARIANTS["oracle"], 0, None, 3)
