@@ -49,8 +49,9 @@ straight lines start) are tried in ``NudgeConfig``'s order; the first whose grip
 from the walls along the whole motion, whose wrist links clear the walls, whose joint moves in and out are clear
 (``CollisionChecker.transit_gap_m``, ``elbow_clear``), whose straight lines stay on one IK branch and along which
 the closed gripper keeps ``clearance_m`` from the other parts (their surface points, checked every few millimetres:
-a neighbour under the tilted tool is what the press would otherwise hit) is the nudge. Hand-written, like the grasp planner's checks, for the same reason: these are a few box-against-box tests per
-candidate, which the planner's numpy maths already answers.
+a neighbour under the tilted tool is what the press would otherwise hit) is the nudge. Hand-written, like the grasp
+planner's checks, for the same reason: these are a few box-against-box tests per candidate, which the planner's
+numpy maths already answers.
 """
 
 from __future__ import annotations
