@@ -30,11 +30,11 @@ from typing import Any
 import numpy as np
 
 from robot.cell_setup import load_cell_setup
-from robot.nudge import NudgeConfig, NudgePlanner
+from robot.nudge import NudgeConfig, NudgePlanner, wall_gaps_m
 from sygrid.bench.common import DEFAULT_RESULTS_DIR, replot, save_results
 from sygrid.errors import ConfigError
 from sygrid.objects import builtin_part
-from sygrid.transforms import invert, make_T
+from sygrid.transforms import invert, make_T, rotation_about, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -139,7 +139,9 @@ def placement(kind: str, seed: int, gap_m: tuple[float, float]) -> tuple[np.ndar
     half = np.array(CellConfig().bin_inner_size_m[:2]) / 2.0
     wall = int(rng.integers(4))
     axis, sign = wall // 2, (1.0 if wall % 2 == 0 else -1.0)
-    R = _rz(rng.uniform(0.0, 2.0 * math.pi)) @ (_rx(math.pi / 2.0) if _LYING[kind] else np.eye(3))
+    R = rotation_about((0.0, 0.0, 1.0), rng.uniform(0.0, 2.0 * math.pi))
+    if _LYING[kind]:
+        R = R @ rotation_about((1.0, 0.0, 0.0), math.pi / 2.0)
     vertices = np.asarray(builtin_part(kind).mesh.vertices) @ R.T
     t = np.zeros(3)
     t[2] = 0.001 - vertices[:, 2].min()
@@ -198,24 +200,13 @@ def wall_gap_m(T_bin_part: np.ndarray, wall: int, vertices: np.ndarray) -> float
     from sim.cell_config import CellConfig
 
     half = np.array(CellConfig().bin_inner_size_m[:2]) / 2.0
-    axis, sign = wall // 2, (1.0 if wall % 2 == 0 else -1.0)
-    return float(half[axis] - (sign * (vertices @ T_bin_part[:3, :3].T + T_bin_part[:3, 3])[:, axis]).max())
+    return float(wall_gaps_m(transform_points(T_bin_part, vertices), half)[wall])
 
 
 def _tilt_deg(T_before: np.ndarray, T_after: np.ndarray) -> float:
     """How far the part's axis that pointed up before turned away from the vertical (degrees)."""
     up_in_part = T_before[:3, :3].T @ np.array([0.0, 0.0, 1.0])
     return float(np.degrees(np.arccos(np.clip((T_after[:3, :3] @ up_in_part)[2], -1.0, 1.0))))
-
-
-def _rz(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _rx(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def _trial_line(t: dict) -> str:

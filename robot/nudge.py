@@ -64,6 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from robot.grasp_collision import local_points
 from robot.grasp_geometry import GripperGeometry, box_corners, points_box_distance_m
 from robot.grasp_plan import GraspPlan, PartEstimate
 from robot.grasp_planner import GraspPlanner
@@ -236,9 +237,9 @@ class NudgePlanner:
         neighbours = None if neighbours_base is None else transform_points(T_bin_base, neighbours_base)
         half_xy = np.array(b.inner_size_m[:2]) / 2.0
         away, distance = self._drag(points, half_xy, neighbours)
-        footprint = _footprint(points)
+        shape = _Shape.of(points)
         for direction, length in self._slanted(points, half_xy, away, distance):
-            candidates = list(self._drag_poses(points, footprint, direction, length))
+            candidates = list(self._drag_poses(shape, direction, length))
             if not candidates:
                 continue
             T_starts = b.T_base_bin @ np.stack([c[0] for c in candidates])
@@ -263,27 +264,24 @@ class NudgePlanner:
         as long as it takes to move the part ``distance`` along ``away``; a slanted one only if it leaves the part
         at least ``target_gap_m`` (or its present gap, if smaller) from every wall."""
         cfg = self.config
-        before = _wall_gaps(points, half_xy)
+        before = wall_gaps_m(points, half_xy)
         for slant in cfg.slants_deg:
             c, s = math.cos(math.radians(slant)), math.sin(math.radians(slant))
             direction = np.array([c * away[0] - s * away[1], s * away[0] + c * away[1], 0.0])
             length = distance / c
             if slant != 0.0:
-                after = _wall_gaps(points + length * direction, half_xy)
+                after = wall_gaps_m(points + length * direction, half_xy)
                 if np.any(after < np.minimum(before, cfg.target_gap_m) - 1e-9):
                     continue
             yield direction, length
 
     def _drag_poses(
-        self, points: np.ndarray, footprint: np.ndarray | None, direction: np.ndarray, distance: float
+        self, shape: _Shape, direction: np.ndarray, distance: float
     ) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
-        """The candidate ``(T_press, T_end, tilt_deg)`` of a drag of a part (surface points in the bin frame, what
-        it stands on as ``_footprint``) along ``direction`` by ``distance``, in the order to try them; TCP poses in
-        the bin frame."""
+        """The candidate ``(T_press, T_end, tilt_deg)`` of a drag of a part (``_Shape``, bin frame) along
+        ``direction`` by ``distance``, in the order to try them; TCP poses in the bin frame."""
         cfg, g = self.config, self.planner.config.gripper
-        z_top = float(points[:, 2].max())
-        top = points[points[:, 2] > z_top - _TOP_BAND_M, :2]
-        centre = top.mean(axis=0)
+        centre, top, z_top = shape.centre_xy, shape.top_xy, shape.z_top
         u = direction[:2]
         side = np.array([-u[1], u[0]])
         reach = max(float(((top - centre) @ u).max()) - cfg.edge_margin_m, 0.0)
@@ -292,13 +290,13 @@ class NudgePlanner:
             centre + o * reach * u + s * reach_side * side
             for o, s in itertools.product(cfg.press_offsets, cfg.press_sideways)
         ]
-        if footprint is not None and _roll_deg(points, footprint, u) >= cfg.roll_deg:
+        if shape.footprint is not None and shape.roll_deg(u) >= cfg.roll_deg:
             # statics (module docstring): at the onset of sliding the floor's centre of pressure lies mu h ahead of
             # the press; the part tips (and falls back) unless that point is inside its footprint
-            shift = cfg.floor_friction * (z_top - float(points[:, 2].min())) * u
-            standing = np.all((np.array(presses) + shift) @ footprint[:, :2].T + footprint[:, 2] <= 0.0, axis=1)
+            shift = cfg.floor_friction * (z_top - shape.z_floor) * u
+            standing = shape.on_footprint(np.array(presses) + shift)
             presses = [p for p, ok in zip(presses, standing, strict=True) if ok]
-        presses = _pressable(points, z_top, presses)
+        presses = [p for p in presses if shape.pressable(p)]
         for press, tilt, turn in itertools.product(presses, cfg.tilts_deg, cfg.turns_deg):
             R = _paddle_rotation(direction, tilt, turn)
             edge = np.array([*press, z_top - cfg.press_depth_m])
@@ -314,7 +312,7 @@ class NudgePlanner:
         from the walls and the nearest neighbour closer than ``near_m`` (the sum of those directions), until
         the nearest of them would be ``target_gap_m`` away."""
         cfg = self.config
-        gaps = list(_wall_gaps(points_bin, half_xy))
+        gaps = list(wall_gaps_m(points_bin, half_xy))
         away = [[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]]  # from each wall, inwards
         if neighbours_bin is not None and len(neighbours_bin):
             dist, nearest = cKDTree(points_bin[:, :2]).query(neighbours_bin[:, :2])
@@ -386,8 +384,8 @@ class NudgePlanner:
             if planner.collision.transit_gap_m(qa, qb, closed) < clearance or not planner.collision.elbow_clear(qa, qb):
                 return None
         if neighbours_base is not None and len(neighbours_base):
-            path = _straight_lines([T_above, T_press, T_end, T_retreat], _PATH_STEP_M)
-            if _gap_to_points_m(path, closed, neighbours_base) < pcfg.clearance_m:
+            path = straight_lines([T_above, T_press, T_end, T_retreat], _PATH_STEP_M)
+            if gap_to_points_m(path, closed, neighbours_base, pcfg.clearance_m) < pcfg.clearance_m:
                 return None
         return {
             "T_base_above": T_above, "T_base_press": T_press, "T_base_end": T_end, "T_base_retreat": T_retreat,
@@ -395,54 +393,69 @@ class NudgePlanner:
         }  # fmt: skip
 
 
-def _pressable(points: np.ndarray, z_top: float, presses: list[np.ndarray]) -> list[np.ndarray]:
-    """The press points (bin-frame xy) where the pads may press on a part (its surface samples ``points``, bin
-    frame): on its flat top, no hole or edge next to them; or the middle of a hole in the top (the flat top rings
-    it within ``_RIM_CLEARANCE_M``, all round), where the lowest pad corner sinks in and the pads bear on the rim all
-    round it. Off the middle of a hole the pads would catch its far rim and push the part over."""
-    top = points[:, 2] > z_top - _TOP_BAND_M
-    flat = points[:, 2] > z_top - _FLAT_BAND_M
-    flat_xy = points[flat, :2]
-    on_flat = cKDTree(flat_xy)
-    dropping = cKDTree(points[top & ~flat, :2]) if np.any(top & ~flat) else None
-    kept = []
-    for p in presses:
-        gap = float(on_flat.query(p)[0])
+@dataclass(frozen=True, eq=False)
+class _Shape:
+    """What the press rules read from a part's surface samples (bin frame), computed once per part: its top (the
+    samples within ``_TOP_BAND_M`` of its highest point; ``centre_xy`` their mean), its flat top (within
+    ``_FLAT_BAND_M``) and the surfaces dropping away from it (a hole's wall, an edge), and its ``footprint``: the
+    convex hull of its lowest points (xy) as ``(k, 3)`` edge lines ``(nx, ny, c)``, ``n . p + c <= 0`` inside, ``n``
+    a unit outward normal; None for a line contact (the points span no area: a lying cylinder), which rolls
+    whichever way it is dragged."""
+
+    points: np.ndarray
+    z_top: float
+    z_floor: float
+    top_xy: np.ndarray
+    centre_xy: np.ndarray
+    flat_xy: np.ndarray
+    on_flat: cKDTree
+    dropping: cKDTree | None
+    footprint: np.ndarray | None
+
+    @classmethod
+    def of(cls, points: np.ndarray) -> _Shape:
+        z_top, z_floor = float(points[:, 2].max()), float(points[:, 2].min())
+        top = points[:, 2] > z_top - _TOP_BAND_M
+        flat = points[:, 2] > z_top - _FLAT_BAND_M
+        try:
+            footprint = ConvexHull(points[points[:, 2] < z_floor + _FOOT_BAND_M, :2]).equations
+        except (QhullError, ValueError):  # fewer than 3 points, or all on a line
+            footprint = None
+        return cls(
+            points=points, z_top=z_top, z_floor=z_floor, top_xy=points[top, :2],
+            centre_xy=points[top, :2].mean(axis=0), flat_xy=points[flat, :2], on_flat=cKDTree(points[flat, :2]),
+            dropping=cKDTree(points[top & ~flat, :2]) if np.any(top & ~flat) else None, footprint=footprint,
+        )  # fmt: skip
+
+    def pressable(self, p: np.ndarray) -> bool:
+        """Whether the pads may press at ``p`` (xy): on the flat top, no hole or edge next to it; or the middle of
+        a hole in the top (the flat top rings it within ``_RIM_CLEARANCE_M``, all round), where the lowest pad
+        corner sinks in and the pads bear on the rim all round it. Off the middle of a hole the pads would catch
+        its far rim and push the part over."""
+        gap = float(self.on_flat.query(p)[0])
         if gap <= _FLAT_RADIUS_M:
-            if dropping is None or dropping.query(p)[0] >= _RIM_CLEARANCE_M:
-                kept.append(p)
-            continue
-        ring = flat_xy[on_flat.query_ball_point(p, gap + _RIM_CLEARANCE_M)] - p
+            return self.dropping is None or self.dropping.query(p)[0] >= _RIM_CLEARANCE_M
+        ring = self.flat_xy[self.on_flat.query_ball_point(p, gap + _RIM_CLEARANCE_M)] - p
         sectors = np.unique(np.floor((np.arctan2(ring[:, 1], ring[:, 0]) + np.pi) / (2 * np.pi) * _HOLE_SECTORS))
-        if len(sectors) == _HOLE_SECTORS:
-            kept.append(p)
-    return kept
+        return len(sectors) == _HOLE_SECTORS
+
+    def on_footprint(self, xy: np.ndarray) -> np.ndarray:
+        """``(n,)`` which points ``xy`` ``(n, 2)`` lie in the footprint (needs one)."""
+        return np.all(xy @ self.footprint[:, :2].T + self.footprint[:, 2] <= 0.0, axis=1)
+
+    def roll_deg(self, direction_xy: np.ndarray) -> float:
+        """How far (degrees) the part must tip about the edge of its footprint that a drag along ``direction_xy``
+        tips it over (the edge the drag's line through its centre leaves by) before its centre (the samples' mean,
+        for the centre of mass) passes over that edge (needs a footprint)."""
+        centre = self.points.mean(axis=0)
+        inside = -(self.footprint[:, :2] @ centre[:2] + self.footprint[:, 2])  # centre to each edge (> 0 inside)
+        ahead = self.footprint[:, :2] @ direction_xy
+        edges = np.flatnonzero(ahead > 1e-9)
+        lever = float(inside[edges[np.argmin(inside[edges] / ahead[edges])]]) if len(edges) else 0.0
+        return math.degrees(math.atan2(max(lever, 0.0), centre[2] - self.z_floor))
 
 
-def _footprint(points: np.ndarray) -> np.ndarray | None:
-    """What a part (surface samples, bin frame) stands on: the convex hull of its lowest points (xy) as ``(k, 3)``
-    edge lines ``(nx, ny, c)``, ``n . p + c <= 0`` inside, ``n`` a unit outward normal; None for a line contact
-    (the points span no area: a lying cylinder), which rolls whichever way it is dragged."""
-    foot = points[points[:, 2] < float(points[:, 2].min()) + _FOOT_BAND_M, :2]
-    try:
-        return ConvexHull(foot).equations
-    except (QhullError, ValueError):  # fewer than 3 points, or all on a line
-        return None
-
-
-def _roll_deg(points: np.ndarray, footprint: np.ndarray, direction_xy: np.ndarray) -> float:
-    """How far (degrees) a part (surface samples, bin frame; ``footprint`` from ``_footprint``) must tip about the
-    edge of its footprint that a drag along ``direction_xy`` tips it over (the edge the drag's line through its
-    centre leaves by) before its centre (the samples' mean, for the centre of mass) passes over that edge."""
-    centre = points.mean(axis=0)
-    inside = -(footprint[:, :2] @ centre[:2] + footprint[:, 2])  # the centre's distance to each edge (> 0 inside)
-    ahead = footprint[:, :2] @ direction_xy
-    edges = np.flatnonzero(ahead > 1e-9)
-    lever = float(inside[edges[np.argmin(inside[edges] / ahead[edges])]]) if len(edges) else 0.0
-    return math.degrees(math.atan2(max(lever, 0.0), centre[2] - float(points[:, 2].min())))
-
-
-def _straight_lines(poses: list[np.ndarray], step_m: float) -> np.ndarray:
+def straight_lines(poses: list[np.ndarray], step_m: float) -> np.ndarray:
     """``(k, 4, 4)`` poses along the straight lines between consecutive ``poses`` (one orientation along each, as
     a nudge's moves keep it), at most ``step_m`` apart, both ends included."""
     out = [poses[0]]
@@ -455,21 +468,16 @@ def _straight_lines(poses: list[np.ndarray], step_m: float) -> np.ndarray:
     return np.stack(out)
 
 
-def _gap_to_points_m(T_base_tcp: np.ndarray, boxes: np.ndarray, points_base: np.ndarray) -> float:
+def gap_to_points_m(T_base_tcp: np.ndarray, boxes: np.ndarray, points_base: np.ndarray, within_m: float) -> float:
     """The smallest distance (m) from ``points_base`` ``(n, 3)`` to ``boxes`` ``(b, 2, 3)`` (TCP frame) at any of the
-    poses ``(k, 4, 4)``; points farther than the boxes reach from every pose are skipped first."""
-    corners = box_corners(boxes).reshape(-1, 3)
-    reach = float(np.linalg.norm(corners, axis=1).max())
-    positions = T_base_tcp[:, :3, 3]
-    lo, hi = positions.min(axis=0) - reach, positions.max(axis=0) + reach
-    near = points_base[np.all((points_base >= lo) & (points_base <= hi), axis=1)]
-    if not len(near):
-        return math.inf
-    local = (near[None, :, :] - positions[:, None, :]) @ T_base_tcp[:, :3, :3]  # (k, n, 3) in each TCP frame
-    return float(points_box_distance_m(local, boxes[None]).min())
+    poses ``(k, 4, 4)``: exact up to ``within_m``, inf beyond (the points farther than that from the boxes' extent
+    are cut first, ``grasp_collision.local_points``)."""
+    per_pose = np.broadcast_to(boxes, (len(T_base_tcp), *boxes.shape))
+    local, valid = local_points(points_base, T_base_tcp, per_pose, 0.0, within_m)
+    return float(points_box_distance_m(local, boxes, valid).min())
 
 
-def _wall_gaps(points_bin: np.ndarray, half_xy: np.ndarray) -> np.ndarray:
+def wall_gaps_m(points_bin: np.ndarray, half_xy: np.ndarray) -> np.ndarray:
     """The gaps (m) from a part's points (bin frame) to the walls at +x, -x, +y and -y."""
     lo, hi = points_bin[:, :2].min(axis=0), points_bin[:, :2].max(axis=0)
     return np.array([half_xy[0] - hi[0], half_xy[0] + lo[0], half_xy[1] - hi[1], half_xy[1] + lo[1]])

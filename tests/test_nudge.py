@@ -12,7 +12,7 @@ from robot.grasp_geometry import box_corners
 from robot.grasp_plan import PartEstimate
 from robot.grasp_planner import GraspPlanner
 from robot.grasp_set import GraspSetParams
-from robot.nudge import NudgeConfig, NudgePlanner, _gap_to_points_m, _straight_lines
+from robot.nudge import NudgeConfig, NudgePlanner, gap_to_points_m, straight_lines
 from sygrid.errors import ConfigError
 from sygrid.objects import builtin_part
 from sygrid.robots.kinematics import forward_kinematics
@@ -153,7 +153,7 @@ def test_a_nudge_keeps_the_tilted_gripper_off_a_part_standing_where_it_leans(nud
 
     def gap_to_pipe(nudge) -> float:
         path = np.stack([nudge.T_base_above, nudge.T_base_press, nudge.T_base_end, nudge.T_base_retreat])
-        return _gap_to_points_m(_straight_lines(list(path), 0.002), closed, standing)
+        return gap_to_points_m(straight_lines(list(path), 0.002), closed, standing, planner.config.clearance_m)
 
     blind = nudger.plan_part(corner, 0, "collision_bin", q, q)  # planned without the pipe: its gripper hits it
     assert blind is not None and gap_to_pipe(blind) <= 0.0
