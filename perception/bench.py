@@ -50,7 +50,14 @@ from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
 from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize, visibility_gates
 from perception.verify import PoseVerifier
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, StageCheckpoint, folder_digest, replot, save_results
+from sygrid.bench.common import (
+    DEFAULT_RESULTS_DIR,
+    StageCheckpoint,
+    dataset_digest,
+    folder_digest,
+    replot,
+    save_results,
+)
 from sygrid.errors import ConfigError
 
 # issue 21's targets on builtin_test and its noisy twin; recall as fractions, time per object in milliseconds
@@ -483,12 +490,12 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     strategies, thresholds = parse_strategies(args.strategies), parse_thresholds(args.thresholds)
     max_images = 20 if args.quick and args.max_images is None else args.max_images
     settings = {
-        "models": folder_digest(args.models), "data": folder_digest(args.data, "dataset.json"),
-        "noisy_data": None if args.noisy_data is None else folder_digest(args.noisy_data, "dataset.json"),
+        "models": folder_digest(args.models), "data": dataset_digest(args.data),
+        "noisy_data": None if args.noisy_data is None else dataset_digest(args.noisy_data),
         "strategies": strategies, "max_images": max_images, "threads": args.threads, "wrong_class": args.wrong_class,
         "thresholds": thresholds,
         # the code that measures: a checkpoint of an older version is measured again, not mixed in
-        "code": folder_digest(PACKAGE, *sorted(p.name for p in PACKAGE.glob("*.py"))),
+        "code": folder_digest(PACKAGE),
     }  # fmt: skip
     checkpoint = StageCheckpoint(out_dir / "perception.partial.json", settings, resume=args.resume)
     if checkpoint.done:

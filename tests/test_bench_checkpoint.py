@@ -1,11 +1,12 @@
-"""``sygrid.bench.common.StageCheckpoint`` and ``folder_digest``: what a long benchmark resumes from."""
+"""``sygrid.bench.common.StageCheckpoint``: what a long benchmark resumes from (the digests it is keyed by are
+tests/test_bench_stability.py's)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sygrid.bench.common import StageCheckpoint, folder_digest
+from sygrid.bench.common import StageCheckpoint
 from sygrid.errors import ConfigError
 
 
@@ -42,15 +43,3 @@ def test_a_checkpoint_of_other_settings_or_a_broken_file_is_refused_by_name(tmp_
     with pytest.raises(ConfigError, match=r"run\.partial\.json"):
         StageCheckpoint(path, {"models": "abc", "n": 3}, resume=True)
     assert StageCheckpoint.in_memory().run("x", lambda: [1]) == [1]  # keeps nothing on disk
-
-
-def test_a_folder_digest_follows_its_files_names_and_contents(tmp_path):
-    (tmp_path / "sub").mkdir()
-    (tmp_path / "a.json").write_text("1")
-    (tmp_path / "sub" / "b.onnx").write_bytes(b"\x00\x01")
-    whole, only_a = folder_digest(tmp_path), folder_digest(tmp_path, "a.json")
-    assert whole != only_a and folder_digest(tmp_path) == whole
-    (tmp_path / "sub" / "b.onnx").write_bytes(b"\x00\x02")
-    assert folder_digest(tmp_path) != whole and folder_digest(tmp_path, "a.json") == only_a
-    with pytest.raises(ConfigError, match=r"dataset\.json: not found"):
-        folder_digest(tmp_path, "dataset.json")

@@ -28,11 +28,12 @@ from launch.stability.failure import (
 )
 from launch.stability.generated import point_recipe_json, spread_counts
 from launch.stability.options import Options
-from launch.stability.perception_pass import data_digest, models_digest, part_family
+from launch.stability.perception_pass import part_family
 from launch.stability.report import axis_result, summary_markdown
 from launch.stability.soak import slower_p, soak_notes
 from launch.stability.sweep import CLAIM_FILE, Axis, Measurement, Method, Point, point_path, run_axis
 from sim.render_process import NO_ANSWER
+from sygrid.bench.common import dataset_digest, folder_digest
 from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json
@@ -165,10 +166,10 @@ def test_runs_sharing_an_axis_skip_a_point_claimed_by_a_live_process_and_take_ov
 def test_a_repacked_model_folder_is_a_new_pass_key(tmp_path):
     (tmp_path / "manifest.json").write_text("{}")
     (tmp_path / "pose.onnx").write_bytes(b"one")
-    before = models_digest(tmp_path)
-    assert models_digest(tmp_path) == before
+    before = folder_digest(tmp_path)
+    assert folder_digest(tmp_path) == before
     (tmp_path / "pose.onnx").write_bytes(b"two")
-    assert models_digest(tmp_path) != before
+    assert folder_digest(tmp_path) != before
 
 
 def test_a_dataset_generated_again_with_other_annotations_is_a_new_pass_key(tmp_path):
@@ -176,10 +177,10 @@ def test_a_dataset_generated_again_with_other_annotations_is_a_new_pass_key(tmp_
     info.parent.mkdir(parents=True)
     (tmp_path / "dataset.json").write_text("{}")
     info.write_text('{"0": [{"visib_fract": 1.0}]}')
-    before = data_digest(tmp_path)
-    assert data_digest(tmp_path) == before
+    before = dataset_digest(tmp_path)
+    assert dataset_digest(tmp_path) == before
     info.write_text('{"0": [{"visib_fract": 0.2}]}')  # the same scene, its visible fraction corrected
-    assert data_digest(tmp_path) != before
+    assert dataset_digest(tmp_path) != before
 
 
 def test_the_seeds_of_a_point_are_pooled():

@@ -21,8 +21,9 @@ import math
 from launch.stability.failure import Criterion
 from launch.stability.generated import generated_set
 from launch.stability.options import Options
-from launch.stability.perception_pass import PASS_VERSION, PerceptionStack, data_digest, measure_set, tally
+from launch.stability.perception_pass import PASS_VERSION, PerceptionStack, measure_set, tally
 from launch.stability.sweep import Axis, Method, Point
+from sygrid.bench.common import dataset_digest
 
 PERCEPTION_CRITERION = Criterion(fraction=0.8, floor=0.3)
 DETECTION_METRIC = "detection recall"
@@ -49,7 +50,7 @@ def _settings(opts: Options, stack: PerceptionStack, **more) -> dict:
 def _test_set_settings(opts: Options, stack: PerceptionStack, max_images: int | None, **more) -> dict:
     """``_settings`` of an axis that reads the test set ``opts.data``: its path, the digest of its annotations (a
     set generated again is measured again) and the images read."""
-    return _settings(opts, stack, data=str(opts.data), data_digest=data_digest(opts.data), max_images=max_images,
+    return _settings(opts, stack, data=str(opts.data), data_digest=dataset_digest(opts.data), max_images=max_images,
                      **more)  # fmt: skip
 
 

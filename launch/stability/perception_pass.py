@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from launch.stability.sweep import Measurement
+from sygrid.bench.common import dataset_digest, folder_digest
 from sygrid.fileio import read_json, write_json_atomic
 
 if TYPE_CHECKING:
@@ -127,27 +128,6 @@ def cache_path(cache_dir: Path, key: dict[str, Any]) -> Path:
 PASS_VERSION = 4
 
 
-def models_digest(models_dir: Path) -> str:
-    """A digest of the model folder's files (manifest, networks, cards): a repacked folder is a new key."""
-    h = hashlib.sha256()
-    for path in sorted(p for p in Path(models_dir).iterdir() if p.is_file()):
-        h.update(path.name.encode())
-        h.update(path.read_bytes())
-    return h.hexdigest()[:16]
-
-
-def data_digest(data_dir: Path) -> str:
-    """A digest of a dataset's record and annotations (``dataset.json`` and every ``scene_gt*.json``): a set
-    generated again with other annotations is a new key, though its path is the same."""
-    h = hashlib.sha256()
-    root = Path(data_dir)
-    for path in [root / "dataset.json", *sorted(root.glob("bop/*/*/scene_gt*.json"))]:
-        if path.is_file():
-            h.update(str(path.relative_to(root)).encode())
-            h.update(path.read_bytes())
-    return h.hexdigest()[:16]
-
-
 def measure_set(
     stack: PerceptionStack,
     data_dir: Path,
@@ -162,7 +142,7 @@ def measure_set(
     ``SensorModel`` the frames go through (None: as stored); ``detection`` False leaves the detectors out."""
     frames = frames_sensor_of(data_dir, sensor)
     key = {"data": str(Path(data_dir).resolve()), "max_images": max_images, "models": str(stack.models_dir.resolve()),
-           "models_digest": models_digest(stack.models_dir), "data_digest": data_digest(data_dir),
+           "models_digest": folder_digest(stack.models_dir), "data_digest": dataset_digest(data_dir),
            "strategies": list(stack.strategies), "detection": detection,
            "sensor": None if sensor is None else repr(sensor), "sensor_seed": sensor_seed,
            "frames_sensor": repr(frames),

@@ -96,17 +96,26 @@ class StageCheckpoint:
             self.path.unlink(missing_ok=True)
 
 
-def folder_digest(folder: Path, *names: str) -> str:
-    """SHA-256 over a folder's files (``names``: only these, relative to it; default: every file, recursively), by
-    relative path and content: what a checkpoint's settings name a model folder or a dataset by."""
-    folder = Path(folder)
-    files = [folder / n for n in names] if names else sorted(p for p in folder.rglob("*") if p.is_file())
-    digest = hashlib.sha256()
-    for path in files:
-        if not path.is_file():
-            raise ConfigError(f"{path}: not found (expected a file of {folder})")
-        digest.update(str(path.relative_to(folder)).encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()
+def folder_digest(folder: Path) -> str:
+    """A digest of a folder's files (not its subfolders; by name and content): a model folder repacked, or a
+    package's modules edited, is a new key."""
+    h = hashlib.sha256()
+    for path in sorted(p for p in Path(folder).iterdir() if p.is_file()):
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def dataset_digest(data_dir: Path) -> str:
+    """A digest of a dataset's record and annotations (``dataset.json`` and every ``scene_gt*.json``): a set
+    generated again with other annotations is a new key, though its path is the same."""
+    h = hashlib.sha256()
+    root = Path(data_dir)
+    for path in [root / "dataset.json", *sorted(root.glob("bop/*/*/scene_gt*.json"))]:
+        if path.is_file():
+            h.update(str(path.relative_to(root)).encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def json_roundtrip(data: Any) -> Any:
