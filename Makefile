@@ -3,6 +3,8 @@
 VENV := .venv
 export MUJOCO_GL ?= egl
 export RAY_AUTH_MODE ?= disabled
+# the pose strategies `sygrid models choose-pose` measures (the unrefined and RGB-only ones never reach the bar)
+POSE_CANDIDATES := rgbd+icp,depth+icp,depth+search,hybrid+icp,hybrid+search
 
 .PHONY: setup lock demo test lint bench models models-sim-cell transfer
 
@@ -35,10 +37,13 @@ models: setup
 	test -f runs/pose/last.pt || $(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 12 --threads 1 --seed 0
 	$(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 24 --threads 1 --seed 0 --resume
 	# the detector looks at the bin's box upscaled 1.5 times, at confidence 0.2 (docs/bench/detection.md and
-	# perception.md); the pose strategies are chosen on the training set's validation split, then the folder is packed
-	# again so that its cards measure them
+	# perception.md); the pose strategies and the verification threshold are chosen on calibration views (the test
+	# recipe with another seed, noise-free and through the OAK-D model), then the folder is packed again so that its
+	# cards measure them
 	$(VENV)/bin/sygrid models pack --detector runs/detector --pose runs/pose --out models/builtin --test-data datasets/builtin_test --scale 1.5 --conf-threshold 0.2
-	$(VENV)/bin/sygrid models choose-pose --models models/builtin --data datasets/builtin_train --split val_pbr --max-images 40 --threads 1
+	$(VENV)/bin/sygrid generate launch/recipes/builtin_test.json --out datasets/builtin_cal --count 80 --seed 5000 --workers 2
+	$(VENV)/bin/sygrid generate launch/recipes/builtin_test_noisy.json --out datasets/builtin_cal_noisy --count 80 --seed 5000 --workers 2
+	$(VENV)/bin/sygrid models choose-pose --models models/builtin --data datasets/builtin_cal --data datasets/builtin_cal_noisy --strategies $(POSE_CANDIDATES) --threads 1
 	$(VENV)/bin/sygrid models pack --detector runs/detector --pose models/builtin --out models/builtin --test-data datasets/builtin_test --scale 1.5 --conf-threshold 0.2
 
 # The simulated cell's models (models/sim_cell): the shipped detector fine-tuned on views of the cell's camera
@@ -49,10 +54,11 @@ models-sim-cell: setup
 	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_test.json --out datasets/sim_cell_test --count 100 --seed 1000 --workers 2
 	$(VENV)/bin/sygrid train detector --data datasets/sim_cell_train --out runs/sim_cell_detector --init runs/detector/best.pt --imgsz 800 --epochs 12 --lr 0.002 --threads 2 --seed 0 $(if $(wildcard runs/sim_cell_detector/last.pt),--resume)
 	$(VENV)/bin/sygrid models pack --detector runs/sim_cell_detector --pose runs/pose --out models/sim_cell --test-data datasets/sim_cell_test
-	# the pose strategies and the verification threshold, chosen on other views of the cell camera than the test set's;
-	# packed again so that the cards measure them
+	# the pose strategies and the verification threshold, chosen on other views of the cell camera than the test set's
+	# (noise-free and through the OAK-D model); packed again so that the cards measure them
 	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_test.json --out datasets/sim_cell_val --count 40 --seed 2000 --workers 2
-	$(VENV)/bin/sygrid models choose-pose --models models/sim_cell --data datasets/sim_cell_val --threads 1
+	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_test_noisy.json --out datasets/sim_cell_val_noisy --count 40 --seed 2000 --workers 2
+	$(VENV)/bin/sygrid models choose-pose --models models/sim_cell --data datasets/sim_cell_val --data datasets/sim_cell_val_noisy --strategies $(POSE_CANDIDATES) --threads 1
 	$(VENV)/bin/sygrid models pack --detector runs/sim_cell_detector --pose models/sim_cell --out models/sim_cell --test-data datasets/sim_cell_test
 
 # The transfer matrix (docs/bench/transfer.md): the shipped detector on the test sources of the transfer issue,

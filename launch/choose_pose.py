@@ -1,14 +1,16 @@
 """``sygrid models choose-pose``: measure every pose strategy per part on a test set and write the choice into the
 model folder.
 
-    sygrid models choose-pose --models models/builtin --data datasets/builtin_test [--max-images N] [--bar 0.9]
+    sygrid models choose-pose --models models/builtin --data datasets/builtin_cal [--data datasets/builtin_cal_noisy]
+        [--max-images N] [--bar 0.9]
 
 With ground-truth masks (the pose stage alone, ``perception.strategy_eval``), every strategy of
 ``perception.pose_strategies`` runs on every instance seen at least 10 %; the table gives per part and strategy the
 ADD(-S) recall, the recall of the accepted estimates, median re and te, median wall and CPU milliseconds per object,
 and the verification's false accepts, false refusals and accepted wrong-class fits. As at run time, the depth is
 corrected on the bin's floor first (the manifest's ``depth_tare``) and the verification allows the depth noise of the
-dataset's sensor (``VerifyConfig.for_sensor``). The choice per part is the
+dataset's sensor (``VerifyConfig.for_sensor``). Several ``--data`` sets (the same views noise-free and through a
+sensor model, say) are measured each with its own sensor's settings and pooled. The choice per part is the
 cheapest strategy whose recall of accepted estimates reaches ``--bar`` (refused poses are dropped by the pipeline),
 else the most accurate; the verification threshold is the lowest that keeps the chosen strategies' false accepts
 within ``--max-false-accept`` (the two chosen in turn until they agree). Writes ``MODELS/pose_strategies.json``
@@ -38,7 +40,8 @@ CARD_HEADING = "### Pose strategies per part"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", type=Path, required=True, help="model folder with manifest.json")
-    parser.add_argument("--data", type=Path, required=True, help="test dataset made by 'sygrid generate'")
+    parser.add_argument("--data", type=Path, action="append", required=True,
+                        help="dataset made by 'sygrid generate' (repeat to pool several)")  # fmt: skip
     parser.add_argument("--split", default=None, help="BOP split (default: test, else val_pbr)")
     parser.add_argument("--max-images", type=int, default=None, help="the first N images")
     parser.add_argument("--bar", type=float, default=0.9, help="ADD(-S) recall a strategy must reach (0..1)")
@@ -69,24 +72,29 @@ def run(args: argparse.Namespace) -> int:
     models = manifest_models(args.models, manifest)
     network = PoseEstimator(args.models / manifest.pose.onnx, models=models, num_threads=args.threads)
     settings = EvalSettings(split=args.split, max_images=args.max_images)
-    sensor = frames_sensor(args.data, settings)
-    verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m).for_sensor(sensor)
-    runner = StrategyRunner(verifier=PoseVerifier(verify))
     tare = tare_config(manifest.depth_tare)
-    records = evaluate_strategies(runner, network, models, args.data, strategies, settings,
-                                  tare=tare.for_sensor(sensor) if tare is not None else None)  # fmt: skip
+    records: dict[tuple[int, str], list[StrategyRecord]] = {}
+    sets = []
+    for data in args.data:
+        sensor = frames_sensor(data, settings)
+        verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m).for_sensor(sensor)
+        runner = StrategyRunner(verifier=PoseVerifier(verify))
+        measured = evaluate_strategies(runner, network, models, data, strategies, settings,
+                                       tare=tare.for_sensor(sensor) if tare is not None else None)  # fmt: skip
+        for key, recs in measured.items():
+            records.setdefault(key, []).extend(recs)
+        sets.append({"data": str(data), "sensor": sensor.name, "verify_depth_noise_m": verify.depth_noise_m})
     choice, threshold = choose_all(records, args.bar, args.max_false_accept)
     chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
     names = {obj_id: m.name for obj_id, m in models.items()}
     print(format_choice(records, choice, threshold, names))
     report = {
         "command": "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "sygrid models choose-pose",
-        "data": str(args.data),
+        "data": sets,
         "max_images": args.max_images,
         "bar": args.bar,
         "max_false_accept": args.max_false_accept,
         "min_confidence": threshold,
-        "verify_depth_noise_m": verify.depth_noise_m,
         "depth_tare": manifest.depth_tare.enabled,
         "choice": {names[k]: v for k, v in choice.items()},
         "rows": [

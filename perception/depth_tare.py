@@ -17,7 +17,10 @@ falls on a few levels one step apart, and a median (or the lowest level dense en
 a step off (3 mm at 0.9 m for the OAK-D). With the sensor's step known (``quantum_inv_m``, ``TareConfig.for_sensor``)
 the histogram is smoothed over at least a step and the offset is the mean over a window of at least a step and a
 half each side, where the noise dithers the levels into an unbiased mean. Fewer floor pixels than ``min_floor_px``
-(a full bin, the floor out of view): no correction, with the reason. The correction ``z = 1 / (1 / z_obs - c)``
+(a full bin, the floor out of view): no correction, with the reason. Nor where the cluster spreads wider than a
+plane seen by the sensor can (``max_spread_factor`` x the spread its noise and steps give, ``noise_inv_m`` and
+``quantum_inv_m``; checked where the sensor is known, ``TareConfig.for_sensor``): in a bin so full that little floor shows, the lowest dense cluster is the parts' tops at many
+heights, and taking it for the floor would push every depth of the frame centimetres too deep. The correction ``z = 1 / (1 / z_obs - c)``
 applies to the whole image; no data stays no data. Optionally a disparity gain too (``1 / z_obs = g / z + c``, a
 baseline or focal length error), fitted to the floor pixels where the floor spans enough inverse depth
 (``fit_gain``; the sensor model has no gain error).
@@ -58,6 +61,11 @@ class TareConfig:
         min_gain_span: the 5-95 % span of the floor pixels' plane inverse depth, as a fraction of its median.
         quantum_inv_m: the depth's quantisation in inverse depth (a disparity step over focal length x baseline);
             0: not quantised (exact depth), the medians as they are.
+        noise_inv_m: the depth's noise in inverse depth (one standard deviation; a disparity's noise over focal
+            length x baseline, the same at every depth); 0: exact depth; None: not known (the spread is not checked).
+        max_spread_factor: the floor's cluster may spread (robust standard deviation of its low side) at most this
+            x the spread of a plane under the noise and the steps (``sqrt(noise^2 + quantum^2 / 12)``, at least
+            ``min_window_inv_m``); wider: no plane is seen, no correction.
     """
 
     min_floor_px: int = 1000
@@ -71,6 +79,8 @@ class TareConfig:
     fit_gain: bool = False
     min_gain_span: float = 0.15
     quantum_inv_m: float = 0.0
+    noise_inv_m: float | None = None
+    max_spread_factor: float = 1.5
 
     def __post_init__(self) -> None:
         if self.min_floor_px < 1 or self.stride < 1 or self.iterations < 1:
@@ -84,14 +94,29 @@ class TareConfig:
                 "TareConfig: need smooth_inv_m, window_sigmas, min_window_inv_m, max_offset_inv_m, min_gain_span > 0 "
                 f"and peak_fraction in (0, 1], got {positive}, {self.min_gain_span}, {self.peak_fraction}"
             )
-        if not (math.isfinite(self.quantum_inv_m) and self.quantum_inv_m >= 0):
-            raise ValueError(f"TareConfig: need quantum_inv_m >= 0, got {self.quantum_inv_m}")
+        if not all(math.isfinite(x) and x >= 0 for x in (self.quantum_inv_m, self.noise_inv_m or 0.0)):
+            raise ValueError(
+                f"TareConfig: need quantum_inv_m and noise_inv_m >= 0, got {self.quantum_inv_m}, {self.noise_inv_m}"
+            )
+        if not self.max_spread_factor >= 1:
+            raise ValueError(f"TareConfig: need max_spread_factor >= 1, got {self.max_spread_factor}")
 
     def for_sensor(self, sensor: SensorModel) -> TareConfig:
-        """These settings for depth from ``sensor``: its disparity step as the quantisation (none for exact depth)."""
+        """These settings for depth from ``sensor``: its disparity step as the quantisation and its disparity noise
+        as the inverse-depth noise (none for exact depth)."""
         stereo = sensor.stereo_focal_px * sensor.baseline_m
         quantum = sensor.disparity_step_px / stereo if stereo > 0 else 0.0
-        return replace(self, quantum_inv_m=float(quantum))
+        noise = float(sensor.depth_noise_sigma_m(1.0))  # sigma_z = z^2 sigma_d / (f b): at 1 m, the inverse depth's
+        return replace(self, quantum_inv_m=float(quantum), noise_inv_m=noise)
+
+    @property
+    def max_spread_inv_m(self) -> float:
+        """The widest spread (robust standard deviation, 1/m) the floor's cluster may have; inf where the sensor's
+        noise is not known."""
+        if self.noise_inv_m is None:
+            return math.inf
+        plane = math.sqrt(self.noise_inv_m**2 + self.quantum_inv_m**2 / 12.0)
+        return self.max_spread_factor * max(plane, self.min_window_inv_m)
 
 
 @dataclass(frozen=True)
@@ -169,11 +194,15 @@ def estimate_tare(
                            f"{cfg.min_floor_px}")  # fmt: skip
     inv_obs, inv_p = 1.0 / z[use], inv_plane[use]
     q = inv_obs - inv_p
-    c, window = _lowest_cluster(q, cfg)
+    c, window, spread = _lowest_cluster(q, cfg)
     floor = np.abs(q - c) <= window
     n_floor = int(floor.sum()) * per_sample
     if n_floor < cfg.min_floor_px:
         return Tare(floor_px=n_floor, reason=f"{n_floor} floor pixels, fewer than {cfg.min_floor_px}")
+    if spread > cfg.max_spread_inv_m:
+        return Tare(floor_px=n_floor,
+                    reason=f"the floor's cluster spreads {spread:.4f} /m, more than the {cfg.max_spread_inv_m:.4f} /m "
+                           "of a plane seen by this sensor: parts cover the floor")  # fmt: skip
     gain = 1.0
     if cfg.fit_gain:
         c, gain, floor = _fit_gain(inv_obs, inv_p, c, window, floor, cfg)
@@ -215,10 +244,10 @@ def tared_depth(
 
 
 # ----------------------------------------------------------------------------------------------------- helpers
-def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float]:
-    """(centre, half window) of the lowest dense cluster of ``q``: the first peak of its smoothed histogram from the
-    low end reaching ``peak_fraction`` of the highest, then medians within the window, its half width
-    ``window_sigmas`` robust standard deviations of the cluster's low side. Quantised depth (``quantum_inv_m``):
+def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float, float]:
+    """(centre, half window, spread) of the lowest dense cluster of ``q``: the first peak of its smoothed histogram
+    from the low end reaching ``peak_fraction`` of the highest, then medians within the window, its half width
+    ``window_sigmas`` robust standard deviations of the cluster's low side (the spread). Quantised depth (``quantum_inv_m``):
     smoothed over at least a step, means within at least a step and a half each side (see the module docstring)."""
     sigma_inv = max(cfg.smooth_inv_m, cfg.quantum_inv_m)  # the histogram's smoothing
     min_window = max(cfg.min_window_inv_m, 1.5 * cfg.quantum_inv_m)
@@ -235,7 +264,7 @@ def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float]:
     right = np.concatenate((smooth[1:], [-np.inf]))
     peaks = np.flatnonzero((smooth >= left) & (smooth > right) & (smooth >= cfg.peak_fraction * smooth.max()))
     centre = float(0.5 * (edges[peaks[0]] + edges[peaks[0] + 1]))
-    window = min_window
+    window, sigma = min_window, 0.0
     for _ in range(cfg.iterations):
         below = centre - q[(q <= centre) & (q >= centre - 8 * sigma_inv)]
         sigma = 1.4826 * float(np.median(below)) if len(below) else 0.0
@@ -244,7 +273,7 @@ def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float]:
         if not len(near):
             break
         centre = float(centre_of(near))
-    return centre, window
+    return centre, window, sigma
 
 
 def _fit_gain(

@@ -25,7 +25,9 @@ class Observation:
 
     ``depth_m``: (h, w) float64 metres, 0 = no data; ``mask``: (h, w) bool; ``x0, y0``: the crop's top-left pixel
     in the image; ``intrinsics``: the full image's camera; ``support``: ``(a, b, c, d)`` the surface the part lies
-    on (camera frame, unit normal towards the camera), None where unknown: no part of it can lie below.
+    on (camera frame, unit normal towards the camera), None where unknown: no part of it can lie below;
+    ``silhouette``: (h, w) bool, the segmenter's mask before any clean-up (None: ``mask`` is that mask): where the
+    part is seen, whatever its depth pixels hold.
     """
 
     depth_m: np.ndarray
@@ -34,6 +36,7 @@ class Observation:
     y0: int
     intrinsics: CameraIntrinsics
     support: np.ndarray | None = None
+    silhouette: np.ndarray | None = None
 
     @classmethod
     def crop(
@@ -71,6 +74,13 @@ class Observation:
         return cls.crop(depth_m, detection.mask, intrinsics, box)
 
     def with_mask(self, mask: np.ndarray, support: np.ndarray | None = None) -> Observation:
-        """The same crop with another (h, w) mask (and support, where given)."""
+        """The same crop with another (h, w) mask (and support, where given); the silhouette stays the first mask's."""
         support = self.support if support is None else np.asarray(support, dtype=float)
-        return Observation(self.depth_m, np.asarray(mask, dtype=bool), self.x0, self.y0, self.intrinsics, support)
+        silhouette = self.mask if self.silhouette is None else self.silhouette
+        mask = np.asarray(mask, dtype=bool)
+        return Observation(self.depth_m, mask, self.x0, self.y0, self.intrinsics, support, silhouette)
+
+    @property
+    def seen_mask(self) -> np.ndarray:
+        """(h, w) bool: the segmenter's silhouette of the part (``silhouette``, else ``mask``)."""
+        return self.mask if self.silhouette is None else self.silhouette

@@ -69,7 +69,8 @@ class StrategyConfig:
     escape_rounds: while the best ICP fit is short of ``good_confidence``, try it turned about its own axes
         (``_turns``), at most this many times (each from the best so far, while it improves).
     escape_quick: rank the turns by their verification after a short ICP (not the coarse score).
-    good_confidence: a fit this confident ends the search (no further hypothesis is refined).
+    good_confidence: a fit whose depth agreement (``Verification.depth_confidence``) reaches this ends the search
+        (no further hypothesis is refined).
     polish_steps: step sizes (x diameter) of the slide search on a fit short of ``good_confidence`` (``_polish``).
     slide_fractions: the turns (``_turns``) also take the fit slid by these (x diameter) along its longest axis.
     min_points: fewer depth points than this in the cleaned mask: the network's pose (or none) with confidence 0.
@@ -78,7 +79,8 @@ class StrategyConfig:
     rest_slack: ... and its verification confidence is at least the free fit's minus this.
     rest_steps: the in-plane search's steps: (fraction of the diameter, degrees), coarse to fine.
     rest_settled_deg, rest_settled_m: a fit that levelling turns and moves no more than this is left as it is.
-    rest_confident: a free fit whose (ranking) verification confidence reaches this is left as it is (above 1: never).
+    rest_confident: a free fit whose (ranking) depth agreement (``depth_confidence``) reaches this is left as it is
+        (above 1: never).
     """
 
     icp_hypotheses: int = 3
@@ -334,7 +336,7 @@ class StrategyRunner:
         candidates = self._refine_ranked(hypotheses, scene, model, obs, quick)
         best = max(candidates, key=lambda c: c.verification.confidence)
         for _ in range(cfg.escape_rounds):
-            if best.verification.confidence >= cfg.good_confidence:
+            if best.verification.depth_confidence >= cfg.good_confidence:
                 break
             turned = self._refine_ranked(self._turns(best, scene, model), scene, model, obs, cfg.escape_quick)
             candidates += turned
@@ -342,7 +344,7 @@ class StrategyRunner:
             if better.verification.confidence <= best.verification.confidence:
                 break
             best = better
-        if cfg.polish_steps and best.verification.confidence < cfg.good_confidence:
+        if cfg.polish_steps and best.verification.depth_confidence < cfg.good_confidence:
             candidates.append(self._polish(best, scene, model, obs))
         return candidates
 
@@ -367,7 +369,7 @@ class StrategyRunner:
             return best
         if tilt <= cfg.rest_settled_deg and np.linalg.norm(T[:3, 3] - best.T[:3, 3]) <= cfg.rest_settled_m:
             return best  # already at rest: nothing to gain, and the search is the dearer part
-        if best.verification.confidence >= cfg.rest_confident:
+        if best.verification.depth_confidence >= cfg.rest_confident:
             return best  # the depth confirms the free fit: a part leaning on a neighbour, or exact depth
         T, v = planar_search(T, model, obs, obs.support, self.verifier, cfg.rest_steps)
         if v.confidence < best.verification.confidence - cfg.rest_slack:
@@ -408,7 +410,7 @@ class StrategyRunner:
         out = []
         for i in np.argsort([-v.confidence for _, v, _ in aligned], kind="stable")[: cfg.icp_hypotheses]:
             out.append(self._icp(aligned[i][0], aligned[i][2], scene, model, obs))
-            if out[-1].verification.confidence >= cfg.good_confidence:
+            if out[-1].verification.depth_confidence >= cfg.good_confidence:
                 break
         return out
 

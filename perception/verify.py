@@ -15,8 +15,13 @@ where depth says a surface is), ``coverage`` the fraction of the mask's depth pi
 (does the model account for what was segmented: a smaller part's model fitted into a larger part's mask covers only
 some of it); mask pixels the model leaves open whose depth lies behind the model's surface next to them are
 background seen past the part (through its hole, around its edge) and do not count. ``iou`` is the silhouette IoU
-of the unoccluded rendering and the mask. The pose's confidence is ``sqrt(fit * coverage)`` in [0, 1]; it is
-accepted when the confidence reaches ``min_confidence``.
+of the unoccluded rendering and the segmenter's mask as it was before the depth clean-up (the observation's
+``silhouette``, less its background seen past the part as above; the model's own holes count neither way, as a
+segmenter may fill them): where depth cannot speak (no data on specular metal, a thin part whose top quantises to
+the floor's depth, a fragment of a buried part), the outline still does. With footprints (the verdict), a pixel the
+model's outline crosses counts neither way either. The pose's confidence is ``sqrt(fit * coverage * iou)`` in
+[0, 1] (the depth's agreement ``sqrt(fit * coverage)`` times the outline's ``sqrt(iou)``); it is accepted when the
+confidence reaches ``min_confidence``.
 
 The verdict (``verify(..., footprint=True)``) compares each pixel's observed depth with the range of the model's
 depth over the pixel's footprint (its centre and four corners, ray-cast where the model has a silhouette or a depth
@@ -43,6 +48,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 import open3d as o3d
+from scipy import ndimage
 
 from perception.observation import Observation
 from sygrid.camera import CameraIntrinsics, project_points
@@ -107,7 +113,7 @@ class VerifyConfig:
 class Verification:
     """How well a pose agrees with the observation. Fractions in [0, 1]; counts in (strided) pixels.
 
-    ``confidence``: ``sqrt(fit * coverage)``; ``accepted``: ``confidence >= min_confidence``. ``rmse_m``: the RMS
+    ``confidence``: ``sqrt(fit * coverage * iou)``; ``accepted``: ``confidence >= min_confidence``. ``rmse_m``: the RMS
     depth residual of the inliers (the visible-surface discrepancy), NaN without inliers.
     """
 
@@ -122,6 +128,12 @@ class Verification:
     rendered: int
     mask_pixels: int
     rmse_m: float
+
+    @property
+    def depth_confidence(self) -> float:
+        """``sqrt(fit * coverage)``: the depth's agreement alone, without the silhouette (the pose search's stopping
+        rules: the depth already confirms the fit)."""
+        return math.sqrt(self.fit * self.coverage)
 
     def as_dict(self) -> dict:
         return {k: (float(v) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
@@ -240,8 +252,9 @@ class PoseVerifier:
         shape = (len(v), len(u))
         rendered, slope = caster.depth(T, dirs.reshape(-1, 3), cfg.threads)
         rendered, slope = rendered.reshape(shape), slope.reshape(shape)
+        partial = None
         if footprint:
-            lo, hi = _pixel_range(rendered, caster, T, dirs, obs.intrinsics, cfg)
+            lo, hi, partial = _pixel_range(rendered, caster, T, dirs, obs.intrinsics, cfg)
         else:
             lo, hi = _centre_range(rendered)
         height = None
@@ -252,10 +265,12 @@ class PoseVerifier:
             slope,
             obs.depth_m[y0:y1:stride, x0:x1:stride],
             obs.mask[y0:y1:stride, x0:x1:stride],
+            obs.seen_mask[y0:y1:stride, x0:x1:stride],
             height,
             stride,
             lo,
             hi,
+            partial,
         )
 
     def verify(
@@ -325,19 +340,24 @@ class PoseVerifier:
         occluded = in_front & ~in_mask & ~violation
         n_inlier, n_violation = int(inlier.sum()), int(violation.sum())
         # Mask pixels the model leaves open whose depth lies behind the model's surface next to them are background
-        # seen past the part (through its hole, around its edge in a loose mask): no part surface left unexplained.
+        # seen past the part (through its hole, around its edge in a loose mask): no part surface left unexplained,
+        # and no part of the outline either.
         reach = cfg.background_reach_fraction * model.diameter_m * obs.intrinsics.fx / T[2, 3] / stride
         reach = max(2, math.ceil(reach))
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
         nearby = cv2.dilate(rendered.astype(np.float32), kernel)
-        background = in_mask & valid & ~hit & (nearby > 0) & (observed > nearby + self.tolerance_m(model, nearby))
+        past = valid & ~hit & (nearby > 0) & (observed > nearby + self.tolerance_m(model, nearby))
+        background = in_mask & past
         n_mask = int((in_mask & valid & ~background & ~(within & ~hit)).sum())
         fit = n_inlier / (n_inlier + n_violation) if n_inlier + n_violation else 0.0
         coverage = int((inlier & in_mask).sum()) / n_mask if n_mask else 0.0
-        seen = hit & ~occluded
-        union = int((seen | in_mask).sum())
-        iou = int((seen & in_mask).sum()) / union if union else 0.0
-        confidence = math.sqrt(fit * coverage)
+        seen, silhouette = hit & ~occluded, r.in_silhouette & ~past
+        counted = ~(ndimage.binary_fill_holes(hit) & ~hit)  # the model's own holes: a segmenter may fill them
+        if r.partial is not None:  # an outline pixel the model half covers counts neither way
+            counted &= ~r.partial
+        union = int(((seen | silhouette) & counted).sum())
+        iou = int((seen & silhouette & counted).sum()) / union if union else 0.0
+        confidence = math.sqrt(fit * coverage * iou)
         rmse = float(np.sqrt(np.mean(np.square(residual[inlier])))) if n_inlier else math.nan
         return Verification(
             confidence=confidence,
@@ -356,18 +376,21 @@ class PoseVerifier:
 
 @dataclass(frozen=True)
 class _Rendering:
-    """The model's z-depth and slope at (strided) crop pixels, the observed depth and mask there, the rendered
+    """The model's z-depth and slope at (strided) crop pixels, the observed depth, mask and silhouette there, the rendered
     surface's height above the observation's support (None without one), the pixel stride, and the model's depth
-    range within one pixel (``_pixel_range``)."""
+    range within one pixel (``_pixel_range``) and, with footprints, which pixels the model's outline crosses
+    (``partial``; None without)."""
 
     rendered: np.ndarray
     slope: np.ndarray
     observed: np.ndarray
     in_mask: np.ndarray
+    in_silhouette: np.ndarray
     height: np.ndarray | None
     stride: int
     lo: np.ndarray
     hi: np.ndarray
+    partial: np.ndarray | None = None
 
 
 _CORNERS = np.array([(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)])  # a pixel's footprint, in pixels
@@ -388,9 +411,10 @@ def _pixel_range(
     dirs: np.ndarray,
     intrinsics: CameraIntrinsics,
     cfg: VerifyConfig,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The nearest and farthest model z-depth over each (strided) pixel's footprint (its centre and corners; inf
-    and -inf where no ray there hits). ``rendered``: (h, w) z-depth at the centres, 0 = miss; ``dirs``: (h, w, 3)
+    and -inf where no ray there hits), and which pixels the model's outline crosses (some of those rays hit it,
+    some miss). ``rendered``: (h, w) z-depth at the centres, 0 = miss; ``dirs``: (h, w, 3)
     their rays. The corners are ray-cast only where the grid's 3 x 3 neighbourhood holds a silhouette or a depth
     step of more than ``tolerance_min_m`` (a smooth surface's slope is the tolerance's slope term); elsewhere the
     range is the centre's (``_centre_range``)."""
@@ -401,6 +425,7 @@ def _pixel_range(
     with np.errstate(invalid="ignore", over="ignore"):  # inf - inf where nothing is hit
         edge = (any_miss & np.isfinite(near)) | (far - near > cfg.tolerance_min_m)
     lo, hi = _centre_range(rendered)
+    partial = np.zeros(hit.shape, dtype=bool)
     if edge.any():
         d = dirs[edge]  # (m, 3)
         corners = (d[None, :, :2] + (_CORNERS / (intrinsics.fx, intrinsics.fy))[:, None, :]).reshape(-1, 2)
@@ -409,7 +434,8 @@ def _pixel_range(
         z_hit = z > 0
         lo[edge] = np.minimum(lo[edge], np.where(z_hit, z, np.inf).min(axis=0))
         hi[edge] = np.maximum(hi[edge], np.where(z_hit, z, -np.inf).max(axis=0))
-    return lo, hi
+        partial[edge] = (z_hit.any(axis=0) | hit[edge]) & ~(z_hit.all(axis=0) & hit[edge])
+    return lo, hi, partial
 
 
 def _empty(mask_pixels: int) -> Verification:

@@ -19,10 +19,16 @@ HALF = (0.15, 0.10)  # the floor's half sizes, metres
 
 
 def _scene(
-    offset_inv_m: float, noise_inv_m: float, seed: int = 0, quantum_inv_m: float = 0.0, tilt_deg: float = 20.0
+    offset_inv_m: float,
+    noise_inv_m: float,
+    seed: int = 0,
+    quantum_inv_m: float = 0.0,
+    tilt_deg: float = 20.0,
+    boxes: int = 12,
+    heights: tuple[float, float] = (0.01, 0.06),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(observed depth, plane, bounds): a floor tilted ``tilt_deg`` at 0.8 m with boxes 1-6 cm tall covering a third
-    of it, the walls' rim beyond it, seen with an inverse-depth offset and noise (rounded to ``quantum_inv_m``, as a
+    """(observed depth, plane, bounds): a floor tilted ``tilt_deg`` at 0.8 m with ``boxes`` boxes ``heights`` tall on it
+    (12 cover about a third of it), the walls' rim beyond it, seen with an inverse-depth offset and noise (rounded to ``quantum_inv_m``, as a
     stereo camera's subpixel disparity steps round it), and a few holes."""
     rng = np.random.default_rng(seed)
     c, s = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
@@ -37,10 +43,10 @@ def _scene(
     p_bin = (rays * z[..., None] - T_camera_bin[:3, 3]) @ R
     outside = (np.abs(p_bin[..., 0]) > HALF[0]) | (np.abs(p_bin[..., 1]) > HALF[1])
     height = np.where(outside, 0.12, 0.0)
-    for _ in range(12):
+    for _ in range(boxes):
         x, y = rng.uniform(-0.13, 0.13), rng.uniform(-0.08, 0.08)
         box = (np.abs(p_bin[..., 0] - x) < 0.02) & (np.abs(p_bin[..., 1] - y) < 0.015)
-        height = np.where(box & ~outside, rng.uniform(0.01, 0.06), height)
+        height = np.where(box & ~outside, rng.uniform(*heights), height)
     # a surface ``height`` above the floor, parallel to it: its plane's d shrinks by the height
     z = -(plane[3] - height) / (rays @ normal)
     inv = 1.0 / z + offset_inv_m + noise_inv_m * rng.standard_normal(z.shape)
@@ -111,6 +117,21 @@ def test_no_visible_floor_gives_no_correction():
     assert not estimate_tare(depth, K, plane, behind).applied
     assert tared_depth(depth, K, None, bounds, TareConfig()) == (depth, None)
     assert tared_depth(depth, K, plane, bounds, None) == (depth, None)
+
+
+def test_a_floor_the_parts_cover_is_not_taken_for_the_floor():
+    """A bin so full that the lowest dense cluster is the boxes' tops at many heights: told the sensor's noise, the
+    tare sees a spread no plane under that noise has and corrects nothing (taking the tops for the floor would push
+    every depth centimetres too deep); the same noise on the usual bin is tared as before."""
+    noise = 0.003
+    config = TareConfig(noise_inv_m=noise)
+    assert config.max_spread_inv_m == pytest.approx(1.5 * noise) and TareConfig().max_spread_inv_m == np.inf
+    full, plane, bounds = _scene(0.004, noise_inv_m=noise, boxes=2000, heights=(0.015, 0.03))
+    tare = estimate_tare(full, K, plane, bounds, config)
+    assert not tare.applied and "spreads" in tare.reason and tare.offset_inv_m == 0.0
+    assert estimate_tare(full, K, plane, bounds).offset_inv_m > 0.01  # not told the noise: the tops taken
+    usual, plane, bounds = _scene(0.004, noise_inv_m=noise)
+    assert estimate_tare(usual, K, plane, bounds, config).offset_inv_m == pytest.approx(0.004, abs=4e-4)
 
 
 def test_no_data_stays_no_data():

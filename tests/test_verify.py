@@ -99,3 +99,39 @@ def test_tolerance_grows_with_depth_noise_and_the_visibility_test_sees_the_front
     assert raycaster(NUT).visible(T, far).tolist() == [False, True]
     with pytest.raises(ValueError, match="min_confidence"):
         VerifyConfig(min_confidence=1.5)
+
+
+def test_where_depth_cannot_tell_the_outline_does():
+    """A washer on the floor whose metal returns no depth but a glint's patch, verified with a noise allowance wider
+    than its thickness (its top and the floor agree within it): slid by a fifth of its diameter it still explains
+    the patch and the floor, so its depth agreement alone would pass it, but its outline leaves the part's
+    silhouette and it is refused; the true pose is accepted."""
+    T = on_floor(WASHER, 0.0, 0.0, 0.0)
+    scene = render([(WASHER, T)])
+    mask = scene.masks[0]
+    ys, xs = np.nonzero(mask)
+    yy, xx = np.mgrid[: mask.shape[0], : mask.shape[1]]
+    radius = (xs.max() - xs.min()) / 2
+    patch = mask & (xx > xs.mean() + 0.5 * radius) & (np.abs(yy - ys.mean()) < 0.3 * radius)
+    depth = np.where(mask & ~patch, 0.0, scene.depth)
+    obs = Observation.of_detection(depth, detection(WASHER, mask), CAMERA)
+    verifier = PoseVerifier(VerifyConfig(depth_noise_m=0.008))
+    true = verifier.verify(T, WASHER, obs, footprint=True)
+    assert true.accepted and true.confidence > 0.97 and true.iou > 0.97
+    slid = verifier.verify(T @ make_T(t=[0.0, 0.2 * WASHER.diameter_m, 0.0]), WASHER, obs, footprint=True)
+    assert slid.depth_confidence > 0.95 and slid.iou < 0.4
+    assert not slid.accepted and slid.confidence < 0.7
+    assert slid.confidence == pytest.approx(np.sqrt(slid.fit * slid.coverage * slid.iou))
+
+
+def test_the_outline_is_the_segmenters_mask_before_the_clean_up(scene):
+    """The mask cleaned down to a third (the clean-up dropping pixels whose depth it distrusts) leaves the part's
+    silhouette as the segmenter drew it: the true pose's outline still matches it."""
+    obs = _obs(scene, 1, WASHER)
+    cols = np.arange(obs.mask.shape[1])[None, :]
+    kept = obs.mask & (cols < np.nonzero(obs.mask.any(axis=0))[0].mean())
+    cleaned = obs.with_mask(kept).with_mask(kept)  # cleaned twice: still the first mask's outline
+    assert np.array_equal(cleaned.seen_mask, obs.mask) and np.array_equal(cleaned.mask, kept)
+    assert obs.silhouette is None and np.array_equal(obs.seen_mask, obs.mask)
+    v = PoseVerifier().verify(scene.poses[1], WASHER, cleaned, footprint=True)
+    assert v.accepted and v.iou > 0.97 and v.mask_pixels < 0.6 * obs.mask.sum()
