@@ -19,9 +19,10 @@ the histogram is smoothed over at least a step and the offset is the mean over a
 half each side, where the noise dithers the levels into an unbiased mean. Fewer floor pixels than ``min_floor_px``
 (a full bin, the floor out of view): no correction, with the reason. Nor where the cluster spreads wider than a
 plane seen by the sensor can (``max_spread_factor`` x the spread its noise and steps give, ``noise_inv_m`` and
-``quantum_inv_m``; checked where the sensor is known, ``TareConfig.for_sensor``): in a bin so full that little floor shows, the lowest dense cluster is the parts' tops at many
-heights, and taking it for the floor would push every depth of the frame centimetres too deep. The correction ``z = 1 / (1 / z_obs - c)``
-applies to the whole image; no data stays no data. Optionally a disparity gain too (``1 / z_obs = g / z + c``, a
+``quantum_inv_m``; checked where the sensor is known, ``TareConfig.for_sensor``): in a bin so full that little
+floor shows, the lowest dense cluster is the parts' tops at many heights, and taking it for the floor would push
+every depth of the frame centimetres too deep. The correction ``z = 1 / (1 / z_obs - c)`` applies to the whole
+image; no data stays no data. Optionally a disparity gain too (``1 / z_obs = g / z + c``, a
 baseline or focal length error), fitted to the floor pixels where the floor spans enough inverse depth
 (``fit_gain``; the sensor model has no gain error).
 
@@ -247,8 +248,9 @@ def tared_depth(
 def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float, float]:
     """(centre, half window, spread) of the lowest dense cluster of ``q``: the first peak of its smoothed histogram
     from the low end reaching ``peak_fraction`` of the highest, then medians within the window, its half width
-    ``window_sigmas`` robust standard deviations of the cluster's low side (the spread). Quantised depth (``quantum_inv_m``):
-    smoothed over at least a step, means within at least a step and a half each side (see the module docstring)."""
+    ``window_sigmas`` robust standard deviations of the cluster's low side (the spread). Quantised depth
+    (``quantum_inv_m``): smoothed over at least a step, means within at least a step and a half each side (see the
+    module docstring)."""
     sigma_inv = max(cfg.smooth_inv_m, cfg.quantum_inv_m)  # the histogram's smoothing
     min_window = max(cfg.min_window_inv_m, 1.5 * cfg.quantum_inv_m)
     centre_of = np.mean if cfg.quantum_inv_m > 0 else np.median

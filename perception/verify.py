@@ -376,9 +376,9 @@ class PoseVerifier:
 
 @dataclass(frozen=True)
 class _Rendering:
-    """The model's z-depth and slope at (strided) crop pixels, the observed depth, mask and silhouette there, the rendered
-    surface's height above the observation's support (None without one), the pixel stride, and the model's depth
-    range within one pixel (``_pixel_range``) and, with footprints, which pixels the model's outline crosses
+    """The model's z-depth and slope at (strided) crop pixels, the observed depth, mask and silhouette there, the
+    rendered surface's height above the observation's support (None without one), the pixel stride, and the model's
+    depth range within one pixel (``_pixel_range``) and, with footprints, which pixels the model's outline crosses
     (``partial``; None without)."""
 
     rendered: np.ndarray

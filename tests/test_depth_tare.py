@@ -27,9 +27,9 @@ def _scene(
     boxes: int = 12,
     heights: tuple[float, float] = (0.01, 0.06),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(observed depth, plane, bounds): a floor tilted ``tilt_deg`` at 0.8 m with ``boxes`` boxes ``heights`` tall on it
-    (12 cover about a third of it), the walls' rim beyond it, seen with an inverse-depth offset and noise (rounded to ``quantum_inv_m``, as a
-    stereo camera's subpixel disparity steps round it), and a few holes."""
+    """(observed depth, plane, bounds): a floor tilted ``tilt_deg`` at 0.8 m with ``boxes`` boxes ``heights`` tall
+    on it (12 cover about a third of it), the walls' rim beyond it, seen with an inverse-depth offset and noise
+    (rounded to ``quantum_inv_m``, as a stereo camera's subpixel disparity steps round it), and a few holes."""
     rng = np.random.default_rng(seed)
     c, s = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
     R = np.array([[1, 0, 0], [0, -c, s], [0, -s, -c]])  # bin z (up) towards the camera, tilted about x
