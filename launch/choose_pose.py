@@ -7,7 +7,8 @@ model folder.
 With ground-truth masks (the pose stage alone, ``perception.strategy_eval``), every strategy of
 ``perception.pose_strategies`` runs on every instance seen at least 10 %; the table gives per part and strategy the
 ADD(-S) recall, the recall of the accepted estimates, median re and te, median wall and CPU milliseconds per object,
-and the verification's false accepts, false refusals and accepted wrong-class fits. As at run time, the depth is
+and the verification's false accepts, false refusals and (with ``--wrong-class``: the model of another part fitted
+to each instance too, which doubles the time) accepted wrong-class fits. As at run time, the depth is
 corrected on the bin's floor first (the manifest's ``depth_tare``) and the verification allows the depth noise of the
 dataset's sensor (``VerifyConfig.for_sensor``). Several ``--data`` sets (the same views noise-free and through a
 sensor model, say) are measured each with its own sensor's settings and pooled. The choice per part is the
@@ -47,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bar", type=float, default=0.9, help="ADD(-S) recall a strategy must reach (0..1)")
     parser.add_argument("--max-false-accept", type=float, default=0.01, help="of the accepted estimates (0..1)")
     parser.add_argument("--strategies", default=None, help="comma-separated subset of the strategies (default: all)")
+    parser.add_argument("--wrong-class", action="store_true", help="also fit every instance with another part's model")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--dry-run", action="store_true", help="print the table, write nothing")
 
@@ -79,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         sensor = frames_sensor(data, settings)
         verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m).for_sensor(sensor)
         runner = StrategyRunner(verifier=PoseVerifier(verify))
-        measured = evaluate_strategies(runner, network, models, data, strategies, settings,
+        measured = evaluate_strategies(runner, network, models, data, strategies, settings, args.wrong_class,
                                        tare=tare.for_sensor(sensor) if tare is not None else None)  # fmt: skip
         for key, recs in measured.items():
             records.setdefault(key, []).extend(recs)

@@ -76,8 +76,9 @@ def test_every_strategy_on_parts_lying_on_the_floor(scene, k):
     for s in ("rgbd+icp", "depth+icp", "hybrid+icp"):
         assert errors[s].correct(), (s, errors[s])
         assert errors[s].te_m < 0.001 and errors[s].re_deg < 2.0, (s, errors[s])
-        # (the score includes the outline's agreement with the grown mask, a pixel or two loose: above 0.9)
-        assert results[s].verified and results[s].score > 0.9, (s, results[s].details["verify"])
+        # (the score includes the outline's agreement with the mask, here grown two pixels all round: a 21 px washer
+        # keeps an IoU near 0.7)
+        assert results[s].verified and results[s].score > 0.8, (s, results[s].details["verify"])
         assert results[s].details["strategy"] == s and results[s].details["cleanup"]["kept"] > 0
     # without ICP the depth strategies start from principal axes: a pose near the part, not a finished one
     for s in ("depth", "hybrid"):
