@@ -136,7 +136,8 @@ def test_perfect_poses_score_one_and_the_counts_add_up(tiny_dataset: Path, noisy
     assert len(checks) == 2 * 7 and {c["condition"] for c in checks} == {"ideal", "noisy"}
     e2e_checks = [c for c in checks if c["target"] == "end to end: ADD(-S) recall"]
     assert [c["bound"] for c in e2e_checks] == [TARGETS["end_to_end_recall"][k] for k in ("ideal", "noisy")]
-    assert all(c["met"] for c in e2e_checks + [c for c in checks if "ms per object" in c["target"]])
+    # the end-to-end time is the stub's 2 ms; the ground-truth pass's is measured (no timed assertion on it)
+    assert all(c["met"] for c in e2e_checks + [c for c in checks if c["target"] == "end to end: ms per object"])
     results = {"threads": 2, "min_confidence": 0.7, "strategies": ["rgb", "depth"], "conditions": conditions,
                "target_checks": checks}  # fmt: skip
     text = format_results(results)
