@@ -17,11 +17,12 @@ some of it); mask pixels the model leaves open whose depth lies behind the model
 background seen past the part (through its hole, around its edge) and do not count. ``iou`` is the silhouette IoU
 of the unoccluded rendering and the segmenter's mask as it was before the depth clean-up (the observation's
 ``silhouette``, less its background seen past the part as above; the model's own holes count neither way, as a
-segmenter may fill them): where depth cannot speak (no data on specular metal, a thin part whose top quantises to
-the floor's depth, a fragment of a buried part), the outline still does. With footprints (the verdict), a pixel the
-model's outline crosses counts neither way either. The pose's confidence is ``sqrt(fit * coverage * iou)`` in
-[0, 1] (the depth's agreement ``sqrt(fit * coverage)`` times the outline's ``sqrt(iou)``); it is accepted when the
-confidence reaches ``min_confidence``.
+segmenter may fill them, and so do the model's pixels outside the mask where the depth shows its surface clear of
+the support, which an under-segmenting detector missed): where depth cannot speak (no data on specular metal, a
+thin part whose top quantises to the floor's depth, a fragment of a buried part), the outline still does. With
+footprints (the verdict), a pixel the model's outline crosses counts neither way either. The pose's confidence is
+``sqrt(fit * coverage * iou)`` in [0, 1] (the depth's agreement ``sqrt(fit * coverage)`` times the outline's
+``sqrt(iou)``); it is accepted when the confidence reaches ``min_confidence``.
 
 The verdict (``verify(..., footprint=True)``) compares each pixel's observed depth with the range of the model's
 depth over the pixel's footprint (its centre and four corners, ray-cast where the model has a silhouette or a depth
@@ -353,6 +354,8 @@ class PoseVerifier:
         coverage = int((inlier & in_mask).sum()) / n_mask if n_mask else 0.0
         seen, silhouette = hit & ~occluded, r.in_silhouette & ~past
         counted = ~(ndimage.binary_fill_holes(hit) & ~hit)  # the model's own holes: a segmenter may fill them
+        if r.height is not None:  # the model's surface where depth shows it, clear of the support: the mask missed it
+            counted &= ~(inlier & ~silhouette & (r.height > self.tolerance_m(model, rendered)))
         if r.partial is not None:  # an outline pixel the model half covers counts neither way
             counted &= ~r.partial
         union = int(((seen | silhouette) & counted).sum())

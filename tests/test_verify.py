@@ -13,7 +13,7 @@ from perception.pose_strategies import StrategyRunner
 from perception.verify import PoseVerifier, VerifyConfig, raycaster
 from sygrid.objects.parts import builtin_part
 from sygrid.transforms import make_T, rotation_about
-from tests.raycast_scene import CAMERA, detection, on_floor, render
+from tests.raycast_scene import CAMERA, T_CAMERA_FLOOR, detection, on_floor, render
 
 NUT, WASHER, BRACKET = builtin_part("hex_nut"), builtin_part("washer"), builtin_part("l_bracket")
 R_SIDE = rotation_about(np.array([1.0, 0.0, 0.0]), np.pi / 2)
@@ -135,3 +135,20 @@ def test_the_outline_is_the_segmenters_mask_before_the_clean_up(scene):
     assert obs.silhouette is None and np.array_equal(obs.seen_mask, obs.mask)
     v = PoseVerifier().verify(scene.poses[1], WASHER, cleaned, footprint=True)
     assert v.accepted and v.iou > 0.97 and v.mask_pixels < 0.6 * obs.mask.sum()
+
+
+def test_part_of_the_part_the_segmenter_missed_is_no_evidence_against_the_pose(scene):
+    """A mask covering only half of the bracket (a detector's under-segmentation): where the model shows its surface
+    in the depth, clear of the floor it lies on, the outline missing from the mask counts neither way, and the true
+    pose keeps its outline agreement; without the floor plane nothing tells those pixels from a wrong pose's."""
+    normal = -T_CAMERA_FLOOR[:3, 2] if T_CAMERA_FLOOR[2, 2] > 0 else T_CAMERA_FLOOR[:3, 2]
+    floor = np.append(normal, -normal @ T_CAMERA_FLOOR[:3, 3])  # normal towards the camera
+    full = _obs(scene, 2, BRACKET)
+    cols = np.arange(full.mask.shape[1])[None, :]
+    half = full.mask & (cols < np.nonzero(full.mask.any(axis=0))[0].mean())
+    obs = Observation(full.depth_m, half, full.x0, full.y0, CAMERA)
+    verifier = PoseVerifier()
+    with_floor = verifier.verify(scene.poses[2], BRACKET, obs.with_mask(half, floor), footprint=True)
+    assert with_floor.accepted and with_floor.iou > 0.9
+    without = verifier.verify(scene.poses[2], BRACKET, obs, footprint=True)
+    assert without.iou < 0.7 and without.confidence < with_floor.confidence
