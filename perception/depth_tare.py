@@ -107,7 +107,7 @@ class TareConfig:
         as the inverse-depth noise (none for exact depth)."""
         stereo = sensor.stereo_focal_px * sensor.baseline_m
         quantum = sensor.disparity_step_px / stereo if stereo > 0 else 0.0
-        noise = float(sensor.depth_noise_sigma_m(1.0))  # sigma_z = z^2 sigma_d / (f b): at 1 m, the inverse depth's
+        noise = float(sensor.depth_noise_sigma_m(1.0))  # sigma_z = z^2 sigma_d / (f b): at 1 m it is 1/z's sigma
         return replace(self, quantum_inv_m=float(quantum), noise_inv_m=noise)
 
     @property

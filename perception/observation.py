@@ -76,9 +76,8 @@ class Observation:
     def with_mask(self, mask: np.ndarray, support: np.ndarray | None = None) -> Observation:
         """The same crop with another (h, w) mask (and support, where given); the silhouette stays the first mask's."""
         support = self.support if support is None else np.asarray(support, dtype=float)
-        silhouette = self.mask if self.silhouette is None else self.silhouette
         mask = np.asarray(mask, dtype=bool)
-        return Observation(self.depth_m, mask, self.x0, self.y0, self.intrinsics, support, silhouette)
+        return Observation(self.depth_m, mask, self.x0, self.y0, self.intrinsics, support, self.seen_mask)
 
     @property
     def seen_mask(self) -> np.ndarray:

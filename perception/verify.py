@@ -336,8 +336,9 @@ class PoseVerifier:
         inlier = hit & within
         residual = observed - rendered
         violation = behind | (in_front & in_mask)
+        support_tol = None if r.height is None else self.tolerance_m(model, rendered)
         if r.height is not None:  # the part cannot reach through what it lies on
-            violation |= hit & (r.height < -self.tolerance_m(model, rendered))
+            violation |= hit & (r.height < -support_tol)
         occluded = in_front & ~in_mask & ~violation
         n_inlier, n_violation = int(inlier.sum()), int(violation.sum())
         # Mask pixels the model leaves open whose depth lies behind the model's surface next to them are background
@@ -355,7 +356,7 @@ class PoseVerifier:
         seen, silhouette = hit & ~occluded, r.in_silhouette & ~past
         counted = ~(ndimage.binary_fill_holes(hit) & ~hit)  # the model's own holes: a segmenter may fill them
         if r.height is not None:  # the model's surface where depth shows it, clear of the support: the mask missed it
-            counted &= ~(inlier & ~silhouette & (r.height > self.tolerance_m(model, rendered)))
+            counted &= ~(inlier & ~silhouette & (r.height > support_tol))
         if r.partial is not None:  # an outline pixel the model half covers counts neither way
             counted &= ~r.partial
         union = int(((seen | silhouette) & counted).sum())
