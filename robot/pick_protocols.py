@@ -85,7 +85,8 @@ class PoseLike(Protocol):
 class PerceptionResultLike(Protocol):
     """``perception.pipeline.PerceptionResult``: the poses, the detections they came from, stage times (ms); where
     it has a ``depth_tare`` (``perception.depth_tare.Tare``) that was applied, the picker plans on the frame's depth
-    corrected by it, as the poses were fitted."""
+    corrected by it, as the poses were fitted; where it has ``refused`` (the poses the verification refused), the
+    picker names them when nothing is left to pick."""
 
     @property
     def poses(self) -> list[Any]: ...

@@ -350,7 +350,7 @@ class Picker:
         self.memory.look_after_last_pick(c.result.poses)
         c.seen_poses = c.result.poses
         if not c.result.poses:
-            c.empty_reason = "the camera sees no parts (no detections)"
+            c.empty_reason = nothing_posed_reason(c.result)
             return _S.CHECK_EMPTY
         c.poses, c.excluded = self.memory.split_given_up(c.result.poses)
         return _S.PLAN if c.poses else _S.GIVE_UP
@@ -567,6 +567,23 @@ class Picker:
     def _retreat(self, c: _Cycle) -> CycleState:
         self.arm.to_observe()
         return _S.DONE
+
+
+def nothing_posed_reason(result: PerceptionResultLike) -> str:
+    """What the camera saw when perception gave no pose to pick, for the cycle's summary: no detections, detections
+    whose every pose the verification refused (``result.refused``, where the perception verifies), or detections it
+    could not pose (masks too small, outside the bin's region, an unknown class)."""
+    n_detections = len(result.detections)
+    if n_detections == 0:
+        return "the camera sees no parts (no detections)"
+    refused = list(getattr(result, "refused", None) or [])
+    if refused:
+        best = max(p.score for p in refused)
+        return (
+            f"the camera sees {n_detections} part(s) but the verification refused every pose "
+            f"({len(refused)} refused, best confidence {best:.2f})"
+        )
+    return f"the camera sees {n_detections} part(s) but none could be posed"
 
 
 def _fail(attempt: Attempt, cause: Outcome, detail: str) -> CycleState:

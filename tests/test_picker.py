@@ -16,7 +16,7 @@ from robot.cell_setup import load_cell_setup
 from robot.pick_arm import approach_legs
 from robot.pick_config import PickerConfig
 from robot.pick_report import CycleEnd, Outcome, StopReason
-from robot.picker import TRANSITIONS, CycleState, Picker
+from robot.picker import TRANSITIONS, CycleState, Picker, nothing_posed_reason
 from robot.ur_errors import (
     ConnectionLostError,
     MotionRefusedError,
@@ -1131,3 +1131,36 @@ def test_outcomes_are_the_report_strings():
     assert set(data["cycles"][0]["stage_wall_s"]) == {"capture", "perceive", "plan", "approach", "grasp", "verify",
                                                       "place", "nudge"}  # fmt: skip
     assert all(type(k) is str for k in report.to_json()["cycles"][0]["stage_wall_s"])  # plain strings, not enums
+
+
+def test_detections_whose_poses_were_all_refused_are_named_when_the_cycle_finds_nothing_to_pick():
+    det = Detection(0, 1, 0.9, np.zeros(4))
+    refused = [ObjectPose(det, make_T(t=(0.0, 0.0, 0.5)), s, "fake", verified=False) for s in (0.42, 0.61)]
+
+    def result(detections, refused_poses=None):
+        fields = {"poses": [], "detections": detections, "timings_ms": {}}
+        if refused_poses is not None:
+            fields["refused"] = refused_poses
+        return type("R", (), fields)()
+
+    assert nothing_posed_reason(result([])) == "the camera sees no parts (no detections)"
+    assert nothing_posed_reason(result([det, det], refused)) == (
+        "the camera sees 2 part(s) but the verification refused every pose (2 refused, best confidence 0.61)"
+    )
+    # an oracle perception has no verification: detections it gave no pose are named as such
+    assert nothing_posed_reason(result([det])) == "the camera sees 1 part(s) but none could be posed"
+
+    class RefusingBin(FakeBin):
+        def run(self, frame):
+            plain = super().run(frame)
+            return result(plain.detections, [ObjectPose(d, make_T(), 0.3, "fake", verified=False)
+                                             for d in plain.detections])  # fmt: skip
+
+    class CoveredBin(FakePlanner):
+        def pile_area_m2(self, depth_m, intrinsics, T_base_camera):
+            return 3e-4
+
+    picker, _ = make_picker(RefusingBin([0.0]), CoveredBin())
+    report = picker.run()
+    assert report.stop_reason == "parts_unseen"
+    assert report.stop_detail.startswith("the camera sees 1 part(s) but the verification refused every pose")
