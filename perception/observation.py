@@ -7,6 +7,7 @@ touches the whole image.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -27,7 +28,8 @@ class Observation:
     in the image; ``intrinsics``: the full image's camera; ``support``: ``(a, b, c, d)`` the surface the part lies
     on (camera frame, unit normal towards the camera), None where unknown: no part of it can lie below;
     ``silhouette``: (h, w) bool, the segmenter's mask before any clean-up (None: ``mask`` is that mask): where the
-    part is seen, whatever its depth pixels hold.
+    part is seen, whatever its depth pixels hold. The arrays are not modified once the observation is built (the
+    mask's box is computed once).
     """
 
     depth_m: np.ndarray
@@ -78,6 +80,12 @@ class Observation:
         support = self.support if support is None else np.asarray(support, dtype=float)
         mask = np.asarray(mask, dtype=bool)
         return Observation(self.depth_m, mask, self.x0, self.y0, self.intrinsics, support, self.seen_mask)
+
+    @cached_property
+    def mask_box(self) -> tuple[int, int, int, int] | None:
+        """The mask's bounding box ``[x0, y0, x1, y1)`` in crop pixels; None for an empty mask."""
+        rows, cols = np.flatnonzero(self.mask.any(axis=1)), np.flatnonzero(self.mask.any(axis=0))
+        return (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1) if len(rows) else None
 
     @property
     def seen_mask(self) -> np.ndarray:

@@ -49,7 +49,6 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 import open3d as o3d
-from scipy import ndimage
 
 from perception.observation import Observation
 from sygrid.camera import CameraIntrinsics, project_points
@@ -202,8 +201,7 @@ def _window(obs: Observation, T: np.ndarray, caster: ModelRaycaster, margin: int
     """The pixel window ``[x0, y0, x1, y1)`` in crop pixels: the mask's box united with the model's projected box,
     widened by ``margin`` and clipped to the crop; None when empty."""
     h, w = obs.mask.shape
-    rows, cols = np.flatnonzero(obs.mask.any(axis=1)), np.flatnonzero(obs.mask.any(axis=0))
-    x0, y0, x1, y1 = (cols[0], rows[0], cols[-1] + 1, rows[-1] + 1) if len(rows) else (w, h, 0, 0)
+    x0, y0, x1, y1 = obs.mask_box or (w, h, 0, 0)
     p = caster.hull_vertices @ T[:3, :3].T + T[:3, 3]
     if (p[:, 2] > 1e-3).all():
         uv = project_points(obs.intrinsics.K, p) - (obs.x0, obs.y0)
@@ -354,7 +352,7 @@ class PoseVerifier:
         fit = n_inlier / (n_inlier + n_violation) if n_inlier + n_violation else 0.0
         coverage = int((inlier & in_mask).sum()) / n_mask if n_mask else 0.0
         seen, silhouette = hit & ~occluded, r.in_silhouette & ~past
-        counted = ~(ndimage.binary_fill_holes(hit) & ~hit)  # the model's own holes: a segmenter may fill them
+        counted = ~mask_holes(hit)  # the model's own holes: a segmenter may fill them
         if r.height is not None:  # the model's surface where depth shows it, clear of the support: the mask missed it
             counted &= ~(inlier & ~silhouette & (r.height > support_tol))
         if r.partial is not None:  # an outline pixel the model half covers counts neither way
@@ -399,6 +397,15 @@ class _Rendering:
 
 _CORNERS = np.array([(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)])  # a pixel's footprint, in pixels
 _KERNEL_3X3 = np.ones((3, 3), np.uint8)
+
+
+def mask_holes(mask: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the pixels outside ``mask`` that no 4-connected path of outside pixels joins to the border
+    (``scipy.ndimage.binary_fill_holes(mask) & ~mask``). A flood fill from the border in OpenCV: one pass, where
+    scipy's dilates to convergence, and this runs in every verification."""
+    padded = np.pad(mask.astype(np.uint8), 1)  # a free border joins every outside pixel that reaches the edge
+    cv2.floodFill(padded, None, (0, 0), 1, flags=4)
+    return padded[1:-1, 1:-1] == 0
 
 
 def _centre_range(rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,7 @@ import pytest
 
 from perception.observation import Observation
 from perception.pose_strategies import StrategyRunner
-from perception.verify import PoseVerifier, VerifyConfig, raycaster
+from perception.verify import PoseVerifier, VerifyConfig, mask_holes, raycaster
 from sygrid.objects.parts import builtin_part
 from sygrid.transforms import make_T, rotation_about
 from tests.raycast_scene import CAMERA, T_CAMERA_FLOOR, detection, on_floor, render
@@ -152,3 +152,29 @@ def test_part_of_the_part_the_segmenter_missed_is_no_evidence_against_the_pose(s
     assert with_floor.accepted and with_floor.iou > 0.9
     without = verifier.verify(scene.poses[2], BRACKET, obs, footprint=True)
     assert without.iou < 0.7 and without.confidence < with_floor.confidence
+
+
+def test_the_models_holes_are_the_outside_pixels_cut_off_from_the_border():
+    from scipy import ndimage
+
+    ring = np.zeros((9, 9), bool)
+    ring[2:7, 2:7] = True
+    ring[4, 4] = False  # a washer's hole
+    ring[3:6, 8] = True  # a piece touching the border leaves the border's pixels outside
+    holes = mask_holes(ring)
+    assert np.argwhere(holes).tolist() == [[4, 4]]
+    diagonal = np.zeros((5, 5), bool)
+    diagonal[[1, 2, 3, 2], [2, 1, 2, 3]] = True  # the centre joined to the outside only diagonally: still a hole
+    assert np.argwhere(mask_holes(diagonal)).tolist() == [[2, 2]]
+    rng = np.random.default_rng(3)  # scipy's definition, 4-connected background, on random masks
+    for _ in range(200):
+        mask = rng.random(tuple(rng.integers(1, 40, 2))) < rng.uniform(0.3, 0.9)
+        assert np.array_equal(mask_holes(mask), ndimage.binary_fill_holes(mask) & ~mask)
+
+
+def test_the_observations_mask_box_bounds_the_mask():
+    mask = np.zeros((10, 12), bool)
+    mask[3:6, 4:9] = True
+    obs = Observation(np.ones((10, 12)), mask, 0, 0, CAMERA)
+    assert obs.mask_box == (4, 3, 9, 6)
+    assert Observation(np.ones((10, 12)), np.zeros((10, 12), bool), 0, 0, CAMERA).mask_box is None
