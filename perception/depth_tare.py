@@ -250,7 +250,7 @@ def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float, float
     from the low end reaching ``peak_fraction`` of the highest, then medians within the window, its half width
     ``window_sigmas`` robust standard deviations of the cluster's low side (the spread). Quantised depth
     (``quantum_inv_m``): smoothed over at least a step, means within at least a step and a half each side (see the
-    module docstring)."""
+    module docstring), the spread measured through the steps (``_low_side_spread``)."""
     sigma_inv = max(cfg.smooth_inv_m, cfg.quantum_inv_m)  # the histogram's smoothing
     min_window = max(cfg.min_window_inv_m, 1.5 * cfg.quantum_inv_m)
     centre_of = np.mean if cfg.quantum_inv_m > 0 else np.median
@@ -268,14 +268,32 @@ def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float, float
     centre = float(0.5 * (edges[peaks[0]] + edges[peaks[0] + 1]))
     window, sigma = min_window, 0.0
     for _ in range(cfg.iterations):
-        below = centre - q[(q <= centre) & (q >= centre - 8 * sigma_inv)]
-        sigma = 1.4826 * float(np.median(below)) if len(below) else 0.0
+        sigma = _low_side_spread(q, centre, 8 * sigma_inv, cfg.quantum_inv_m)
         window = max(cfg.window_sigmas * sigma, min_window)
         near = q[np.abs(q - centre) <= window]
         if not len(near):
             break
         centre = float(centre_of(near))
-    return centre, window, sigma
+    return centre, window, _low_side_spread(q, centre, 8 * sigma_inv, cfg.quantum_inv_m)
+
+
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def _low_side_spread(q: np.ndarray, centre: float, reach: float, quantum: float) -> float:
+    """The robust standard deviation of ``q``'s low side (within ``reach`` below ``centre``; parts lie above the
+    floor, so only the low side is the floor's): 1.4826 x the median distance below the centre. Quantised to steps
+    of ``quantum`` (> 0), a floor facing the camera sits on a few levels one step apart and that median jumps by a
+    step with where the levels fall (anything from 0 to 1.5 steps for one plane), which moved the window and failed
+    the spread check on clear floors; each value spread over its step by a fixed dither (a golden-ratio sequence:
+    deterministic, evenly filled) makes it continuous, and the dither's own variance (``quantum^2 / 12``) is taken
+    back out."""
+    spread_q = q + (np.modf(np.arange(len(q)) * _GOLDEN)[0] - 0.5) * quantum if quantum > 0 else q
+    below = centre - spread_q[(spread_q <= centre) & (spread_q >= centre - reach)]
+    if not len(below):
+        return 0.0
+    sigma = 1.4826 * float(np.median(below))
+    return math.sqrt(max(sigma**2 - quantum**2 / 12.0, 0.0))
 
 
 def _fit_gain(

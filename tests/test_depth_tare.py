@@ -198,3 +198,19 @@ def test_the_verification_allows_the_sensors_depth_noise_unless_set_higher():
     assert pipeline.runner.verifier.config.depth_noise_m == pytest.approx(oak.depth_noise_sigma_m(1.0))
     pipeline.use_sensor(IDEAL)  # from the pipeline's own settings, not the previous sensor's
     assert pipeline.runner.verifier.config.depth_noise_m == 0.0
+
+
+def test_a_level_quantised_floor_is_tared_wherever_its_offset_falls_between_two_steps():
+    """A floor facing the camera, under the OAK-D model's steps and noise, sits on a few levels one step apart; where
+    its offset falls between two of them decides how its pixels split, and the spread check must not read a level's
+    step as parts covering the floor (the simulated cell stopped with parts in its bin, every depth a centimetre
+    off, when it did)."""
+    from sygrid.sensor import sensor_preset
+
+    config = TareConfig().for_sensor(sensor_preset("oak-d"))
+    quantum, noise = config.quantum_inv_m, config.noise_inv_m
+    for i, offset in enumerate(np.linspace(-quantum, quantum, 9)):
+        depth, plane, bounds = _scene(offset, noise_inv_m=noise, seed=i, quantum_inv_m=quantum, tilt_deg=0.0)
+        tare = estimate_tare(depth, K, plane, bounds, config)
+        assert tare.applied, (offset, tare.reason)
+        assert tare.offset_inv_m == pytest.approx(offset, abs=quantum / 6)
