@@ -46,7 +46,8 @@ class PickerConfig:
     min_unseen_area_m2: with no part estimated in the bin, a bin whose depth shows at least this much of it covered
     (something above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find or whose
     estimates land outside it: the run stops with "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top
-    seen from above.
+    seen from above. relooks: frames taken again in a cycle where the camera sees parts but the verification
+    refused every pose (stereo noise and masks change from frame to frame); then the run stops with "parts_unseen".
     nudge_contact: how a nudge touches its part. "force_limited": straight down from ``nudge_approach_m`` above the
     planned press until the controller detects the contact (``move_until_contact`` at ``nudge_contact_speed_m_s``,
     at most ``nudge_overtravel_m`` past the planned press), then the drag in force mode pressing with
@@ -86,6 +87,7 @@ class PickerConfig:
     max_nudges: int = 8
     max_nudges_per_part: int = 2
     min_unseen_area_m2: float = 1e-4
+    relooks: int = 2
     min_held_width_m: float = 0.001
     nudge_contact: str = "force_limited"
     nudge_press_force_n: float = 25.0
@@ -107,8 +109,9 @@ class PickerConfig:
         for name in ("hold_any_width", "final_approach_contact_detection"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"PickerConfig.{name} must be true or false, got {getattr(self, name)!r}")
-        if not (isinstance(self.max_nudges, int) and self.max_nudges >= 0):
-            raise ConfigError(f"PickerConfig.max_nudges must be an integer >= 0, got {self.max_nudges!r}")
+        for name in ("max_nudges", "relooks"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 0):
+                raise ConfigError(f"PickerConfig.{name} must be an integer >= 0, got {getattr(self, name)!r}")
         for name in (
             "slip_width_tolerance_m", "still_there_distance_m", "exclusion_distance_m", "open_tolerance_m",
             "open_timeout_s", "slip_settle_s", "reconnect_timeout_s", "min_unseen_area_m2", "min_held_width_m",

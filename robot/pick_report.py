@@ -64,7 +64,7 @@ class StopReason(StrEnum):
     """Why a run stopped (``RunReport.stop_reason``)."""
 
     BIN_EMPTY = "bin_empty"
-    PARTS_UNSEEN = "parts_unseen"  # no part estimated in the bin, but the depth shows something in it
+    PARTS_UNSEEN = "parts_unseen"  # no part estimated in the bin, but the depth or the detector shows something there
     NOTHING_SAFE = "nothing_safe"  # no safe grasp and no nudge left (the planner's reasons in the detail)
     GAVE_UP = "gave_up"  # every part left is where too many attempts failed
     GRIPPER_BLOCKED = "gripper_blocked"  # the fingers cannot be freed

@@ -2,9 +2,10 @@
 the next state, and checks every step against ``TRANSITIONS``::
 
     CAPTURE -> PERCEIVE -> PLAN -> DECIDE -> NEXT_GRASP -> APPROACH -> GRASP -> VERIFY -> PLACE -> ATTEMPT_END
+    PERCEIVE -> CAPTURE                        parts seen, every pose refused: look again (``relooks``)
     PLAN -> REFINE -> PLAN | DECIDE            nothing safe: have more parts refined, plan again
     DECIDE -> NUDGE -> RETREAT | DONE          nothing safe: nudge a part clear of a wall or a neighbour, or stop
-    DECIDE -> CHECK_EMPTY -> DONE              no part estimated in the bin: "bin_empty" or "parts_unseen"
+    PERCEIVE | DECIDE -> CHECK_EMPTY -> DONE   no part estimated in the bin: "bin_empty" or "parts_unseen"
     PERCEIVE | REFINE -> GIVE_UP -> DONE       every part seen is where attempts failed too often
     APPROACH | GRASP | VERIFY -> ATTEMPT_END   the attempt failed
     ATTEMPT_END -> DONE | NEXT_GRASP | RETREAT picked | motion refused: the next candidate | look again
@@ -100,7 +101,7 @@ _S = CycleState
 #: Where each step may go next.
 TRANSITIONS: dict[CycleState, tuple[CycleState, ...]] = {
     _S.CAPTURE: (_S.PERCEIVE,),
-    _S.PERCEIVE: (_S.PLAN, _S.CHECK_EMPTY, _S.GIVE_UP),
+    _S.PERCEIVE: (_S.PLAN, _S.CHECK_EMPTY, _S.GIVE_UP, _S.CAPTURE),
     _S.PLAN: (_S.DECIDE, _S.REFINE),
     _S.REFINE: (_S.PLAN, _S.DECIDE, _S.GIVE_UP),
     _S.DECIDE: (_S.NEXT_GRASP, _S.NUDGE, _S.CHECK_EMPTY),
@@ -133,6 +134,8 @@ class _Cycle:
     excluded: list[Any] = field(default_factory=list)  # given up
     plan: PlanLike | None = None
     empty_reason: str = ""  # what the camera saw, for CHECK_EMPTY
+    looks: int = 0  # frames taken again after every pose was refused
+    refused_only: bool = False  # for CHECK_EMPTY: the camera saw parts, the verification refused every pose
     candidates: list[GraspLike] = field(default_factory=list)  # grasps still to try, best first
     grasp: GraspLike | None = None
     attempt: Attempt | None = None
@@ -350,6 +353,12 @@ class Picker:
         self.memory.look_after_last_pick(c.result.poses)
         c.seen_poses = c.result.poses
         if not c.result.poses:
+            c.refused_only = bool(getattr(c.result, "refused", None))
+            if c.refused_only and c.looks < self.config.relooks:  # stereo noise and masks change between frames
+                c.looks += 1
+                log.info("cycle %d: every pose refused; looking again (%d of %d)", record.index, c.looks,
+                         self.config.relooks)  # fmt: skip
+                return _S.CAPTURE
             c.empty_reason = nothing_posed_reason(c.result)
             return _S.CHECK_EMPTY
         c.poses, c.excluded = self.memory.split_given_up(c.result.poses)
@@ -394,8 +403,12 @@ class Picker:
     def _check_empty(self, c: _Cycle) -> CycleState:
         """No part estimated in the bin (``empty_reason`` says what the camera saw): "bin_empty" when the depth
         agrees, "parts_unseen" when it shows ``min_unseen_area_m2`` of the bin covered (parts the detector does not
-        find, or whose estimates land outside the bin)."""
+        find, or whose estimates land outside the bin) or when the camera saw parts whose every pose the
+        verification refused (a small part's depth may show less than that)."""
         record = c.record
+        if c.refused_only:
+            record.end, record.plan_summary = CycleEnd.PARTS_UNSEEN, c.empty_reason
+            return _S.DONE
         covered = self.planner.pile_area_m2(c.frame.depth_m, c.frame.intrinsics, self.T_base_camera)
         if covered >= self.config.min_unseen_area_m2:
             record.end = CycleEnd.PARTS_UNSEEN

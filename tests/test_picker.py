@@ -1151,16 +1151,32 @@ def test_detections_whose_poses_were_all_refused_are_named_when_the_cycle_finds_
     assert nothing_posed_reason(result([det])) == "the camera sees 1 part(s) but none could be posed"
 
     class RefusingBin(FakeBin):
+        """Sees its parts, refuses their poses for the first ``refusals`` frames."""
+
+        def __init__(self, parts, refusals):
+            super().__init__(parts)
+            self.refusals, self.frames = refusals, 0
+
         def run(self, frame):
             plain = super().run(frame)
+            self.frames += 1
+            if self.frames > self.refusals:
+                return plain
             return result(plain.detections, [ObjectPose(d, make_T(), 0.3, "fake", verified=False)
                                              for d in plain.detections])  # fmt: skip
 
-    class CoveredBin(FakePlanner):
-        def pile_area_m2(self, depth_m, intrinsics, T_base_camera):
-            return 3e-4
-
-    picker, _ = make_picker(RefusingBin([0.0]), CoveredBin())
+    # every frame refused: two more looks, then "parts_unseen" though the depth shows no more than a small part's
+    bin_ = RefusingBin([0.0], refusals=100)
+    picker, _ = make_picker(bin_)
     report = picker.run()
-    assert report.stop_reason == "parts_unseen"
+    assert bin_.frames == 3 and report.stop_reason == "parts_unseen"
     assert report.stop_detail.startswith("the camera sees 1 part(s) but the verification refused every pose")
+    # the second look's pose is accepted: the part is picked in the same cycle
+    bin_ = RefusingBin([0.0], refusals=1)
+    picker, _ = make_picker(bin_)
+    report = picker.run()
+    assert report.n_picked == 1 and report.cycles[0].end == "picked" and report.stop_reason == "bin_empty"
+    picker, _ = make_picker(RefusingBin([0.0], refusals=1), config=PickerConfig(relooks=0))
+    assert picker.run().stop_reason == "parts_unseen"
+    with pytest.raises(ConfigError, match="relooks"):
+        PickerConfig(relooks=-1)
