@@ -1,5 +1,5 @@
-"""What a pick run records: the outcomes (string-valued enums), one record per attempt and per cycle, and the run's
-report with its JSON form.
+"""What a pick run records: the outcomes (string-valued enums), one record per attempt and per cycle, the run's
+report with its JSON form, and the texts the cycle's log and summary are written with.
 
 The enums are ``str`` subclasses whose members print, format and compare as their values (``Outcome.PICKED ==
 "picked"``), so logs, the JSON report (``RunReport.to_json``) and the benchmark's readers see the plain strings.
@@ -14,7 +14,10 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 from enum import Enum, StrEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from robot.pick_protocols import PerceptionResultLike
 
 
 class Stage(StrEnum):
@@ -229,3 +232,25 @@ def _plain(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_plain(v) for v in value]
     return value
+
+
+def nothing_posed_reason(result: PerceptionResultLike) -> str:
+    """What the camera saw when perception gave no pose to pick, for the cycle's summary: no detections, detections
+    whose every pose the verification refused (``result.refused``, where the perception verifies), or detections it
+    could not pose (masks too small, outside the bin's region, an unknown class)."""
+    n_detections = len(result.detections)
+    if n_detections == 0:
+        return "the camera sees no parts (no detections)"
+    refused = list(getattr(result, "refused", None) or [])
+    if refused:
+        best = max(p.score for p in refused)
+        return (
+            f"the camera sees {n_detections} part(s) but the verification refused every pose "
+            f"({len(refused)} refused, best confidence {best:.2f})"
+        )
+    return f"the camera sees {n_detections} part(s) but none could be posed"
+
+
+def attempts_text(attempts: list[Attempt]) -> str:
+    """A cycle's attempts for its log line: "part 2: picked, part 0: slipped" ("no attempt" for none)."""
+    return ", ".join(f"part {a.part_index}: {a.outcome}" for a in attempts) or "no attempt"

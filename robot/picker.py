@@ -68,6 +68,8 @@ from robot.pick_report import (
     Stage,
     StageTimer,
     StopReason,
+    attempts_text,
+    nothing_posed_reason,
 )
 from robot.pick_stop import GRIPPER_COMMANDS, ROBOT_COMMANDS, ArmStopper, Guarded, StopRequestedError, StopSwitch
 from robot.ur_errors import MotionFailedError, MotionRefusedError, RecoveryError
@@ -306,7 +308,7 @@ class Picker:
         finally:
             if c.result is not None:
                 log.info(
-                    "cycle %d: %s (%s) in %.2f s wall", record.index, record.end, _attempts_text(record.attempts),
+                    "cycle %d: %s (%s) in %.2f s wall", record.index, record.end, attempts_text(record.attempts),
                     sum(record.stage_wall_s.values()),
                 )  # fmt: skip
                 if self.on_cycle is not None:
@@ -582,23 +584,6 @@ class Picker:
         return _S.DONE
 
 
-def nothing_posed_reason(result: PerceptionResultLike) -> str:
-    """What the camera saw when perception gave no pose to pick, for the cycle's summary: no detections, detections
-    whose every pose the verification refused (``result.refused``, where the perception verifies), or detections it
-    could not pose (masks too small, outside the bin's region, an unknown class)."""
-    n_detections = len(result.detections)
-    if n_detections == 0:
-        return "the camera sees no parts (no detections)"
-    refused = list(getattr(result, "refused", None) or [])
-    if refused:
-        best = max(p.score for p in refused)
-        return (
-            f"the camera sees {n_detections} part(s) but the verification refused every pose "
-            f"({len(refused)} refused, best confidence {best:.2f})"
-        )
-    return f"the camera sees {n_detections} part(s) but none could be posed"
-
-
 def _fail(attempt: Attempt, cause: Outcome, detail: str) -> CycleState:
     """Records a failed attempt (its stage is the step's); the attempt ends."""
     attempt.outcome, attempt.detail = cause, detail
@@ -618,7 +603,3 @@ def _mark_interrupted(c: _Cycle, state: CycleState, exc: BaseException) -> None:
         else:
             attempt.detail = f"{attempt.detail}; then {why}"
         record.attempts.append(attempt)
-
-
-def _attempts_text(attempts: list[Attempt]) -> str:
-    return ", ".join(f"part {a.part_index}: {a.outcome}" for a in attempts) or "no attempt"

@@ -15,8 +15,8 @@ from perception.results import Detection, ObjectPose
 from robot.cell_setup import load_cell_setup
 from robot.pick_arm import approach_legs
 from robot.pick_config import PickerConfig
-from robot.pick_report import CycleEnd, Outcome, StopReason
-from robot.picker import TRANSITIONS, CycleState, Picker, nothing_posed_reason
+from robot.pick_report import CycleEnd, Outcome, StopReason, nothing_posed_reason
+from robot.picker import TRANSITIONS, CycleState, Picker
 from robot.ur_errors import (
     ConnectionLostError,
     MotionRefusedError,
