@@ -15,7 +15,8 @@ stock ur_rtde client) runs until it stops. Per variant it reports:
 - per attempt outcome, how many attempts were planned on a wrong estimate (``launch.cell_attempts``: each
   estimate against the simulator's pose of the part at its plan).
 
-Targets: success >= 95 %, median cycle <= 8 s simulated, perception + planning <= 300 ms wall.
+Targets (the realistic cell's, issue "a real cell, safely"): success >= 97 %, parts cleared >= 90 %, median cycle
+<= 8 s simulated, perception + planning <= 300 ms wall; a saved result keeps the targets it was run against.
 Writes ``bench/results/cell.json`` and ``cell.png`` (``cell_quick.*`` with ``--quick``, ``NAME.*`` with ``--name``,
 so a sweep of more variants over fewer seeds can sit beside the headline run): parts cleared and pick
 success rate against the median cycle time per variant, and the parts left by cause.
@@ -48,7 +49,7 @@ log = logging.getLogger(__name__)
 
 HOST = "127.0.0.63"  # sygrid pick uses .50, sygrid bench sim .61, the sim-in-the-loop tests .70
 CELL_FILE = Path(__file__).parent / "cells" / "sim.toml"
-TARGETS = {"success_rate": 0.95, "cycle_median_s": 8.0, "perceive_plan_ms": 300.0}
+TARGETS = {"success_rate": 0.97, "parts_cleared": 0.90, "cycle_median_s": 8.0, "perceive_plan_ms": 300.0}
 QUICK_SEEDS = 2
 
 
@@ -408,7 +409,9 @@ def _calibrated(bin_: dict[str, Any]) -> bool:
 def format_results(results: dict[str, Any]) -> str:
     t = results["targets"]
     lines = [
-        f"targets: pick success >= {100 * t['success_rate']:.0f} %, median cycle <= {t['cycle_median_s']:g} s "
+        f"targets: pick success >= {100 * t['success_rate']:.0f} %"
+        + (f", parts cleared >= {100 * t['parts_cleared']:.0f} %" if "parts_cleared" in t else "")
+        + f", median cycle <= {t['cycle_median_s']:g} s "
         f"simulated, perception + planning <= {t['perceive_plan_ms']:g} ms wall",
         f"{'variant':<18}{'cleared':>9}{'success':>9}{'cycle p50':>11}{'cycle p90':>11}{'p+p p50':>10}{'p+p p90':>10}",
     ]
@@ -458,8 +461,11 @@ def chart(results: dict[str, Any]):
         ax.annotate(
             name, (x, 100 * r["parts_cleared"]), textcoords="offset points", xytext=(6, -4 - 10 * (i % 4)), fontsize=8
         )
-    ax.axhline(100 * TARGETS["success_rate"], color="grey", ls=":", lw=1)
-    ax.axvline(TARGETS["cycle_median_s"], color="grey", ls=":", lw=1)
+    targets = results["targets"]  # the run's own: a redrawn chart shows what it was measured against
+    ax.axhline(100 * targets["success_rate"], color="grey", ls=":", lw=1)
+    if "parts_cleared" in targets:
+        ax.axhline(100 * targets["parts_cleared"], color="C0", ls=":", lw=1)
+    ax.axvline(targets["cycle_median_s"], color="grey", ls=":", lw=1)
     ax.scatter([], [], marker="s", color="C0", label="parts cleared (ground truth)")
     ax.scatter([], [], marker="o", facecolors="none", edgecolors="k", label="pick success rate (picks / attempts)")
     ax.set(xlabel="median cycle time [simulated s]", ylabel="%", ylim=(0, 105),

@@ -251,3 +251,11 @@ def test_a_bin_whose_run_raises_is_counted_as_an_error_and_the_bench_goes_on(mon
     Picker.last_report = None
     with pytest.raises(RuntimeError, match="did not stop"):
         bench_cell.run_bin(base, VARIANTS["oracle"], 0, None, 3)
+
+
+def test_a_result_is_reported_against_the_targets_it_was_run_with():
+    old = {"success_rate": 0.95, "cycle_median_s": 8.0, "perceive_plan_ms": 300.0}  # saved before clearing had one
+    for targets, line in ((TARGETS, "pick success >= 97 %, parts cleared >= 90 %"), (old, "pick success >= 95 %,")):
+        text = format_results({"targets": targets, "seeds": [0], "seeds_done": [0], "variants": {}})
+        assert text.splitlines()[0].startswith(f"targets: {line}")
+    assert chart({"targets": old, "seeds": [0], "seeds_done": [0], "variants": {}}) is not None
