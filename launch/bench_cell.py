@@ -236,6 +236,12 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
             return plans[0]
 
         picker.planner.plan = keep_last
+        refused: list[Any] = []  # the last frame's refused poses: parts the camera saw but could not pose
+
+        def keep_refused(record: Any, frame: Any, result: Any, seen: Any) -> None:
+            refused[:] = list(getattr(result, "refused", None) or [])
+
+        picker.on_cycle = keep_refused
         T_start = process.part_poses()
         try:
             report = picker.run(max_cycles)
@@ -270,8 +276,13 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
             else:
                 left_why[f"{obj_kind[part.obj_id]}: {part.status}"] += 1
     unseen = int(in_end.sum()) - sum(left_why.values())
-    if unseen > 0:  # left in the bin but not in the last plan: hidden from the camera, or given up before planning
-        left_why["unseen or given up"] += unseen
+    # left in the bin but not in the last plan: seen with every pose refused by the verification (as many as the last
+    # frame refused of this bin's kinds), or hidden from the camera, or given up before planning
+    n_refused = min(max(unseen, 0), sum(p.obj_id in obj_kind for p in refused))
+    if n_refused:
+        left_why["seen, pose refused"] += n_refused
+    if unseen - n_refused > 0:
+        left_why["unseen or given up"] += unseen - n_refused
     cycles = report.cycles
     return {
         "seed": seed,

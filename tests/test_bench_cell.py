@@ -252,6 +252,24 @@ def test_a_bin_whose_run_raises_is_counted_as_an_error_and_the_bench_goes_on(mon
     with pytest.raises(RuntimeError, match="did not stop"):
         bench_cell.run_bin(base, VARIANTS["oracle"], 0, None, 3)
 
+    class RefusingPicker(Picker):
+        """Sees the nut, refuses its pose (and a false detection's of a kind not in the bin), stops."""
+
+        on_cycle = None
+
+        def run(self, max_cycles):
+            refused = [SimpleNamespace(obj_id=1), SimpleNamespace(obj_id=7)]  # hex_nut; flange: not in this bin
+            self.on_cycle(None, None, SimpleNamespace(poses=[], refused=refused), [])
+            return RunReport([], StopReason.PARTS_UNSEEN, "the verification refused every pose")
+
+    @contextlib.contextmanager
+    def refusing_cell(*args, **kwargs):
+        yield RefusingPicker(), process
+
+    monkeypatch.setattr(launch.pick, "open_cell", refusing_cell)
+    result = bench_cell.run_bin(base, VARIANTS["oracle"], 0, None, 3)
+    assert result["left_why"] == {"seen, pose refused": 1}
+
 
 def test_a_result_is_reported_against_the_targets_it_was_run_with():
     old = {"success_rate": 0.95, "cycle_median_s": 8.0, "perceive_plan_ms": 300.0}  # saved before clearing had one
