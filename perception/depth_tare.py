@@ -267,29 +267,34 @@ def _lowest_cluster(q: np.ndarray, cfg: TareConfig) -> tuple[float, float, float
     peaks = np.flatnonzero((smooth >= left) & (smooth > right) & (smooth >= cfg.peak_fraction * smooth.max()))
     centre = float(0.5 * (edges[peaks[0]] + edges[peaks[0] + 1]))
     window, sigma = min_window, 0.0
+    dithered = _dithered(q, cfg.quantum_inv_m)  # for the spread: the same values in every refinement
     for _ in range(cfg.iterations):
-        sigma = _low_side_spread(q, centre, 8 * sigma_inv, cfg.quantum_inv_m)
+        sigma = _low_side_spread(dithered, centre, 8 * sigma_inv, cfg.quantum_inv_m)
         window = max(cfg.window_sigmas * sigma, min_window)
         near = q[np.abs(q - centre) <= window]
         if not len(near):
             break
         centre = float(centre_of(near))
-    return centre, window, _low_side_spread(q, centre, 8 * sigma_inv, cfg.quantum_inv_m)
+    return centre, window, _low_side_spread(dithered, centre, 8 * sigma_inv, cfg.quantum_inv_m)
 
 
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
-def _low_side_spread(q: np.ndarray, centre: float, reach: float, quantum: float) -> float:
-    """The robust standard deviation of ``q``'s low side (within ``reach`` below ``centre``; parts lie above the
-    floor, so only the low side is the floor's): 1.4826 x the median distance below the centre. Quantised to steps
-    of ``quantum`` (> 0), a floor facing the camera sits on a few levels one step apart and that median jumps by a
-    step with where the levels fall (anything from 0 to 1.5 steps for one plane), which moved the window and failed
-    the spread check on clear floors; each value spread over its step by a fixed dither (a golden-ratio sequence:
-    deterministic, evenly filled) makes it continuous, and the dither's own variance (``quantum^2 / 12``) is taken
-    back out."""
-    spread_q = q + (np.modf(np.arange(len(q)) * _GOLDEN)[0] - 0.5) * quantum if quantum > 0 else q
-    below = centre - spread_q[(spread_q <= centre) & (spread_q >= centre - reach)]
+def _dithered(q: np.ndarray, quantum: float) -> np.ndarray:
+    """``q`` with each value spread over its step of ``quantum`` by a fixed dither (a golden-ratio sequence:
+    deterministic, evenly filled); ``q`` itself without steps (``quantum`` 0)."""
+    return q + (np.modf(np.arange(len(q)) * _GOLDEN)[0] - 0.5) * quantum if quantum > 0 else q
+
+
+def _low_side_spread(dithered: np.ndarray, centre: float, reach: float, quantum: float) -> float:
+    """The robust standard deviation of the low side (within ``reach`` below ``centre``; parts lie above the floor,
+    so only the low side is the floor's) of ``_dithered`` values: 1.4826 x the median distance below the centre.
+    Quantised to steps of ``quantum`` (> 0), a floor facing the camera sits on a few levels one step apart and that
+    median jumps by a step with where the levels fall (anything from 0 to 1.5 steps for one plane), which moved the
+    window and failed the spread check on clear floors; the dither makes it continuous, and its own variance
+    (``quantum^2 / 12``) is taken back out here."""
+    below = centre - dithered[(dithered <= centre) & (dithered >= centre - reach)]
     if not len(below):
         return 0.0
     sigma = 1.4826 * float(np.median(below))
