@@ -47,7 +47,9 @@ to ``T_base_press`` (``press_depth_m`` into the estimated top: simulated cells o
 Candidates (tilt, turn of the paddle about the approach, where on the part's top to press, how far back the
 straight lines start) are tried in ``NudgeConfig``'s order; the first whose gripper boxes keep ``bin_clearance_m``
 from the walls along the whole motion, whose wrist links clear the walls, whose joint moves in and out are clear
-(``CollisionChecker.transit_gap_m``, ``elbow_clear``), whose straight lines stay on one IK branch and along which
+(``CollisionChecker.transit_gap_m``, ``elbow_clear``), whose straight lines stay on one IK branch (the branch nearest
+the planner's reference configuration first, then the others: tilted over the bin in a corner, the nearest branch's
+wrist links can stand out over a wall where a flipped wrist clears it) and along which
 the closed gripper keeps ``clearance_m`` from the other parts (their surface points, checked every few millimetres:
 a neighbour under the tilted tool is what the press would otherwise hit) is the nudge. Hand-written, like the grasp
 planner's checks, for the same reason: these are a few box-against-box tests per candidate, which the planner's
@@ -69,7 +71,7 @@ from robot.grasp_geometry import GripperGeometry, box_corners, points_box_distan
 from robot.grasp_plan import GraspPlan, PartEstimate
 from robot.grasp_planner import GraspPlanner
 from sygrid.errors import ConfigError
-from sygrid.robots.kinematics import ik_nearest
+from sygrid.robots.kinematics import ik_nearest, ik_solutions_near
 from sygrid.transforms import invert, make_T, transform_points
 
 #: The planner's causes a nudge can help with: a wall or a neighbour in the fingers' way.
@@ -356,9 +358,10 @@ class NudgePlanner:
         neighbours_base: np.ndarray | None = None,
     ) -> dict | None:
         """The poses and joint solutions of a candidate that ``_clear_of_bin`` passed, coming down from and going
-        back up to ``back`` above it, if the rest of the checks pass (the last: the closed gripper along the three
-        straight lines keeps ``clearance_m`` from the other parts' surface points ``neighbours_base``); else None."""
-        cfg, planner = self.config, self.planner
+        back up to ``back`` above it, if the rest of the checks pass (the workspace, the closed gripper along the
+        three straight lines keeping ``clearance_m`` from the other parts' surface points ``neighbours_base``, and
+        ``_joint_path`` on one of the arm's IK branches); else None."""
+        planner = self.planner
         pcfg = planner.config
         g = pcfg.gripper
         closed = g.boxes(0.0)
@@ -368,29 +371,44 @@ class NudgePlanner:
             pcfg.workspace.contains(np.array([X[:3, 3] for X in (T_above, T_press, T_end, T_retreat)]))
         ):
             return None
-        limits, T_flange_tcp = planner.joint_limits_rad, g.T_flange_tcp
-        q_above = ik_nearest(T_above, planner.q_reference, T_flange_tcp, limits)
-        if q_above is None:
-            return None
-        q = [q_above]
-        for X in (T_press, T_end, T_retreat):
-            q.append(ik_nearest(X, q[-1], T_flange_tcp, limits))
-            if q[-1] is None or np.abs(q[-1] - q[-2]).max() > cfg.max_joint_step_rad:
-                return None
-        if planner.collision.wrist_gap_m(np.stack(q)).min() < pcfg.bin_clearance_m:
-            return None
-        clearance = pcfg.transit_clearance_m or 0.0
-        for qa, qb in ((q_from, q[0]), (q[3], q_after)):
-            if planner.collision.transit_gap_m(qa, qb, closed) < clearance or not planner.collision.elbow_clear(qa, qb):
-                return None
         if neighbours_base is not None and len(neighbours_base):
             path = straight_lines([T_above, T_press, T_end, T_retreat], _PATH_STEP_M)
             if gap_to_points_m(path, closed, neighbours_base, pcfg.clearance_m) < pcfg.clearance_m:
                 return None
+        limits, T_flange_tcp = planner.joint_limits_rad, g.T_flange_tcp
+        # the arm configuration nearest the reference first; another branch where that one's wrist meets a wall (a
+        # part in a corner, the tool tilted over the bin: the wrist links then stand out over one of the walls)
+        for q_above in ik_solutions_near(T_above, planner.q_reference, T_flange_tcp, limits):
+            q = self._joint_path(q_above, (T_press, T_end, T_retreat), q_from, q_after, closed)
+            if q is not None:
+                break
+        else:
+            return None
         return {
             "T_base_above": T_above, "T_base_press": T_press, "T_base_end": T_end, "T_base_retreat": T_retreat,
             "q_above": q[0], "q_press": q[1], "q_end": q[2], "q_retreat": q[3],
         }  # fmt: skip
+
+    def _joint_path(
+        self, q_above: np.ndarray, poses: tuple, q_from: np.ndarray, q_after: np.ndarray, closed: np.ndarray
+    ) -> list[np.ndarray] | None:
+        """The joint solutions from ``q_above`` along ``poses`` (press, end, retreat; each the nearest to the one
+        before, no joint turning more than ``max_joint_step_rad``), if the wrist links keep ``bin_clearance_m`` from
+        the walls and the joint moves in from ``q_from`` and out to ``q_after`` are clear; else None."""
+        planner = self.planner
+        pcfg = planner.config
+        q = [q_above]
+        for X in poses:
+            q.append(ik_nearest(X, q[-1], pcfg.gripper.T_flange_tcp, planner.joint_limits_rad))
+            if q[-1] is None or np.abs(q[-1] - q[-2]).max() > self.config.max_joint_step_rad:
+                return None
+        if planner.collision.wrist_gap_m(np.stack(q)).min() < pcfg.bin_clearance_m:
+            return None
+        clearance = pcfg.transit_clearance_m or 0.0
+        for qa, qb in ((q_from, q[0]), (q[-1], q_after)):
+            if planner.collision.transit_gap_m(qa, qb, closed) < clearance or not planner.collision.elbow_clear(qa, qb):
+                return None
+        return q
 
 
 @dataclass(frozen=True, eq=False)

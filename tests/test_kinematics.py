@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sygrid.robots import T_to_pose, forward_kinematics, ik_nearest, inverse_kinematics, pose_to_T, ur5e
-from sygrid.robots.kinematics import link_transforms
+from sygrid.robots.kinematics import ik_solutions_near, link_transforms
 from sygrid.transforms import make_T, rotation_about
 
 
@@ -110,6 +110,23 @@ def test_ik_nearest_keeps_the_turn_of_multi_turn_joints() -> None:
     restricted = ik_nearest(forward_kinematics(q), q, limits=limits)
     assert restricted is not None and -math.pi <= restricted[0] <= math.pi
     np.testing.assert_allclose(forward_kinematics(restricted), forward_kinematics(q), atol=1e-9)
+
+
+def test_ik_solutions_near_are_every_branch_nearest_first_and_the_first_is_ik_nearest() -> None:
+    q = np.array([0.4, -1.0, 1.2, -1.7, -1.3, 0.5])
+    T = forward_kinematics(q)
+    near = q + np.array([0.02, -0.03, 0.01, 0.02, -0.01, 0.03])
+    solutions = ik_solutions_near(T, near)
+    n = len(inverse_kinematics(T))
+    assert n >= 2 and solutions.shape == (n, 6)  # every branch that the joint limits allow
+    np.testing.assert_allclose(forward_kinematics(solutions), np.broadcast_to(T, (n, 4, 4)), atol=1e-9)
+    distances = np.linalg.norm(solutions - near, axis=1)
+    assert np.all(np.diff(distances) >= 0)
+    np.testing.assert_allclose(solutions[0], q, atol=1e-9)
+    np.testing.assert_allclose(solutions[0], ik_nearest(T, near), atol=0)
+    # the same branches as inverse_kinematics, each joint wrapped towards q_near
+    assert np.all(_wrapped_distance(solutions[:, None], inverse_kinematics(T)[None]).max(axis=2).min(axis=1) < 1e-9)
+    assert ik_solutions_near(make_T(t=(1.5, 0.0, 0.3)), near).shape == (0, 6)
 
 
 def test_pose_round_trip_and_rotation_vector_at_pi() -> None:

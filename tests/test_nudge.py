@@ -15,7 +15,7 @@ from robot.grasp_set import GraspSetParams
 from robot.nudge import NudgeConfig, NudgePlanner, gap_to_points_m, straight_lines
 from sygrid.errors import ConfigError
 from sygrid.objects import builtin_part
-from sygrid.robots.kinematics import forward_kinematics
+from sygrid.robots.kinematics import forward_kinematics, ik_nearest
 from sygrid.transforms import make_T, transform_points
 
 PARAMS = GraspSetParams(n_surface_samples=150, n_dense_samples=1500)  # as tests/test_grasp.py: faster to build
@@ -201,3 +201,25 @@ def test_part_estimate_is_what_the_nudger_plans_from(nudger):
     part = PartEstimate(GEAR.obj_id, _flat_gear(WALL_XP - 0.024 - GEAR_RADIUS, WALL_YN + 0.005 + GEAR_RADIUS))
     nudge = nudger.plan_part(part, 3, "collision_bin", q, q)
     assert nudge is not None and nudge.part_index == 3 and nudge.obj_id == GEAR.obj_id
+
+
+def test_a_nut_in_the_far_corner_is_nudged_on_another_arm_branch_where_the_nearest_puts_the_wrist_on_a_wall(nudger):
+    planner = nudger.planner
+    q = planner.q_reference
+    nut = builtin_part("hex_nut")
+    radius = nut.extents_m[0] / 2
+    # 17 mm from the -x wall and 20 mm from the +y wall (a nut a pick run in the simulated cell left there)
+    T = make_T(t=(-0.5 - 0.15 + 0.017 + radius, 0.10 - 0.020 - radius, FLOOR_Z + nut.extents_m[2] / 2))
+    nudge = nudger.plan_part(PartEstimate(nut.obj_id, T), 0, "collision_bin", q, q)
+    assert nudge is not None
+    qs = np.stack([nudge.q_above, nudge.q_press, nudge.q_end, nudge.q_retreat])
+    g = planner.config.gripper
+    Ts = np.stack([nudge.T_base_above, nudge.T_base_press, nudge.T_base_end, nudge.T_base_retreat])
+    np.testing.assert_allclose(forward_kinematics(qs, g.T_flange_tcp), Ts, atol=1e-6)
+    assert planner.collision.wrist_gap_m(qs).min() >= planner.config.bin_clearance_m
+    # the configuration nearest the reference reaches the same poses with a wrist link over the wall
+    nearest = [ik_nearest(nudge.T_base_above, q, g.T_flange_tcp, planner.joint_limits_rad)]
+    for X in Ts[1:]:
+        nearest.append(ik_nearest(X, nearest[-1], g.T_flange_tcp, planner.joint_limits_rad))
+    assert np.abs(nearest[0] - nudge.q_above).max() > 0.5
+    assert planner.collision.wrist_gap_m(np.stack(nearest)).min() < planner.config.bin_clearance_m

@@ -113,27 +113,35 @@ def inverse_kinematics(
     return np.array(unique).reshape(-1, 6)
 
 
+def ik_solutions_near(
+    T_base_tcp: np.ndarray,
+    q_near: np.ndarray,
+    T_flange_tcp: np.ndarray | None = None,
+    limits: np.ndarray | None = None,
+) -> np.ndarray:
+    """Every IK solution of ``T_base_tcp`` (k, 6), k = 0..8, each joint the 2-pi equivalent nearest ``q_near`` within
+    ``limits``, nearest ``q_near`` first (Euclidean in joint space; ties in ``inverse_kinematics``'s order). At the
+    wrist singularity ``q6`` stays at ``q_near[5]``. For a caller whose first choice of arm configuration a check
+    refuses (a wrist link against a bin wall) and who may take another branch."""
+    q_near = _check_q(q_near)
+    limits = _check_limits(limits)
+    solutions = inverse_kinematics(T_base_tcp, T_flange_tcp, q6_singular=float(q_near[5]), limits=limits)
+    wrapped = [w for w in (_wrap_into_limits(s, q_near, limits) for s in solutions) if w is not None]
+    if not wrapped:
+        return np.zeros((0, 6))
+    wrapped = np.array(wrapped)
+    return wrapped[np.argsort(np.linalg.norm(wrapped - q_near, axis=1), kind="stable")]
+
+
 def ik_nearest(
     T_base_tcp: np.ndarray,
     q_near: np.ndarray,
     T_flange_tcp: np.ndarray | None = None,
     limits: np.ndarray | None = None,
 ) -> np.ndarray | None:
-    """The IK solution nearest ``q_near`` (Euclidean in joint space, each joint taking the 2-pi equivalent nearest
-    ``q_near`` within ``limits``), or None when the pose is out of reach. At the wrist singularity ``q6`` stays at
-    ``q_near[5]``."""
-    q_near = _check_q(q_near)
-    limits = _check_limits(limits)
-    solutions = inverse_kinematics(T_base_tcp, T_flange_tcp, q6_singular=float(q_near[5]), limits=limits)
-    best, best_dist = None, math.inf
-    for s in solutions:
-        w = _wrap_into_limits(s, q_near, limits)
-        if w is None:
-            continue
-        dist = float(np.linalg.norm(w - q_near))
-        if dist < best_dist:
-            best, best_dist = w, dist
-    return best
+    """The IK solution nearest ``q_near`` (``ik_solutions_near``'s first), or None when the pose is out of reach."""
+    solutions = ik_solutions_near(T_base_tcp, q_near, T_flange_tcp, limits)
+    return solutions[0] if len(solutions) else None
 
 
 def _closed_form_candidates(T_base_flange: np.ndarray, q6_singular: float) -> np.ndarray:
