@@ -70,6 +70,7 @@ from robot.grasp_collision import local_points
 from robot.grasp_geometry import GripperGeometry, box_corners, points_box_distance_m
 from robot.grasp_plan import GraspPlan, PartEstimate
 from robot.grasp_planner import GraspPlanner
+from robot.ur_config import URConfig
 from sygrid.errors import ConfigError
 from sygrid.robots.kinematics import ik_nearest, ik_solutions_near
 from sygrid.transforms import invert, make_T, transform_points
@@ -394,7 +395,8 @@ class NudgePlanner:
     ) -> list[np.ndarray] | None:
         """The joint solutions from ``q_above`` along ``poses`` (press, end, retreat; each the nearest to the one
         before, no joint turning more than ``max_joint_step_rad``), if the wrist links keep ``bin_clearance_m`` from
-        the walls and the joint moves in from ``q_from`` and out to ``q_after`` are clear; else None."""
+        the walls and the joint moves in from ``q_from`` and out to ``q_after`` are clear and keep the TCP in the
+        robot's workspace box; else None."""
         planner = self.planner
         pcfg = planner.config
         q = [q_above]
@@ -407,6 +409,11 @@ class NudgePlanner:
         clearance = pcfg.transit_clearance_m or 0.0
         for qa, qb in ((q_from, q[0]), (q[-1], q_after)):
             if planner.collision.transit_gap_m(qa, qb, closed) < clearance or not planner.collision.elbow_clear(qa, qb):
+                return None
+            # the controller refuses a joint move whose TCP leaves the workspace box (another branch swings wide)
+            if pcfg.workspace is not None and pcfg.workspace.joint_path_exit(
+                pcfg.gripper.T_flange_tcp, qa, qb, URConfig.path_check_step_rad
+            ):
                 return None
         return q
 

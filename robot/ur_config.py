@@ -56,6 +56,24 @@ class WorkspaceBox:
         inside = np.all((p >= self.lo_m) & (p <= self.hi_m), axis=-1)
         return bool(inside) if inside.ndim == 0 else inside
 
+    def joint_path_exit(
+        self, T_flange_tcp: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, step_rad: float
+    ) -> tuple[float, np.ndarray] | None:
+        """Where the TCP (``T_flange_tcp``) leaves the box along the joint-space line from ``q_from`` to ``q_to``
+        (movej's path, sampled every ``step_rad`` on the joint that turns most), or ends outside it: ``(fraction of
+        the path, TCP position [m])`` of the first such sample; None when the path stays inside. A path may enter
+        the box (from a pose outside it), never leave it."""
+        q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
+        n = max(2, math.ceil(float(np.max(np.abs(q_to - q_from))) / step_rad) + 1)
+        s = np.linspace(0.0, 1.0, n)[:, None]
+        p = forward_kinematics(q_from + s * (q_to - q_from), T_flange_tcp)[:, :3, 3]
+        inside = self.contains(p)
+        bad = np.flatnonzero(np.maximum.accumulate(inside) & ~inside)
+        if inside[-1] and not len(bad):
+            return None
+        k = int(bad[0]) if len(bad) else n - 1
+        return k / (n - 1), p[k]
+
     def describe(self) -> str:
         return "x {:.3f}..{:.3f}, y {:.3f}..{:.3f}, z {:.3f}..{:.3f} m".format(
             *(v for pair in zip(self.lo_m, self.hi_m, strict=True) for v in pair)
@@ -242,19 +260,13 @@ def check_joint_target(config: URConfig, q: np.ndarray) -> np.ndarray:
 def check_joint_path(config: URConfig, T_flange_tcp: np.ndarray, q_from: np.ndarray, q_to: np.ndarray) -> None:
     """``OutsideWorkspaceError`` when the TCP leaves the box along the joint-space line from ``q_from`` to ``q_to``
     (movej's path), or ends outside it; the joint-target checks of ``check_joint_target`` too."""
-    q_from = np.asarray(q_from, dtype=float)
     q_to = check_joint_target(config, q_to)
-    n = max(2, math.ceil(float(np.max(np.abs(q_to - q_from))) / config.path_check_step_rad) + 1)
-    s = np.linspace(0.0, 1.0, n)[:, None]
-    p = forward_kinematics(q_from + s * (q_to - q_from), T_flange_tcp)[:, :3, 3]
-    inside = config.workspace.contains(p)
-    entered = np.maximum.accumulate(inside)  # a path may enter the box, never leave it
-    bad = np.flatnonzero(entered & ~inside)
-    if not inside[-1] or len(bad):
-        k = int(bad[0]) if len(bad) else n - 1
+    leaves = config.workspace.joint_path_exit(T_flange_tcp, q_from, q_to, config.path_check_step_rad)
+    if leaves is not None:
+        fraction, p = leaves
         raise OutsideWorkspaceError(
-            f"joint move to {np.round(q_to, 4).tolist()} rad takes the TCP to {np.round(p[k], 4).tolist()} m "
-            f"({100 * k / (n - 1):.0f}% along the path), outside the workspace box "
+            f"joint move to {np.round(q_to, 4).tolist()} rad takes the TCP to {np.round(p, 4).tolist()} m "
+            f"({100 * fraction:.0f}% along the path), outside the workspace box "
             f"({config.workspace.describe()}); nothing was sent"
         )
 

@@ -344,6 +344,13 @@ def test_a_joint_path_may_enter_the_box_but_not_leave_it():
         check_joint_path(cfg, T_FLANGE_TCP, Q_WORK, q_outside)
     with pytest.raises(OutsideWorkspaceError, match="along the path"):  # out and back in
         check_joint_path(cfg, T_FLANGE_TCP, Q_WORK, Q_WORK - np.array([2 * np.pi, 0, 0, 0, 0, 0]))
+    # the same test for a planner, which has no URConfig: where along the path the TCP first leaves the box
+    step = cfg.path_check_step_rad
+    assert BOX.joint_path_exit(T_FLANGE_TCP, q_outside, Q_WORK, step) is None
+    fraction, p = BOX.joint_path_exit(T_FLANGE_TCP, Q_WORK, q_outside, step)
+    assert 0.0 < fraction <= 1.0 and not BOX.contains(p)
+    fraction, p = BOX.joint_path_exit(T_FLANGE_TCP, Q_WORK, Q_WORK - np.array([2 * np.pi, 0, 0, 0, 0, 0]), step)
+    assert 0.0 < fraction < 1.0 and not BOX.contains(p)
     assert trapezoid_duration_s(0.3, 1.05, 1.4) == pytest.approx(2 * np.sqrt(0.3 / 1.4))  # triangular
     assert trapezoid_duration_s(2.0, 1.0, 2.0) == pytest.approx(2.0 + 0.5)
 
