@@ -4,7 +4,7 @@ per part (``PartReport``) and the whole ``GraspPlan``; and the causes a part or 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -138,6 +138,9 @@ class GraspPlan:
     parts: tuple[PartReport, ...]
     rejections: dict[str, int]
     timings_s: dict[str, float]
+    #: ``(n, 3)`` the depth camera's pile points (base frame, the bin's own points dropped) the plan was checked
+    #: against; empty without a depth frame. What else lies in the bin, seen or not (the nudge planner's obstacles).
+    cloud_base: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def nothing_safe(self) -> bool:

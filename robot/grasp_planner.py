@@ -257,7 +257,7 @@ class GraspPlanner:
         planned.sort(key=lambda g: (under[g.part_index], -g.score))
         part_reports = tuple(PartReport(**reports[i]) for i in range(len(parts)))
         totals = {cause: sum(p.rejections.get(cause, 0) for p in part_reports) for cause in REJECTION_CAUSES}
-        plan = GraspPlan(tuple(planned), part_reports, totals, timings)
+        plan = GraspPlan(tuple(planned), part_reports, totals, timings, cloud)
         log.debug("grasp plan: %s", plan.summary())
         return plan
 

@@ -211,6 +211,18 @@ def scene_obstacles(
     surface belongs to the nearest such part) and a sample of each part's estimated surface (``surfaces[i]``:
     ``(s, 3)`` base frame, None for a part without a model), which also stands for its unseen sides."""
     known = [i for i, s in enumerate(surfaces) if s is not None]
+    owner = cloud_owners(cloud, surfaces, own_points_tolerance_m)
+    samples = [surfaces[i][:_NEIGHBOUR_SAMPLES] for i in known]
+    points = np.concatenate([cloud, *samples]) if samples else cloud
+    owner = np.concatenate([owner, *[np.full(len(s), i) for i, s in zip(known, samples, strict=True)]])
+    return points, owner
+
+
+def cloud_owners(cloud: np.ndarray, surfaces: list[np.ndarray | None], own_points_tolerance_m: float) -> np.ndarray:
+    """``(n,)`` the index of the part each ``cloud`` point (``(n, 3)`` base frame) belongs to: the part whose estimated
+    surface (``surfaces[i]``, ``(s, 3)`` base frame; None: no model) lies nearest within ``own_points_tolerance_m``;
+    -1 for a point on none of them (an unseen part, or a seen one where its estimate is off)."""
+    known = [i for i, s in enumerate(surfaces) if s is not None]
     owner = np.full(len(cloud), -1)
     if len(cloud) and known:
         points = np.concatenate([surfaces[i] for i in known])
@@ -218,10 +230,7 @@ def scene_obstacles(
         dist, nearest = cKDTree(points).query(cloud, k=1, distance_upper_bound=own_points_tolerance_m)
         hit = np.isfinite(dist)
         owner[hit] = labels[nearest[hit]]
-    samples = [surfaces[i][:_NEIGHBOUR_SAMPLES] for i in known]
-    points = np.concatenate([cloud, *samples]) if samples else cloud
-    owner = np.concatenate([owner, *[np.full(len(s), i) for i, s in zip(known, samples, strict=True)]])
-    return points, owner
+    return owner
 
 
 def covered_fraction(

@@ -50,8 +50,10 @@ from the walls along the whole motion, whose wrist links clear the walls, whose 
 (``CollisionChecker.transit_gap_m``, ``elbow_clear``), whose straight lines stay on one IK branch (the branch nearest
 the planner's reference configuration first, then the others: tilted over the bin in a corner, the nearest branch's
 wrist links can stand out over a wall where a flipped wrist clears it) and along which
-the closed gripper keeps ``clearance_m`` from the other parts (their surface points, checked every few millimetres:
-a neighbour under the tilted tool is what the press would otherwise hit) is the nudge. Hand-written, like the grasp
+the closed gripper keeps ``clearance_m`` from the other parts (their surface points, and the plan's depth points of
+the pile on none of the posed parts, beyond ``own_points_tolerance_m`` of the nudged one: a part the camera sees but
+perception did not pose is as solid; checked every few millimetres: a neighbour under the tilted tool is what the
+press would otherwise hit) is the nudge. The drag also goes away from those depth points where they are near. Hand-written, like the grasp
 planner's checks, for the same reason: these are a few box-against-box tests per candidate, which the planner's
 numpy maths already answers.
 """
@@ -70,6 +72,7 @@ from robot.grasp_collision import local_points
 from robot.grasp_geometry import GripperGeometry, box_corners, points_box_distance_m
 from robot.grasp_plan import GraspPlan, PartEstimate
 from robot.grasp_planner import GraspPlanner
+from robot.grasp_scene import cloud_owners
 from robot.ur_config import URConfig
 from sygrid.errors import ConfigError
 from sygrid.robots.kinematics import ik_nearest, ik_solutions_near
@@ -196,7 +199,8 @@ class NudgePlanner:
         skip: Callable[[int], bool] | None = None,
     ) -> PlannedNudge | None:
         """A nudge for one of the parts ``plan`` (made from ``poses``, camera frame) left for a ``NUDGE_CAUSES``
-        cause, the highest such part first; None when no part needs one or none can be done safely.
+        cause, the highest such part first; None when no part needs one or none can be done safely. The obstacles of
+        a part's nudge: the other parts' estimated surfaces and ``plan.cloud_base``'s points not on that part.
 
         q_from: where the arm is (the joint move to the first pose starts there). q_after: where it goes after the
         retreat (the observe pose). skip: part indices not to nudge (e.g. nudged often enough already)."""
@@ -209,12 +213,17 @@ class NudgePlanner:
         reports = sorted(
             (r for r in plan.parts if r.status in NUDGE_CAUSES), key=lambda r: -np.nan_to_num(r.top_height_m, nan=-1e9)
         )
+        # the pile's depth points on no other part are obstacles too: a part the camera sees but perception could not
+        # pose lies there as much as a posed one (a drag into it, or the tool coming down on it, meets it)
+        cloud = np.asarray(plan.cloud_base, dtype=float).reshape(-1, 3)
+        owners = cloud_owners(cloud, surfaces, self.planner.config.own_points_tolerance_m)
         for report in reports:
             i = report.part_index
             if skip is not None and skip(i):
                 continue
-            others = [s for k, s in enumerate(surfaces) if k != i and s is not None]
-            neighbours = np.concatenate(others) if others else None
+            others = [s for k, s in enumerate(surfaces) if k != i and s is not None] + [cloud[owners != i]]
+            neighbours = np.concatenate(others)
+            neighbours = neighbours if len(neighbours) else None
             nudge = self.plan_part(parts[i], i, report.status, q_from, q_after, neighbours)
             if nudge is not None:
                 return nudge

@@ -3,8 +3,11 @@ which way they drag, and that the whole motion keeps the gripper off the walls."
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from perception.results import Detection, ObjectPose
 from robot.grasp_config import PlannerConfig
@@ -174,6 +177,38 @@ def test_a_part_pressed_against_a_neighbour_is_dragged_away_from_it(nudger):
     assert nudge is not None
     assert nudge.direction @ np.array([-1.0, 0.0, 0.0]) > 0.95  # straight away from the gear
     assert nudge.distance_m == pytest.approx(NudgeConfig().target_gap_m - 0.003, abs=1.5e-3)
+
+
+def test_a_neighbour_only_the_depth_shows_is_an_obstacle_of_the_nudge(nudger):
+    planner = nudger.planner
+    q = planner.q_reference
+    nut = builtin_part("hex_nut")
+    T_nut = make_T(t=(-0.5, 0.0, FLOOR_Z + nut.extents_m[2] / 2))
+    # the gear 3 mm beyond the nut's +x side, seen by the depth camera but not posed: its surface as depth points
+    T_gear = _flat_gear(-0.5 + nut.extents_m[0] / 2 + 0.003 + GEAR_RADIUS, 0.0)
+    gear_points = planner.surface_base(PartEstimate(GEAR.obj_id, T_gear))
+    nut_points = planner.surface_base(PartEstimate(nut.obj_id, T_nut))
+    poses = _poses(T_nut, obj_id=nut.obj_id)
+    plan = planner.plan_parts([PartEstimate(nut.obj_id, T_nut)], np.concatenate([gear_points, nut_points]))
+    # the pile as the plan was checked against: the points above the bin's floor
+    assert 0 < len(plan.cloud_base) <= len(gear_points) + len(nut_points)
+    # the nut as a plan leaves it where its grasps reach the gear (here one side is still free: made so by hand)
+    plan = replace(plan, grasps=(), parts=(replace(plan.parts[0], status="collision_parts"),))
+    nudge = nudger.plan(poses, np.eye(4), plan, q, q)
+    assert nudge is not None
+    assert nudge.direction @ np.array([-1.0, 0.0, 0.0]) > 0.95  # away from the unposed gear, as from a posed one
+    path = straight_lines([nudge.T_base_above, nudge.T_base_press, nudge.T_base_end, nudge.T_base_retreat], 0.005)
+    closed = planner.config.gripper.boxes(0.0)
+    # the gear as the depth shows it, less what lies within own_points_tolerance_m of the nut (taken for the nut's)
+    cfg = planner.config
+    near_nut = cKDTree(nut_points).query(plan.cloud_base)[0] <= cfg.own_points_tolerance_m
+    on_gear = np.linalg.norm(plan.cloud_base[:, :2] - T_gear[:2, 3], axis=1) <= GEAR_RADIUS + 1e-6
+    seen_gear = plan.cloud_base[on_gear & ~near_nut]
+    assert len(seen_gear) and gap_to_points_m(path, closed, seen_gear, 0.05) >= cfg.clearance_m
+    # without the depth points the nut has no neighbour: the drag would go elsewhere, blind to the gear
+    blind = replace(plan, cloud_base=np.zeros((0, 3)))
+    other = nudger.plan(poses, np.eye(4), blind, q, q)
+    assert other is None or other.direction @ np.array([-1.0, 0.0, 0.0]) < 0.95
 
 
 def test_bad_nudge_settings_name_the_field(nudger):
