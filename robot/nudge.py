@@ -49,11 +49,11 @@ straight lines start) are tried in ``NudgeConfig``'s order; the first whose grip
 from the walls along the whole motion, whose wrist links clear the walls, whose joint moves in and out are clear
 (``CollisionChecker.transit_gap_m``, ``elbow_clear``), whose straight lines stay on one IK branch (the branch nearest
 the planner's reference configuration first, then the others: tilted over the bin in a corner, the nearest branch's
-wrist links can stand out over a wall where a flipped wrist clears it) and along which
-the closed gripper keeps ``clearance_m`` from the other parts (their surface points, and the plan's depth points of
-the pile on none of the posed parts, beyond ``own_points_tolerance_m`` of the nudged one: a part the camera sees but
-perception did not pose is as solid; checked every few millimetres: a neighbour under the tilted tool is what the
-press would otherwise hit) is the nudge. The drag also goes away from those depth points where they are near. Hand-written, like the grasp
+wrist links can stand out over a wall where a flipped wrist clears it) and along which the closed gripper keeps
+``clearance_m`` from the other parts (their surface points, and the plan's depth points of the pile on none of the
+posed parts, beyond ``own_points_tolerance_m`` of the nudged one: a part the camera sees but perception did not pose
+is as solid; checked every few millimetres: a neighbour under the tilted tool is what the press would otherwise hit)
+is the nudge. The drag also goes away from those depth points where they are near. Hand-written, like the grasp
 planner's checks, for the same reason: these are a few box-against-box tests per candidate, which the planner's
 numpy maths already answers.
 """
