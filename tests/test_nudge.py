@@ -165,13 +165,18 @@ def test_a_nudge_keeps_the_tilted_gripper_off_a_part_standing_where_it_leans(nud
     assert seeing is not None and gap_to_pipe(seeing) >= planner.config.clearance_m - 1e-6
 
 
+def _nut_beside_a_gear() -> tuple[np.ndarray, np.ndarray]:
+    """``(T_nut, T_gear)``: a nut in the bin's middle, a gear 3 mm beyond its +x side (20.8 mm across its corners)."""
+    nut = builtin_part("hex_nut")
+    T_nut = make_T(t=(-0.5, 0.0, FLOOR_Z + nut.extents_m[2] / 2))
+    return T_nut, _flat_gear(-0.5 + nut.extents_m[0] / 2 + 0.003 + GEAR_RADIUS, 0.0)
+
+
 def test_a_part_pressed_against_a_neighbour_is_dragged_away_from_it(nudger):
     planner = nudger.planner
     q = planner.q_reference
     nut = builtin_part("hex_nut")
-    T_nut = make_T(t=(-0.5, 0.0, FLOOR_Z + nut.extents_m[2] / 2))
-    # the gear 3 mm beyond the nut's +x side (the nut is 20.8 mm across its corners along x)
-    T_gear = _flat_gear(-0.5 + nut.extents_m[0] / 2 + 0.003 + GEAR_RADIUS, 0.0)
+    T_nut, T_gear = _nut_beside_a_gear()
     neighbours = planner.surface_base(PartEstimate(GEAR.obj_id, T_gear))
     nudge = nudger.plan_part(PartEstimate(nut.obj_id, T_nut), 0, "collision_parts", q, q, neighbours)
     assert nudge is not None
@@ -183,9 +188,7 @@ def test_a_neighbour_only_the_depth_shows_is_an_obstacle_of_the_nudge(nudger):
     planner = nudger.planner
     q = planner.q_reference
     nut = builtin_part("hex_nut")
-    T_nut = make_T(t=(-0.5, 0.0, FLOOR_Z + nut.extents_m[2] / 2))
-    # the gear 3 mm beyond the nut's +x side, seen by the depth camera but not posed: its surface as depth points
-    T_gear = _flat_gear(-0.5 + nut.extents_m[0] / 2 + 0.003 + GEAR_RADIUS, 0.0)
+    T_nut, T_gear = _nut_beside_a_gear()  # the gear seen by the depth camera but not posed: its surface as points
     gear_points = planner.surface_base(PartEstimate(GEAR.obj_id, T_gear))
     nut_points = planner.surface_base(PartEstimate(nut.obj_id, T_nut))
     poses = _poses(T_nut, obj_id=nut.obj_id)
