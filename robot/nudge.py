@@ -222,8 +222,7 @@ class NudgePlanner:
             if skip is not None and skip(i):
                 continue
             others = [s for k, s in enumerate(surfaces) if k != i and s is not None] + [cloud[owners != i]]
-            neighbours = np.concatenate(others)
-            neighbours = neighbours if len(neighbours) else None
+            neighbours = np.concatenate(others)  # (0, 3) when there is nothing else: every check skips it
             nudge = self.plan_part(parts[i], i, report.status, q_from, q_after, neighbours)
             if nudge is not None:
                 return nudge
