@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from perception.blob_rescue import RescueConfig, best_verified, explained_mask, pile_blobs, region_detection
 from perception.camera import Frame
 from perception.depth_tare import Tare, TareConfig, tared_depth
 from perception.detector import YoloSegDetector
@@ -315,6 +316,36 @@ class PerceptionPipeline:
         refined = self._refine(poses, frame, todo=lambda p: _icp_status(p) == "skipped")
         return sorted(refined, key=lambda p: -p.score)
 
+    def rescue(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose] | None:
+        """``poses`` with the parts the detector's classes missed (``perception.blob_rescue``): the pile's regions of
+        depth that no pose in ``poses`` explains, each fitted with every model's strategy and kept where the
+        verification accepts one (the most confident), best score first; None when nothing new was found, or
+        without pose strategies (no verification), a floor plane or floor bounds. ``frame``: the one given to
+        ``run`` (its depth is corrected again, as there)."""
+        bounds = self.floor_bounds_camera_m if self.floor_bounds_camera_m is not None else self.region_camera_m
+        if self.strategies is None or self.floor_plane_camera is None or bounds is None:
+            return None
+        frame, _ = self.tare(frame)
+        explained = explained_mask(poses, frame.depth_m.shape)
+        found = []
+        config = RescueConfig(min_height_m=max(self.floor_margin_m, 1e-4))
+        # the sensor's depth noise (``TareConfig.for_sensor``: 1/z's sigma), 0 for exact depth or an unknown sensor
+        sigma_inv = self.depth_tare.noise_inv_m if self.depth_tare is not None else None
+        regions = pile_blobs(
+            frame.depth_m, frame.intrinsics, self.floor_plane_camera, bounds, explained, config, sigma_inv or 0.0
+        )
+        for region in regions:
+            detections = [region_detection(region, i, self._class_index(i)) for i in self.models]
+            network = self._network_poses(frame, detections)
+            fits = [self._fit_one(frame, d, network) for d in detections]
+            best = best_verified(fits)
+            if best is not None:
+                best.details["rescued"] = {"region_px": int(region.sum()), "models_tried": len(detections)}
+                found.append(best)
+        if not found:
+            return None
+        return sorted([*poses, *found], key=lambda p: -p.score)
+
     def _run_strategies(
         self, frame: Frame, detections: list[Detection], usable: list[Detection], timings: dict[str, float]
     ) -> PerceptionResult:
@@ -350,14 +381,24 @@ class PerceptionPipeline:
             if self.max_refined is not None and n_fitted >= self.max_refined:
                 out.append(_skipped(det, frame, self.strategies[det.obj_id], self.max_refined))
                 continue
-            pose = self.runner.estimate(
-                self.strategies[det.obj_id], det, frame.depth_m, frame.intrinsics, self.models[det.obj_id],
-                network.get(id(det)), self.floor_plane_camera,
-            )  # fmt: skip
+            pose = self._fit_one(frame, det, network)
             if pose is not None:
                 out.append(pose)
                 n_fitted += bool(pose.verified)
         return out
+
+    def _fit_one(self, frame: Frame, det: Detection, network: dict[int, ObjectPose]) -> ObjectPose | None:
+        """One detection's pose by its part's strategy (verified), None when there is nothing to fit."""
+        assert self.strategies is not None and self.runner is not None
+        return self.runner.estimate(
+            self.strategies[det.obj_id], det, frame.depth_m, frame.intrinsics, self.models[det.obj_id],
+            network.get(id(det)), self.floor_plane_camera,
+        )  # fmt: skip
+
+    def _class_index(self, obj_id: int) -> int:
+        """The detector's class index of ``obj_id`` (-1 for a part the detector has no class for)."""
+        ids = list(self.detector.class_obj_ids)
+        return ids.index(obj_id) if obj_id in ids else -1
 
     def _refine(
         self, poses: list[ObjectPose], frame: Frame, todo: Callable[[ObjectPose], bool] = lambda p: True

@@ -100,10 +100,13 @@ class PerceptionLike(Protocol):
     """``perception.pipeline.PerceptionPipeline`` (or the simulated cell's oracle).
 
     ``refine_more(poses, frame)``: the poses with more of them depth-refined, or None when nothing is left to refine;
-    the picker calls it while nothing is safe to pick among the refined ones."""
+    the picker calls it while nothing is safe to pick among the refined ones. ``rescue(poses, frame)``: the poses with
+    the parts found on the depth they do not explain, or None when there are none; the picker calls it (once a
+    cycle) when a look would otherwise leave parts in the bin."""
 
     def run(self, frame: Frame) -> PerceptionResultLike: ...
     def refine_more(self, poses: list[Any], frame: Frame) -> list[Any] | None: ...
+    def rescue(self, poses: list[Any], frame: Frame) -> list[Any] | None: ...
 
 
 class GraspLike(Protocol):

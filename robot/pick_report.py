@@ -131,6 +131,7 @@ class CycleRecord:
     n_poses: int = 0
     n_planned: int = 0
     n_excluded: int = 0  # parts left out of planning after repeated failures at their location
+    n_rescued: int = 0  # parts posed on depth that no detection explained (``PerceptionLike.rescue``)
     perception_ms: dict[str, float] = field(default_factory=dict)
     plan_summary: str = ""
     attempts: list[Attempt] = field(default_factory=list)

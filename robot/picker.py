@@ -138,6 +138,7 @@ class _Cycle:
     empty_reason: str = ""  # what the camera saw, for CHECK_EMPTY
     looks: int = 0  # frames taken again after every pose was refused
     refused_only: bool = False  # for CHECK_EMPTY: the camera saw parts, the verification refused every pose
+    rescued: bool = False  # every model was tried on the depth no pose explains (once a cycle)
     candidates: list[GraspLike] = field(default_factory=list)  # grasps still to try, best first
     grasp: GraspLike | None = None
     attempt: Attempt | None = None
@@ -361,10 +362,27 @@ class Picker:
                 log.info("cycle %d: every pose refused; looking again (%d of %d)", record.index, c.looks,
                          self.config.relooks)  # fmt: skip
                 return _S.CAPTURE
-            c.empty_reason = nothing_posed_reason(c.result)
-            return _S.CHECK_EMPTY
-        c.poses, c.excluded = self.memory.split_given_up(c.result.poses)
+            more = self._rescue(c)
+            if more is None:
+                c.empty_reason = nothing_posed_reason(c.result)
+                return _S.CHECK_EMPTY
+            c.seen_poses = more
+        c.poses, c.excluded = self.memory.split_given_up(c.seen_poses)
         return _S.PLAN if c.poses else _S.GIVE_UP
+
+    def _rescue(self, c: _Cycle) -> list[Any] | None:
+        """Once a cycle, when the look would leave parts in the bin: the seen poses with the parts the perception
+        finds by trying every model on the depth they do not explain (``PerceptionLike.rescue``); None when it
+        finds none."""
+        if c.rescued:
+            return None
+        c.rescued = True
+        with c.timer(Stage.PERCEIVE):
+            more = self.perception.rescue(list(c.seen_poses), c.frame)
+        if more is not None:
+            c.record.n_rescued = len(more) - len(c.seen_poses)
+            log.info("cycle %d: %d part(s) posed on depth no detection explained", c.record.index, c.record.n_rescued)
+        return more
 
     def _plan(self, c: _Cycle) -> CycleState:
         frame = c.frame
@@ -375,11 +393,15 @@ class Picker:
         return _S.REFINE if c.plan.nothing_safe else _S.DECIDE
 
     def _refine(self, c: _Cycle) -> CycleState:
-        """Nothing safe among the refined parts: refine the next ones the perception skipped, and plan again."""
+        """Nothing safe among the refined parts: refine the next ones the perception skipped, else look for parts the
+        detector's classes missed (``_rescue``), and plan again."""
         with c.timer(Stage.PERCEIVE):
             more = self.perception.refine_more(c.poses, c.frame)
         if more is None:
-            return _S.DECIDE
+            more = self._rescue(c)
+            if more is None:
+                return _S.DECIDE
+            more = [p for p in more if not any(p is e for e in c.excluded)]
         c.seen_poses = [*more, *c.excluded]
         # a skipped part's RGB estimate can lie centimetres from where its refined pose puts it: where attempts
         # failed is checked again on the refined poses

@@ -85,3 +85,7 @@ class OraclePerception:
     def refine_more(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose] | None:
         """None: ground-truth poses have nothing left to refine (``robot.pick_protocols.PerceptionLike``)."""
         return None
+
+    def rescue(self, poses: list[ObjectPose], frame: Frame) -> list[ObjectPose] | None:
+        """None: the ground truth misses no part (``robot.pick_protocols.PerceptionLike``)."""
+        return None

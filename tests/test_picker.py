@@ -54,6 +54,9 @@ class FakeBin:
     def refine_more(self, poses, frame):
         return None  # every pose is as good as it gets
 
+    def rescue(self, poses, frame):
+        return None  # no part the detector missed
+
 
 @dataclass
 class FakePlan:
@@ -291,6 +294,46 @@ def test_nothing_safe_among_the_refined_parts_refines_the_skipped_ones_and_plans
     empty = LazyBin([0.0])
     empty.refine_more = lambda poses, frame: None  # nothing was skipped: the plan's answer stands
     assert make_picker(empty, RefinedOnly())[0].run().stop_reason == "nothing_safe"
+
+
+def test_parts_the_detector_misses_are_rescued_once_a_cycle_when_the_look_would_leave_them():
+    """A look that poses nothing, or nothing safe, asks the perception for the parts on the depth no pose explains
+    (``rescue``) before it ends the run; once a cycle, and not while something is safe to pick."""
+
+    class MissingBin(FakeBin):
+        def __init__(self, parts, missed):
+            super().__init__(parts)
+            self.missed, self.rescues = missed, 0
+
+        def run(self, frame):
+            result = super().run(frame)
+            result.poses = [p for p in result.poses if p.T_camera_object[0, 3] not in self.missed]
+            return result
+
+        def rescue(self, poses, frame):
+            self.rescues += 1
+            det = Detection(0, 1, 0.0, np.zeros(4))
+            found = [ObjectPose(det, make_T(t=(x, 0.0, 0.5)), 0.9, "fake") for x in self.parts if x in self.missed]
+            return [*poses, *found] if found else None
+
+    bin_ = MissingBin([0.0, 0.1, 0.2], missed={0.1, 0.2})
+    picker = make_picker(bin_)[0]
+    report = picker.run()
+    assert report.stop_reason == "bin_empty" and bin_.parts == [] and report.n_picked == 3
+    # cycle 1 picks the posed part (no rescue); cycles 2 and 3 each rescue one; cycle 4 rescues nothing: empty
+    assert bin_.rescues == 3
+    assert [c.n_rescued for c in report.cycles] == [0, 2, 1, 0]
+
+    class Unsafe(FakePlanner):  # nothing safe among the posed parts: the rescued one is planned with them
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None):
+            grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3]) for i, p in enumerate(poses)
+                      if p.T_camera_object[0, 3] != 0.0]  # fmt: skip
+            return FakePlan(grasps, "part at 0.0: collision_bin", n_in_bin=len(poses))
+
+    bin_ = MissingBin([0.0, 0.2], missed={0.2})
+    report = make_picker(bin_, Unsafe())[0].run()
+    assert report.n_picked == 1 and bin_.parts == [0.0] and report.stop_reason == "nothing_safe"
+    assert bin_.rescues == 2  # the cycle that picked the rescued part, and the last one (nothing found)
 
 
 def test_parts_seen_only_outside_the_bin_mean_the_bin_is_empty():
