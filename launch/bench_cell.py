@@ -302,6 +302,10 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "attempts_by_kind": _attempts_by_kind(report.attempts, obj_kind),
         "failures": report.failures_by_cause(),
         "nudges": [c.nudge["outcome"].value for c in cycles if c.nudge is not None],
+        # looks that posed parts on depth no detection explained (PerceptionPipeline.rescue), and how many of those
+        # cycles picked (nothing else was safe to pick in them)
+        "rescues": sum(c.n_rescued > 0 for c in cycles),
+        "rescues_picked": sum(c.n_rescued > 0 and c.picked for c in cycles),
         "failed_attempts": [
             {
                 "part": obj_kind.get(a.obj_id, a.obj_id),
@@ -399,6 +403,8 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "plan_median_ms": median([t for b in bins for t in b["plan_ms"]]),
         "failures_by_cause": dict(failures),
         "nudges_by_outcome": dict(nudges),
+        "rescues": sum(b.get("rescues", 0) for b in bins),
+        "rescues_picked": sum(b.get("rescues_picked", 0) for b in bins),
         "nudge_cycle_median_s": median([t for b in bins for t in b.get("nudge_cycle_s", [])]),
         "camera_pose_error_median_mm": median([b["calibration"]["error_mm"] for b in bins if _calibrated(b)]),
         "camera_pose_error_median_deg": median([b["calibration"]["error_deg"] for b in bins if _calibrated(b)]),
@@ -435,7 +441,7 @@ def format_results(results: dict[str, Any]) -> str:
     for name, r in results["variants"].items():
         lines.append(
             f"{name}: failures {r['failures_by_cause'] or 'none'}; nudges {r.get('nudges_by_outcome') or 'none'}; "
-            f"stops {r['stop_reasons']}"
+            f"rescues {r.get('rescues', '-')} ({r.get('rescues_picked', '-')} picked); stops {r['stop_reasons']}"
         )
         lines.append(
             f"{name}: cleared by kind {r['cleared_by_kind']}; picked {r['n_picked']} (held at another width than "
