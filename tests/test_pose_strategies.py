@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -269,6 +270,46 @@ def test_the_verification_verdicts_of_an_evaluation(scene):
     verdicts = _verdicts(ann, poses, models)
     assert verdicts == [(True, True), (True, False), (False, True), (False, False)]
     assert _verification_summary(verdicts) == {"accepted": 2, "refused": 2, "false_accept": 0.5, "false_refuse": 0.5}
+
+
+def test_pose_recall_matches_estimates_by_pose_error_whatever_their_masks(scene):
+    """The BOP toolkit's rule: a right pose from a partial mask is a hit; a wrong pose on the full mask is a miss
+    with its error; the higher-scored of two estimates of one instance takes it, and each estimate counts once."""
+    from perception.evaluation import match_poses
+    from sygrid.annotations import ImageAnnotation, InstanceAnnotation
+
+    def instance(obj_id: int, k: int, visib: float = 1.0) -> InstanceAnnotation:
+        ys, xs = np.nonzero(scene.masks[k])
+        box = (int(xs.min()), int(ys.min()), int(np.ptp(xs)) + 1, int(np.ptp(ys)) + 1)
+        n = len(xs)
+        return InstanceAnnotation(obj_id, k, scene.poses[k], scene.masks[k], None, box, box, n, n, visib)
+
+    instances = tuple(instance(m.obj_id, k) for k, m in enumerate((NUT, WASHER, BRACKET, BOLT)))
+    hidden = replace(instance(NUT.obj_id, 0, 0.05), inst_id=9)
+    ann = ImageAnnotation(0, CAMERA, (*instances, hidden))
+    sliver = np.zeros_like(scene.masks[2])
+    ys, xs = np.nonzero(scene.masks[2])
+    sliver[ys[:5], xs[:5]] = True  # 5 pixels of the bracket: mask IoU far below 0.5
+    far = scene.poses[1].copy()
+    far[:3, 3] += 0.01
+    nearly = scene.poses[0].copy()
+    nearly[:3, 3] += 0.0005
+    poses = [
+        ObjectPose(detection(NUT, scene.masks[0]), nearly, 0.5, "depth+icp"),  # right, lower score
+        ObjectPose(detection(NUT, scene.masks[0]), scene.poses[0], 0.9, "depth+icp"),  # right, higher score
+        ObjectPose(detection(WASHER, scene.masks[1]), far, 0.95, "depth+icp"),  # the washer's mask, 10 mm off
+        ObjectPose(detection(BRACKET, sliver), scene.poses[2], 0.8, "hybrid+search"),  # right, from a sliver
+    ]
+    models = {m.obj_id: m for m in (NUT, WASHER, BRACKET, BOLT)}
+    matched = match_poses(ann, poses, models, min_visib=0.1, min_iou=0.5)
+    assert [inst.inst_id for inst, _, _ in matched] == [0, 1, 2, 3]  # the 5 % visible nut is not evaluated
+    (_, nut, e_nut), (_, washer, e_washer), (_, bracket, e_bracket), (_, bolt, e_bolt) = matched
+    assert nut is poses[1] and e_nut.correct() and e_nut.add_m < 1e-9
+    assert (
+        washer is poses[2] and not e_washer.correct() and e_washer.te_m == pytest.approx(0.01 * math.sqrt(3))
+    )  # a miss
+    assert bracket is poses[3] and e_bracket.correct()  # the mask IoU rule would have left it unmatched
+    assert bolt is None and not e_bolt.correct()
 
 
 def test_a_card_section_is_replaced_not_repeated(tmp_path: Path):
