@@ -3,7 +3,9 @@
 A bin's last parts are often ones the detector misses in a resting pose rare in its training renders (a gear
 standing on its rim, a bracket resting on both sheet edges like a tent), or names with a wrong class whose pose the
 verification refuses. The depth still shows each of them as a connected region of pixels above the bin's floor
-(``pile_blobs``). Each such region becomes a mask without a class, fitted with every model's own pose strategy;
+(``pile_blobs``). A stereo camera's noisy depth draws a region's outline a few pixels off, which the verification's
+outline check refuses, so the outline is taken from the colour image: OpenCV's GrabCut started from the region
+(``outline_from_image``). Each region becomes a mask without a class, fitted with every model's own pose strategy;
 the verification (``perception.verify``: the model at the fitted pose against the depth and that mask) keeps the
 model that agrees best, or none. Nothing is accepted that the verification would not accept from a detection.
 
@@ -38,6 +40,8 @@ class RescueConfig:
     wall_margin_px: the floor polygon is shrunk by this many pixels, so that the walls' foot is not a region.
     explained_margin_px: pixels this close to an accepted pose's mask are that part's (its mask's ragged edge).
     min_region_px: smaller seeds are noise or a sliver no model can be fitted to (pixels).
+    outline_ring_px: GrabCut's start: the region eroded by half of it is the part, the region probably the part, a ring
+        this wide around it probably not, the rest of its box not (pixels; 0: the depth's outline as it is).
     max_regions: at most this many regions are fitted per call, the largest first (each costs every model's fit).
     """
 
@@ -48,6 +52,7 @@ class RescueConfig:
     wall_margin_px: int = 4
     explained_margin_px: int = 3
     min_region_px: int = 60
+    outline_ring_px: int = 8
     max_regions: int = 3
 
     def __post_init__(self) -> None:
@@ -55,7 +60,7 @@ class RescueConfig:
             raise ValueError(
                 f"RescueConfig: need min_height_m > 0, noise_sigmas >= 0; got {self.min_height_m}, {self.noise_sigmas}"
             )
-        for name in ("grow_px", "speckle_px", "wall_margin_px", "explained_margin_px"):
+        for name in ("grow_px", "speckle_px", "wall_margin_px", "explained_margin_px", "outline_ring_px"):
             if getattr(self, name) < 0:
                 raise ValueError(f"RescueConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("min_region_px", "max_regions"):
@@ -102,6 +107,38 @@ def pile_blobs(
     regions = [(labels == k) & pile for k in range(1, len(stats))]
     regions = sorted((r for r in regions if r.sum() >= cfg.min_region_px), key=lambda r: -int(r.sum()))
     return regions[: cfg.max_regions]
+
+
+def outline_from_image(rgb: np.ndarray, region: np.ndarray, ring_px: int) -> np.ndarray:
+    """``(H, W)`` bool: the part in ``region`` (``(H, W)`` bool, from the depth) outlined in the colour image
+    ``rgb`` (``(H, W, 3)`` uint8) by GrabCut (5 iterations) on the region's box grown by ``3 ring_px``: the region
+    eroded by ``ring_px // 2`` is the part, the rest of the region probably the part, a ring of ``ring_px`` around it
+    probably not, the rest not. Never outside region + ring; the region itself where GrabCut finds no part or
+    cannot run (``ring_px`` 0, a region at the image's edge with no background)."""
+    if ring_px <= 0:
+        return region
+    ys, xs = np.nonzero(region)
+    h, w = region.shape
+    x0, y0 = max(int(xs.min()) - 3 * ring_px, 0), max(int(ys.min()) - 3 * ring_px, 0)
+    x1, y1 = min(int(xs.max()) + 3 * ring_px + 1, w), min(int(ys.max()) + 3 * ring_px + 1, h)
+    inside = region[y0:y1, x0:x1].astype(np.uint8)
+    labels = np.full(inside.shape, cv2.GC_BGD, np.uint8)
+    labels[cv2.dilate(inside, _disc(ring_px)) > 0] = cv2.GC_PR_BGD
+    labels[inside > 0] = cv2.GC_PR_FGD
+    labels[cv2.erode(inside, _disc(ring_px // 2)) > 0] = cv2.GC_FGD
+    try:
+        cv2.grabCut(
+            np.ascontiguousarray(rgb[y0:y1, x0:x1]), labels, None, np.zeros((1, 65)), np.zeros((1, 65)), 5,
+            cv2.GC_INIT_WITH_MASK,
+        )  # fmt: skip
+    except cv2.error:  # a colour model needs pixels of both kinds
+        return region
+    part = (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
+    if not part.any():
+        return region
+    out = np.zeros_like(region)
+    out[y0:y1, x0:x1] = part
+    return out
 
 
 def region_detection(mask: np.ndarray, obj_id: int, class_index: int) -> Detection:

@@ -50,7 +50,14 @@ from pathlib import Path
 
 import numpy as np
 
-from perception.blob_rescue import RescueConfig, best_verified, explained_mask, pile_blobs, region_detection
+from perception.blob_rescue import (
+    RescueConfig,
+    best_verified,
+    explained_mask,
+    outline_from_image,
+    pile_blobs,
+    region_detection,
+)
 from perception.camera import Frame
 from perception.depth_tare import Tare, TareConfig, tared_depth
 from perception.detector import YoloSegDetector
@@ -335,12 +342,15 @@ class PerceptionPipeline:
             frame.depth_m, frame.intrinsics, self.floor_plane_camera, bounds, explained, config, sigma_inv or 0.0
         )
         for region in regions:
-            detections = [region_detection(region, i, self._class_index(i)) for i in self.models]
+            mask = outline_from_image(frame.rgb, region, config.outline_ring_px)
+            detections = [region_detection(mask, i, self._class_index(i)) for i in self.models]
             network = self._network_poses(frame, detections)
             fits = [self._fit_one(frame, d, network) for d in detections]
             best = best_verified(fits)
             if best is not None:
-                best.details["rescued"] = {"region_px": int(region.sum()), "models_tried": len(detections)}
+                best.details["rescued"] = {
+                    "region_px": int(region.sum()), "outline_px": int(mask.sum()), "models_tried": len(detections),
+                }  # fmt: skip
                 found.append(best)
         if not found:
             return None

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.blob_rescue import RescueConfig, pile_blobs
+from perception.blob_rescue import RescueConfig, outline_from_image, pile_blobs
 from perception.camera import Frame
 from perception.pipeline import PerceptionPipeline
 from sygrid.metrics import pose_errors
@@ -71,6 +71,33 @@ def test_a_noisy_floor_is_no_region_but_the_parts_still_are():
         assert len(pile_blobs(noisy, CAMERA, FLOOR, BOUNDS, config=RescueConfig(max_regions=50))) > n_parts
 
 
+def _colours(masks: list[np.ndarray]) -> np.ndarray:
+    """A colour image of a scene: grey parts on a blue floor, with a little sensor noise."""
+    rgb = np.empty((*masks[0].shape, 3), np.uint8)
+    rgb[:] = (70, 110, 200)
+    for m in masks:
+        rgb[m] = (150, 150, 150)
+    noise = np.random.default_rng(0).integers(-6, 7, rgb.shape)
+    return np.clip(rgb.astype(int) + noise, 0, 255).astype(np.uint8)
+
+
+def test_the_outline_comes_from_the_colour_image_where_the_depth_draws_it_off():
+    part = np.zeros((120, 160), bool)
+    cv2.circle(part.view(np.uint8), (80, 60), 15, 1, -1)
+    rgb = _colours([part])
+    # a stereo outline: shifted by 3 pixels and 2 pixels too wide
+    region = cv2.dilate(np.roll(part, 3, axis=1).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    outline = outline_from_image(rgb, region, ring_px=8)
+
+    def iou(a: np.ndarray) -> float:
+        return float((a & part).sum() / (a | part).sum())
+
+    assert iou(region) < 0.8 and iou(outline) > 0.95
+    assert outline_from_image(rgb, region, ring_px=0) is region  # off: the depth's outline as it is
+    everything = np.ones_like(part)  # no background to learn a colour model from: the region as it is
+    assert outline_from_image(rgb, everything, ring_px=8).all()
+
+
 class _FixedDetector:
     conf_threshold = 0.5
     class_obj_ids = (NUT.obj_id, WASHER.obj_id, BRACKET.obj_id)
@@ -85,7 +112,7 @@ class _FixedDetector:
 def test_the_pipeline_rescues_the_parts_the_detector_missed_or_misnamed(scene):
     models = {m.obj_id: m for m in (NUT, WASHER, BRACKET)}
     strategies = {NUT.obj_id: "depth+icp", WASHER.obj_id: "depth+icp", BRACKET.obj_id: "depth+search"}
-    frame = Frame(np.zeros((CAMERA.height, CAMERA.width, 3), np.uint8), scene.depth, CAMERA, 0.0)
+    frame = Frame(_colours(scene.masks), scene.depth, CAMERA, 0.0)
     # the nut found; the washer missed; the bracket called a nut (its pose refused)
     detections = [detection(NUT, blob(scene.masks[0])), detection(NUT, blob(scene.masks[2]), obj_id=NUT.obj_id)]
     pipeline = PerceptionPipeline(
