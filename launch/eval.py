@@ -4,7 +4,9 @@ Prints box/mask mAP and per-part ADD(-S) recall, median rotation and translation
 ``--sensor ideal,oak-d`` runs the same images through each named sensor model (``sygrid.sensor`` presets, seeded
 per image from ``--sensor-seed``): one report per sensor, with the sensed depth's AbsRel and delta1 against the
 exact depth, and a table of the sensors side by side. Models that do not know the dataset's parts are refused
-before anything runs; a dataset without depth gets detection metrics only.
+before anything runs; a dataset without depth gets detection metrics only. ``--rescue`` also poses, in every frame,
+the parts the detections missed (``PerceptionPipeline.rescue``, as the picker asks for it) and reports how many of
+those were right.
 """
 
 from __future__ import annotations
@@ -44,6 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--sensor-seed", type=int, default=0, help="seeds the sensor models, with each image's ids")
     parser.add_argument(
+        "--rescue", action="store_true",
+        help="also pose the parts the detections missed on the depth (PerceptionPipeline.rescue), as the picker does",
+    )  # fmt: skip
+    parser.add_argument(
         "--out", type=Path, default=None, help="JSON report (default: DATA/eval_<models>[_<sensor>].json)"
     )
     add_detector_arguments(parser)
@@ -64,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     reports = []
     for name in sensors:
         settings = EvalSettings(split=args.split, max_images=args.max_images, sensor=name, sensor_seed=args.sensor_seed,
-                                region=region)  # fmt: skip
+                                region=region, rescue=args.rescue)  # fmt: skip
         report = evaluate(pipeline, args.data, settings)
         print(format_table(report))
         if name == "ideal":  # the detector alone on the stored frames: AP and recall per part, size and visibility

@@ -139,6 +139,10 @@ def test_eval_reports_detection_and_pose_metrics(model_dir: Path, tiny_dataset: 
     assert report["pose"]["all"]["n"] >= 1  # every visible instance is counted, found or missed
     assert 0.0 <= report["pose"]["all"]["add_recall"] <= 1.0
     assert "ADD(-S)<0.1d" in format_table(report)
+    assert report["rescue"] is None  # asked for only with EvalSettings.rescue
+    # without pose strategies there is no verification, so nothing is rescued; the figures are reported all the same
+    rescued = evaluate(pipeline, tiny_dataset, EvalSettings(max_images=1, rescue=True), progress=False)["rescue"]
+    assert rescued["accepted"] == rescued["correct"] == 0 and rescued["ms_median"] >= 0.0
 
 
 def test_bad_model_folders_name_the_file_and_field(model_dir: Path, tmp_path: Path):
