@@ -348,8 +348,10 @@ class PerceptionPipeline:
             fits = [self._fit_one(frame, d, network) for d in detections]
             best = best_verified(fits)
             if best is not None:
+                runner_up = max((f.score for f in fits if f is not None and f is not best), default=0.0)
                 best.details["rescued"] = {
                     "region_px": int(region.sum()), "outline_px": int(mask.sum()), "models_tried": len(detections),
+                    "runner_up": float(runner_up),
                 }  # fmt: skip
                 found.append(best)
         if not found:
