@@ -24,7 +24,7 @@ import numpy as np
 
 from perception.depth_tare import floor_polygon
 from perception.mask_cleanup import floor_height_m
-from perception.results import Detection, ObjectPose
+from perception.results import ObjectPose
 from sygrid.camera import CameraIntrinsics
 
 
@@ -139,14 +139,6 @@ def outline_from_image(rgb: np.ndarray, region: np.ndarray, ring_px: int) -> np.
     out = np.zeros_like(region)
     out[y0:y1, x0:x1] = part
     return out
-
-
-def region_detection(mask: np.ndarray, obj_id: int, class_index: int) -> Detection:
-    """A detection of ``obj_id`` made from a region's mask (score 0: no detector saw it), its box the mask's
-    bounds (pixel edges, as the detector's boxes)."""
-    ys, xs = np.nonzero(mask)
-    box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
-    return Detection(class_index, obj_id, 0.0, box, mask)
 
 
 def best_verified(poses: list[ObjectPose | None]) -> ObjectPose | None:

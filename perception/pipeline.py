@@ -56,7 +56,6 @@ from perception.blob_rescue import (
     explained_mask,
     outline_from_image,
     pile_blobs,
-    region_detection,
 )
 from perception.camera import Frame
 from perception.depth_tare import Tare, TareConfig, tared_depth
@@ -256,8 +255,9 @@ class PerceptionPipeline:
     def tare(self, frame: Frame) -> tuple[Frame, Tare | None]:
         """``frame`` with its depth corrected by the stereo offset measured on the floor (``depth_tare``), and the
         estimate; ``(frame, None)`` without a floor plane, floor bounds or tare config."""
-        bounds = self.floor_bounds_camera_m if self.floor_bounds_camera_m is not None else self.region_camera_m
-        depth, tare = tared_depth(frame.depth_m, frame.intrinsics, self.floor_plane_camera, bounds, self.depth_tare)
+        depth, tare = tared_depth(
+            frame.depth_m, frame.intrinsics, self.floor_plane_camera, self._floor_bounds, self.depth_tare
+        )
         if tare is None or not tare.applied:
             return frame, tare
         return replace(frame, depth_m=depth), tare
@@ -329,7 +329,7 @@ class PerceptionPipeline:
         verification accepts one (the most confident), best score first; None when nothing new was found, or
         without pose strategies (no verification), a floor plane or floor bounds. ``frame``: the one given to
         ``run`` (its depth is corrected again, as there)."""
-        bounds = self.floor_bounds_camera_m if self.floor_bounds_camera_m is not None else self.region_camera_m
+        bounds = self._floor_bounds
         if self.strategies is None or self.floor_plane_camera is None or bounds is None:
             return None
         frame, _ = self.tare(frame)
@@ -343,7 +343,8 @@ class PerceptionPipeline:
         )
         for region in regions:
             mask = outline_from_image(frame.rgb, region, config.outline_ring_px)
-            detections = [region_detection(mask, i, self._class_index(i)) for i in self.models]
+            # no detector saw it: score 0
+            detections = [Detection.from_mask(mask, i, 0.0, self._class_index(i)) for i in self.models]
             network = self._network_poses(frame, detections)
             fits = [self._fit_one(frame, d, network) for d in detections]
             best = best_verified(fits)
@@ -398,6 +399,12 @@ class PerceptionPipeline:
                 out.append(pose)
                 n_fitted += bool(pose.verified)
         return out
+
+    @property
+    def _floor_bounds(self) -> np.ndarray | None:
+        """The points bounding the floor (the tare's and the rescue's polygon): ``floor_bounds_camera_m``, else
+        ``region_camera_m``."""
+        return self.floor_bounds_camera_m if self.floor_bounds_camera_m is not None else self.region_camera_m
 
     def _fit_one(self, frame: Frame, det: Detection, network: dict[int, ObjectPose]) -> ObjectPose | None:
         """One detection's pose by its part's strategy (verified), None when there is nothing to fit."""

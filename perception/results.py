@@ -33,6 +33,14 @@ class Detection:
                 f"Detection.bbox_xyxy must be 4 numbers [x0, y0, x1, y1], got shape {np.shape(self.bbox_xyxy)}"
             )
 
+    @classmethod
+    def from_mask(cls, mask: np.ndarray, obj_id: int, score: float, class_index: int = 0) -> Detection:
+        """A detection of ``mask`` ((H, W) bool, not empty) as ``obj_id``, its box the mask's tight bounds (pixel
+        edges, as the detector's boxes)."""
+        ys, xs = np.nonzero(mask)
+        box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
+        return cls(class_index, int(obj_id), float(score), box, mask)
+
 
 @dataclass(frozen=True, eq=False)
 class ObjectPose:

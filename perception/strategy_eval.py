@@ -109,9 +109,7 @@ def _median(values: list[float]) -> float:
 def gt_detection(inst: InstanceAnnotation, obj_id: int | None = None) -> Detection:
     """A detection from a ground-truth instance: its visible mask and that mask's box (``obj_id`` overrides the
     class, for the wrong-class trials)."""
-    ys, xs = np.nonzero(inst.mask_visib)
-    box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=float)
-    return Detection(0, int(inst.obj_id if obj_id is None else obj_id), 1.0, box, inst.mask_visib)
+    return Detection.from_mask(inst.mask_visib, inst.obj_id if obj_id is None else obj_id, 1.0)
 
 
 def evaluate_strategies(

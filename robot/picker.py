@@ -3,9 +3,11 @@ the next state, and checks every step against ``TRANSITIONS``::
 
     CAPTURE -> PERCEIVE -> PLAN -> DECIDE -> NEXT_GRASP -> APPROACH -> GRASP -> VERIFY -> PLACE -> ATTEMPT_END
     PERCEIVE -> CAPTURE                        parts seen, every pose refused: look again (``relooks``)
-    PLAN -> REFINE -> PLAN | DECIDE            nothing safe: have more parts refined, plan again
+    PLAN -> REFINE -> PLAN | DECIDE            nothing safe: have more parts refined (else the missed ones rescued,
+                                               ``_rescue``), plan again
     DECIDE -> NUDGE -> RETREAT | DONE          nothing safe: nudge a part clear of a wall or a neighbour, or stop
-    PERCEIVE | DECIDE -> CHECK_EMPTY -> DONE   no part estimated in the bin: "bin_empty" or "parts_unseen"
+    PERCEIVE | DECIDE -> CHECK_EMPTY -> DONE   no part estimated in the bin (none rescued either): "bin_empty" or
+                                               "parts_unseen"
     PERCEIVE | REFINE -> GIVE_UP -> DONE       every part seen is where attempts failed too often
     APPROACH | GRASP | VERIFY -> ATTEMPT_END   the attempt failed
     ATTEMPT_END -> DONE | NEXT_GRASP | RETREAT picked | motion refused: the next candidate | look again
