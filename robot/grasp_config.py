@@ -64,9 +64,11 @@ class PlannerConfig:
     Waypoints: approach_cone_deg (in (0, 90]): largest angle between the approach and straight down (the bin
     floor's inward normal; base -z without a bin). pre_grasp_distance_m: the pre-grasp is this far back along the
     approach. lift_height_m: the lift is at least this far back out along the approach, and further until the
-    gripper and the held part clear the bin's rim by ``rim_clearance_m``. T_base_place: where the part is let go
-    (its position and approach axis; the tool turns about that axis to keep the grasp's pad direction) and where the
-    arm waits while the camera looks.
+    gripper and the held part clear the bin's rim by ``rim_clearance_m``. T_base_place: the centre of where parts are
+    let go (its position and approach axis; the tool turns about that axis to keep the grasp's pad direction) and
+    where the arm waits while the camera looks. place_grid ``(nx, ny)`` (>= 1) / place_pitch_m ``(px, py)`` (>= 0):
+    successive parts are let go at the points of this grid, centred on ``T_base_place`` along its x and y
+    (``place_pose_at``), so that they land beside, not on, the ones before.
 
     Clearances: clearance_m: gripper to neighbouring parts and depth points. bin_clearance_m: gripper and wrist links
     to the bin walls. floor_clearance_m: gripper above the bin floor. min_engagement_m: the least length of pad that
@@ -105,6 +107,8 @@ class PlannerConfig:
     lift_height_m: float = 0.15
     rim_clearance_m: float = 0.01
     T_base_place: np.ndarray = field(default_factory=_default_place_pose)
+    place_grid: tuple[int, int] = (3, 2)  # the simulated tray's 0.24 x 0.16 m floor: three along x, two along y
+    place_pitch_m: tuple[float, float] = (0.07, 0.06)
     transit_clearance_m: float | None = 0.005
     min_elbow_height_m: float | None = 0.06
     transit_step_rad: float = 0.02
@@ -138,6 +142,10 @@ class PlannerConfig:
             raise ConfigError(f"PlannerConfig.T_base_place must be a 4x4 rigid transform, got {T.tolist()}")
         T.flags.writeable = False
         object.__setattr__(self, "T_base_place", T)
+        if len(self.place_grid) != 2 or any(int(n) != n or n < 1 for n in self.place_grid):
+            raise ConfigError(f"PlannerConfig.place_grid must be two whole numbers >= 1, got {self.place_grid}")
+        if len(self.place_pitch_m) != 2 or not all(p >= 0 for p in self.place_pitch_m):
+            raise ConfigError(f"PlannerConfig.place_pitch_m must be two distances >= 0 (m), got {self.place_pitch_m}")
         if not 0.0 < self.approach_cone_deg <= 90.0:
             raise ConfigError(f"PlannerConfig.approach_cone_deg must be in (0, 90], got {self.approach_cone_deg}")
         non_negative = (
@@ -166,6 +174,14 @@ class PlannerConfig:
             raise ConfigError(f"PlannerConfig.max_planned_parts must be >= 1 or None, got {self.max_planned_parts}")
         if self.q_reference_rad is not None and np.shape(self.q_reference_rad) != (6,):
             raise ConfigError(f"PlannerConfig.q_reference_rad must be 6 joint angles (rad), got {self.q_reference_rad}")
+
+    def place_pose_at(self, slot: int) -> np.ndarray:
+        """``T_base_place`` moved to the ``slot``-th point of the place grid (row by row along its x, then on from
+        the first: slot ``nx * ny`` is slot 0 again); the orientation is unchanged."""
+        nx, ny = self.place_grid
+        ix, iy = slot % nx, (slot // nx) % ny
+        offset = ((ix - (nx - 1) / 2) * self.place_pitch_m[0], (iy - (ny - 1) / 2) * self.place_pitch_m[1], 0.0)
+        return self.T_base_place @ make_T(t=offset)
 
     @property
     def gripper(self) -> GripperGeometry:

@@ -146,6 +146,7 @@ class GraspPlanner:
         depth_m: np.ndarray | None = None,
         intrinsics: CameraIntrinsics | np.ndarray | None = None,
         q_seed: np.ndarray | None = None,
+        place_slot: int = 0,
     ) -> GraspPlan:
         """Plans picks for the perception pipeline's poses (camera frame), with the depth frame when given.
 
@@ -155,6 +156,7 @@ class GraspPlanner:
             depth_m: (H, W) depth in metres of the frame the poses came from (0 = no data); optional.
             intrinsics: the depth frame's intrinsics (``CameraIntrinsics`` or 3x3 K); required with ``depth_m``.
             q_seed: the configuration IK solutions stay near (default ``q_reference``).
+            place_slot: where on the place grid the part is let go (``PlannerConfig.place_pose_at``).
         """
         start = time.perf_counter()
         T_base_camera = np.asarray(T_base_camera, dtype=float)
@@ -174,7 +176,7 @@ class GraspPlanner:
                 cfg.bin, depth_m, intrinsics, T_base_camera, cfg.depth_stride_px, cfg.bin_surface_tolerance_m
             )
         depth_s = time.perf_counter() - start
-        plan = self._plan(parts, cloud, q_seed)
+        plan = self._plan(parts, cloud, q_seed, place_slot)
         plan.timings_s["depth_cloud"] = depth_s
         plan.timings_s["total"] = time.perf_counter() - start
         return plan
@@ -184,15 +186,18 @@ class GraspPlanner:
         parts: Sequence[PartEstimate],
         cloud_base: np.ndarray | None = None,
         q_seed: np.ndarray | None = None,
+        place_slot: int = 0,
     ) -> GraspPlan:
         """Plans picks for parts given in the base frame, with an optional point cloud ``(n, 3)`` in the base frame
-        (the depth camera's points; the bin's own points are dropped here)."""
+        (the depth camera's points; the bin's own points are dropped here); ``place_slot`` as in ``plan``."""
         cloud = None if cloud_base is None else np.asarray(cloud_base, dtype=float).reshape(-1, 3)
         if self.config.bin is not None and cloud is not None:
             cloud = self.config.bin.pile_points(cloud, self.config.bin_surface_tolerance_m)
-        return self._plan(parts, cloud, q_seed)
+        return self._plan(parts, cloud, q_seed, place_slot)
 
-    def _plan(self, parts: Sequence[PartEstimate], cloud: np.ndarray | None, q_seed: np.ndarray | None) -> GraspPlan:
+    def _plan(
+        self, parts: Sequence[PartEstimate], cloud: np.ndarray | None, q_seed: np.ndarray | None, place_slot: int
+    ) -> GraspPlan:
         """``plan_parts`` for a cloud that holds only the pile (no bin points)."""
         cfg = self.config
         timings = {"checks": 0.0, "ik": 0.0}
@@ -200,6 +205,7 @@ class GraspPlanner:
         if q_seed.shape != (6,) or not np.all(np.isfinite(q_seed)):
             raise ValueError(f"q_seed must be 6 finite joint angles (rad), got {q_seed.tolist()}")
         cloud = np.zeros((0, 3)) if cloud is None else cloud
+        T_base_place = cfg.place_pose_at(place_slot)
 
         surfaces = [self.surface_base(p) for p in parts]
         obstacles, owner = scene_obstacles(cloud, surfaces, cfg.own_points_tolerance_m)
@@ -238,7 +244,7 @@ class GraspPlanner:
             start = time.perf_counter()
             min_hold_width = float(self._models[ev.part.obj_id].grasps.width_m.min())  # the part's, for every grasp
             grasps = self._waypoints.solve(
-                ev.part_index, ev.part, ev.ranked, min_hold_width, ev.report["rejections"], q_seed
+                ev.part_index, ev.part, ev.ranked, min_hold_width, ev.report["rejections"], q_seed, T_base_place
             )
             timings["ik"] += time.perf_counter() - start
             report = reports[ev.part_index]

@@ -61,6 +61,7 @@ class WaypointSolver:
         min_hold_width_m: float,
         rejections: dict[str, int],
         q_seed: np.ndarray,
+        T_base_place: np.ndarray,
     ) -> list[PlannedGrasp]:
         """The planned picks of one part, best first, at most ``max_grasps_per_part``; each candidate that fails is
         counted in ``rejections`` under its cause.
@@ -69,7 +70,8 @@ class WaypointSolver:
         base frame, already moved back), ``width``, ``opening``, ``score``, ``angle`` (rad from straight down),
         ``backoff``, ``engagement``, ``clearance``, ``lift`` (how far back along the approach the lift is),
         ``part_box`` (the part's box in the TCP frame) and ``terms`` (the score terms by name).
-        ``min_hold_width_m``: the part's narrowest candidate width."""
+        ``min_hold_width_m``: the part's narrowest candidate width. ``T_base_place``: where this pick lets go (the
+        tool turns about its approach axis to keep the grasp's pad direction)."""
         cfg = self.config
         r = ranked
         T_flange_tcp = cfg.gripper.T_flange_tcp
@@ -82,7 +84,7 @@ class WaypointSolver:
                 T_grasp[:3, :2] *= -1.0
             T_pre = T_grasp @ make_T(t=(0.0, 0.0, -cfg.pre_grasp_distance_m))
             T_lift = T_grasp @ make_T(t=(0.0, 0.0, -float(r["lift"][k])))
-            T_place = place_pose(cfg.T_base_place, T_grasp[:3, 0])
+            T_place = place_pose(T_base_place, T_grasp[:3, 0])
             # the grasp's IK branch is the reference's, wherever the arm is: every pick on one branch (seeded from the
             # arm's configuration, the branch would drift from pick to pick)
             q_grasp = ik_nearest(T_grasp, self.q_reference, T_flange_tcp, self._limits)
@@ -110,7 +112,7 @@ class WaypointSolver:
             if T_grasp[:3, 0] @ r["T_grasp"][k][:3, 0] < 0:
                 part_box = part_box * np.array([-1.0, -1.0, 1.0])[None, :]
                 part_box = np.stack([part_box.min(axis=0), part_box.max(axis=0)])
-            lifted = self._clear_transits(q_seed, T_grasp, q_grasp, (T_lift, q_lift, q_place), part_box, r, k)
+            lifted = self._clear_transits(q_seed, T_grasp, q_grasp, (T_lift, q_lift, q_place, T_place), part_box, r, k)
             if lifted is None:
                 rejections["collision_transit"] += 1
                 continue
@@ -149,18 +151,19 @@ class WaypointSolver:
         q_seed: np.ndarray,
         T_grasp: np.ndarray,
         q_grasp: np.ndarray,
-        lift: tuple[np.ndarray, np.ndarray, np.ndarray],
+        lift: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
         part_box: np.ndarray,
         r: dict,
         k: int,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
         """``(T_lift, q_lift, q_place)`` whose joint moves (in: from ``q_seed``, fingers open; out: to the place
-        pose, fingers open or closed on the part) keep ``transit_clearance_m`` from the walls: the given lift, else
-        one ``_LIFT_RAISES_M`` further back along the approach (a joint move between two higher poses swings less
-        low); None when none does."""
+        pose, fingers open or closed on the part) keep ``transit_clearance_m`` from the walls: the given lift
+        ``(T_lift, q_lift, q_place, T_place)``, else one ``_LIFT_RAISES_M`` further back along the approach (a joint
+        move between two higher poses swings less low); None when none does."""
         cfg = self.config
+        T_place = lift[3]
         if cfg.transit_clearance_m is None:
-            return lift
+            return lift[:3]
         # out with the fingers open or closed (a failed grasp leaves the lift open): the open boxes and the part
         open_boxes = cfg.gripper.boxes(float(r["opening"][k]))
         out_boxes = np.concatenate([open_boxes, part_box[None]], axis=0)
@@ -173,18 +176,18 @@ class WaypointSolver:
                     return None
                 if cfg.workspace is not None and not cfg.workspace.contains(T_lift[:3, 3]):
                     return None
-                q_place = ik_nearest(place_pose(cfg.T_base_place, T_grasp[:3, 0]), q_lift, T_flange_tcp, self._limits)
+                q_place = ik_nearest(T_place, q_lift, T_flange_tcp, self._limits)
                 if q_place is None:
                     return None
-                lift = (T_lift, q_lift, q_place)
-            _, q_lift, q_place = lift
+                lift = (T_lift, q_lift, q_place, T_place)
+            _, q_lift, q_place, _ = lift
             if (
                 self.collision.transit_gap_m(q_seed, q_lift, open_boxes) >= cfg.transit_clearance_m
                 and self.collision.transit_gap_m(q_lift, q_place, out_boxes) >= cfg.transit_clearance_m
                 and self.collision.elbow_clear(q_seed, q_lift)
                 and self.collision.elbow_clear(q_lift, q_place)
             ):
-                return lift
+                return lift[:3]
         return None
 
     def _reference_configuration(self) -> np.ndarray:

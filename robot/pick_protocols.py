@@ -152,8 +152,9 @@ class PlanLike(Protocol):
 
 
 class PlannerLike(Protocol):
-    """``robot.grasp_planner.GraspPlanner``: plans from poses in the camera frame; ``pile_area_m2`` is how much of
-    the bin (m2) the depth frame shows covered by something above its floor."""
+    """``robot.grasp_planner.GraspPlanner``: plans from poses in the camera frame, each pick let go at the place
+    grid's ``place_slot``; ``pile_area_m2`` is how much of the bin (m2) the depth frame shows covered by something
+    above its floor."""
 
     def plan(
         self,
@@ -162,6 +163,7 @@ class PlannerLike(Protocol):
         depth_m: np.ndarray | None = None,
         intrinsics: Any = None,
         q_seed: np.ndarray | None = None,
+        place_slot: int = 0,
     ) -> PlanLike: ...
 
     def pile_area_m2(self, depth_m: np.ndarray, intrinsics: Any, T_base_camera: np.ndarray) -> float: ...

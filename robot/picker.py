@@ -192,6 +192,7 @@ class Picker:
         self.fingers = Fingers(self.gripper, self.config)
         self.arm = Arm(self.robot, self.fingers, self.config, self.q_observe)
         self.memory = PartMemory(self.config, self.T_base_camera)
+        self.n_placed = 0  # parts let go in the tray by this picker: the next one goes to the next place slot
         self.last_report: RunReport | None = None  # the last run's, also when it raised
         self._steps: dict[CycleState, Callable[[_Cycle], CycleState]] = {
             _S.CAPTURE: self._capture, _S.PERCEIVE: self._perceive, _S.PLAN: self._plan, _S.REFINE: self._refine,
@@ -390,7 +391,7 @@ class Picker:
         frame = c.frame
         with c.timer(Stage.PLAN):
             c.plan = self.planner.plan(
-                c.poses, self.T_base_camera, frame.depth_m, frame.intrinsics, q_seed=self.robot.q()
+                c.poses, self.T_base_camera, frame.depth_m, frame.intrinsics, self.robot.q(), self.n_placed
             )
         return _S.REFINE if c.plan.nothing_safe else _S.DECIDE
 
@@ -579,6 +580,7 @@ class Picker:
         if released and lost:
             return _fail(c.attempt, Outcome.DROPPED, f"the part was lost on the way to the place pose: {lost}")
         if released:
+            self.n_placed += 1
             return _S.ATTEMPT_END
         return _fail(
             c.attempt, Outcome.NOT_RELEASED,

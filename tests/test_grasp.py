@@ -282,7 +282,7 @@ def test_waypoints_are_ordered_and_reached_by_their_joint_solutions(planner):
     assert g.T_base_lift[2, 3] >= g.T_base_grasp[2, 3] + math.cos(math.radians(cfg.approach_cone_deg)) * 0.15
     for T in (g.T_base_pregrasp, g.T_base_lift):
         np.testing.assert_allclose(T[:3, :3], g.T_base_grasp[:3, :3])
-    np.testing.assert_allclose(g.T_base_place[:3, 3], cfg.T_base_place[:3, 3])
+    np.testing.assert_allclose(g.T_base_place[:3, 3], cfg.place_pose_at(0)[:3, 3])
     np.testing.assert_allclose(g.T_base_place[:3, 2], [0.0, 0.0, -1.0], atol=1e-9)
     for (name, T), (_, q) in zip(g.waypoints, g.joint_waypoints, strict=True):
         np.testing.assert_allclose(forward_kinematics(q, cfg.gripper.T_flange_tcp), T, atol=1e-9, err_msg=name)
@@ -675,7 +675,33 @@ def test_part_level_refusals_are_results_not_errors(planner):
     assert strict.plan_parts([]).nothing_safe
 
 
+def test_successive_picks_are_let_go_side_by_side_over_the_simulated_tray(planner):
+    from sim.cell_config import CellConfig
+
+    cfg, cell = planner.config, CellConfig()
+    nx, ny = cfg.place_grid
+    slots = np.array([cfg.place_pose_at(k)[:3, 3] for k in range(nx * ny)])
+    # every slot apart from the others by at least the smaller pitch, all at the place pose's height and centred on it
+    gaps = np.linalg.norm(slots[:, None, :2] - slots[None, :, :2], axis=-1) + np.eye(nx * ny)
+    assert gaps.min() >= min(cfg.place_pitch_m) - 1e-9
+    np.testing.assert_allclose(slots[:, 2], cfg.T_base_place[2, 3])
+    np.testing.assert_allclose(slots.mean(axis=0), cfg.T_base_place[:3, 3], atol=1e-12)
+    # a held part (up to 45 mm from the pads' centre) let go at any slot lands inside the tray's floor
+    T_base_tray = invert(cell.T_world_base) @ cell.T_world_tray
+    half = np.array(cell.tray_inner_size_m[:2]) / 2
+    assert np.all(np.abs(slots[:, :2] - T_base_tray[:2, 3]) + 0.045 <= half)
+    # the grid repeats, and the planned pick lets go at the slot asked for, pointing down
+    np.testing.assert_allclose(cfg.place_pose_at(nx * ny + 4), cfg.place_pose_at(4))
+    plan = planner.plan_parts([PartEstimate(1, _flat("hex_nut", -0.45, 0.03, yaw_rad=1.0), 0.9)], place_slot=4)
+    np.testing.assert_allclose(plan.best.T_base_place[:3, 3], slots[4], atol=1e-12)
+    np.testing.assert_allclose(plan.best.T_base_place[:3, 2], [0.0, 0.0, -1.0], atol=1e-9)
+
+
 def test_bad_settings_and_inputs_are_refused_with_the_field_name(planner):
+    with pytest.raises(ValueError, match="place_grid"):
+        PlannerConfig(place_grid=(0, 2))
+    with pytest.raises(ValueError, match="place_pitch_m"):
+        PlannerConfig(place_pitch_m=(0.07, -0.01))
     with pytest.raises(ValueError, match="approach_cone_deg"):
         PlannerConfig(approach_cone_deg=0.0)
     with pytest.raises(ValueError, match="T_base_place"):

@@ -180,7 +180,7 @@ def test_a_hardware_cell_needs_its_gripper_calibration_to_start(tmp_path: Path) 
     setup.require_gripper_calibration()
     assert setup.gripper_calibration == calibration
     assert (setup.gripper.pos_open, setup.gripper.pos_closed) == (0, 227)
-    assert setup.picker.min_held_width_m == pytest.approx(4 * STROKE_M / 227)  # raised from 1 mm to the threshold
+    assert setup.picker.min_held_width_m == pytest.approx(4 * STROKE_M / 227)  # raised to the threshold
     assert load_cell_setup(cell, load_gripper_calibration=False).gripper.pos_closed == 255
 
     other = GripperCalibration("192.168.1.11:63352", STROKE_M, 0, 227, 4, (0,), (227,))
@@ -230,4 +230,6 @@ def test_the_simulated_gripper_runs_the_same_routine(tmp_path: Path) -> None:
     assert calibration.open_readings == (0, 0) and calibration.closed_readings == (255, 255)
     assert (setup.gripper.pos_open, setup.gripper.pos_closed) == (0, 255)
     assert calibration.hold_threshold_counts == HOLD_MARGIN_COUNTS
-    assert setup.picker.min_held_width_m == PickerConfig().min_held_width_m  # 2 counts: 0.67 mm, below 1 mm
+    # raised from the uncalibrated default to the calibration's 2 counts (0.67 mm)
+    assert setup.picker.min_held_width_m == pytest.approx(calibration.hold_threshold_m)
+    assert calibration.hold_threshold_m > PickerConfig().min_held_width_m
