@@ -19,7 +19,8 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
                   conf_threshold, detector_input_size, detector_scale, detector_tile_px, detect_in_bin,
                   ignore_floor, floor_margin_m, min_fitness, mask_erosion_px (refinement settings)
     [bin]         T_base_bin (4x4: the inner floor's centre, z up), inner_size_m, wall/floor_thickness_m
-    [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down)
+    [place]       T_base_place (4x4: the TCP pose where parts are let go, tool pointing down), grid = [nx, ny] and
+                  pitch_m = [px, py] (successive parts let go side by side around it; default one spot)
     [planner]     robot.grasp_config.PlannerConfig scalar fields (approach_cone_deg, lift_height_m, ...)
     [picker]      robot.pick_config.PickerConfig fields; a hardware cell nudges only with nudge_contact =
                   "force_limited" (or max_nudges = 0)
@@ -38,7 +39,7 @@ import dataclasses
 import logging
 import tomllib
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, ValidationError
@@ -139,6 +140,9 @@ class BinSection(_Strict):
 
 class PlaceSection(_Strict):
     T_base_place: Matrix4  # the TCP pose where parts are let go (tool pointing down), also where the camera looks
+    # successive parts are let go on this grid around T_base_place, along its x and y (PlannerConfig.place_grid)
+    grid: tuple[Annotated[int, Field(ge=1)], Annotated[int, Field(ge=1)]] = (1, 1)
+    pitch_m: tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(ge=0)]] = (0.0, 0.0)
 
 
 class CellFile(_Strict):
@@ -221,6 +225,7 @@ class CellSetup:
                 raise ConfigError(f"{self.path}: [bin]: {exc}") from None
         if d.place is not None:
             fields["T_base_place"] = np.array(d.place.T_base_place)
+            fields["place_grid"], fields["place_pitch_m"] = d.place.grid, d.place.pitch_m
         try:
             return PlannerConfig(**fields)
         except (TypeError, ConfigError) as exc:

@@ -777,6 +777,7 @@ def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
     default = PlannerConfig()  # the simulated cell's bin and tray, which the hardware file starts from
     np.testing.assert_allclose(hw.bin.T_base_bin, default.bin.T_base_bin)
     np.testing.assert_allclose(hw.T_base_place, default.T_base_place)
+    assert (hw.place_grid, hw.place_pitch_m) == (default.place_grid, default.place_pitch_m)
     assert hw.floor_clearance_m == 0.002 and hw.bin.inner_size_m == (0.30, 0.20, 0.12)
     text = Path("launch/cells/ur5e_oak.toml").read_text()
     moved = tmp_path / "moved.toml"
@@ -788,6 +789,8 @@ def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
         ("[0, 0, 1, 0.02]", "[0, 0, 2, 0.02]", r"bad\.toml: \[bin\]: BinGeometry\.T_base_bin must be a 4x4 rigid"),
         ("[0, -1, 0, -0.42]", "[0, -1, 0, -0.42, 1]", r"bad\.toml.*place\.T_base_place"),
         ("wall_thickness_m = 0.01", "wall_thickness_m = -0.01", r"bad\.toml.*bin\.wall_thickness_m"),
+        ("grid = [3, 2]", "grid = [3, 0]", r"bad\.toml: place\.grid\[1\]: must be >= 1, got 0"),
+        ("pitch_m = [0.07, 0.06]", "pitch_m = [0.07]", r"bad\.toml.*place\.pitch_m"),
         ("floor_clearance_m = 0.002", "floor_clearance = 0.002", r"bad\.toml: \[planner\]: .*floor_clearance"),
     ]:
         bad = tmp_path / "bad.toml"
