@@ -148,6 +148,19 @@ class CycleRecord:
     def picked(self) -> bool:
         return any(a.outcome == Outcome.PICKED for a in self.attempts)
 
+    def mark_interrupted(self, step: str, attempt: Attempt | None, why: str) -> None:
+        """Cut short in ``step`` (a ``CycleState`` value) for ``why``: ``end`` "interrupted"; the attempt in progress
+        joins the record, as "interrupted" unless a failure was recorded for it already (e.g. the connection lost
+        before a recovery that failed)."""
+        self.end, self.interrupted_in = CycleEnd.INTERRUPTED, step
+        if attempt is None or any(a is attempt for a in self.attempts):
+            return
+        if attempt.outcome == Outcome.PICKED:  # the placeholder: nothing recorded yet
+            attempt.outcome, attempt.detail = Outcome.INTERRUPTED, f"{why} during {step}"
+        else:
+            attempt.detail = f"{attempt.detail}; then {why}"
+        self.attempts.append(attempt)
+
 
 @dataclass
 class RunReport:

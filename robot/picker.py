@@ -37,7 +37,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from enum import Enum
 from typing import Any
 
 import numpy as np
@@ -73,6 +72,7 @@ from robot.pick_report import (
     attempts_text,
     nothing_posed_reason,
 )
+from robot.pick_states import ATTEMPT_STAGES, TRANSITIONS, CycleState
 from robot.pick_stop import GRIPPER_COMMANDS, ROBOT_COMMANDS, ArmStopper, Guarded, StopRequestedError, StopSwitch
 from robot.ur_errors import MotionFailedError, MotionRefusedError, RecoveryError
 from sygrid.errors import ConfigError
@@ -80,49 +80,7 @@ from sygrid.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
-class CycleState(Enum):
-    """The steps of one cycle (see the module docstring)."""
-
-    CAPTURE = "capture"  # take a frame
-    PERCEIVE = "perceive"  # estimate the parts, leave out those given up
-    PLAN = "plan"  # plan grasps
-    REFINE = "refine"  # nothing safe: have the perception refine more parts
-    DECIDE = "decide"  # grasps to try, or nothing safe (nudge or stop), or no part in the bin
-    CHECK_EMPTY = "check_empty"  # no part estimated in the bin: does the depth agree?
-    GIVE_UP = "give_up"  # every part seen is where too many attempts failed
-    NUDGE = "nudge"  # drag a part clear of a wall or a neighbour, if one can be
-    NEXT_GRASP = "next_grasp"  # start an attempt on the next planned grasp
-    APPROACH = "approach"
-    GRASP = "grasp"
-    VERIFY = "verify"
-    PLACE = "place"
-    ATTEMPT_END = "attempt_end"  # picked: done; refused: the next grasp; else look again
-    RETREAT = "retreat"  # back to the observe pose
-    DONE = "done"
-
-
 _S = CycleState
-#: Where each step may go next.
-TRANSITIONS: dict[CycleState, tuple[CycleState, ...]] = {
-    _S.CAPTURE: (_S.PERCEIVE,),
-    _S.PERCEIVE: (_S.PLAN, _S.CHECK_EMPTY, _S.GIVE_UP, _S.CAPTURE),
-    _S.PLAN: (_S.DECIDE, _S.REFINE),
-    _S.REFINE: (_S.PLAN, _S.DECIDE, _S.GIVE_UP),
-    _S.DECIDE: (_S.NEXT_GRASP, _S.NUDGE, _S.CHECK_EMPTY),
-    _S.CHECK_EMPTY: (_S.DONE,),
-    _S.GIVE_UP: (_S.DONE,),
-    _S.NUDGE: (_S.RETREAT, _S.DONE),
-    _S.NEXT_GRASP: (_S.APPROACH,),
-    _S.APPROACH: (_S.GRASP, _S.ATTEMPT_END),
-    _S.GRASP: (_S.VERIFY, _S.ATTEMPT_END),
-    _S.VERIFY: (_S.PLACE, _S.ATTEMPT_END),
-    _S.PLACE: (_S.ATTEMPT_END,),
-    _S.ATTEMPT_END: (_S.NEXT_GRASP, _S.RETREAT, _S.DONE),
-    _S.RETREAT: (_S.DONE,),
-    _S.DONE: (),
-}
-#: The steps of an attempt, and the stage an attempt that ends there is recorded with.
-_ATTEMPT_STAGES = {_S.APPROACH: Stage.APPROACH, _S.GRASP: Stage.GRASP, _S.VERIFY: Stage.VERIFY, _S.PLACE: Stage.PLACE}
 
 
 @dataclass
@@ -295,7 +253,7 @@ class Picker:
         return record
 
     def _run_cycle(self, record: CycleRecord) -> None:
-        """Fills ``record``; on any exception it is marked interrupted (``_mark_interrupted``) first."""
+        """Fills ``record``; on any exception it is marked interrupted (``CycleRecord.mark_interrupted``) first."""
         c = _Cycle(record, StageTimer(record.stage_wall_s))
         state = _S.CAPTURE
         try:
@@ -307,7 +265,8 @@ class Picker:
                     self.stop_switch.check()  # a request during a step without commands (perception, planning)
                 state = after
         except BaseException as exc:
-            _mark_interrupted(c, state, exc)
+            why = f"stop requested ({exc})" if isinstance(exc, StopRequestedError) else f"{type(exc).__name__}: {exc}"
+            record.mark_interrupted(state.value, c.attempt, why)
             raise
         finally:
             if c.result is not None:
@@ -321,9 +280,9 @@ class Picker:
     def _step(self, state: CycleState, c: _Cycle) -> CycleState:
         """One step. In an attempt's steps the attempt's stage is the step's, and a refused motion or a recoverable
         motion failure ends the attempt (after recovering and backing out to the lift)."""
-        if state not in _ATTEMPT_STAGES:
+        if state not in ATTEMPT_STAGES:
             return self._steps[state](c)
-        c.attempt.stage = _ATTEMPT_STAGES[state]
+        c.attempt.stage = ATTEMPT_STAGES[state]
         try:
             return self._steps[state](c)
         except MotionRefusedError as exc:
@@ -614,18 +573,3 @@ def _fail(attempt: Attempt, cause: Outcome, detail: str) -> CycleState:
     """Records a failed attempt (its stage is the step's); the attempt ends."""
     attempt.outcome, attempt.detail = cause, detail
     return _S.ATTEMPT_END
-
-
-def _mark_interrupted(c: _Cycle, state: CycleState, exc: BaseException) -> None:
-    """A cycle cut short in ``state`` by ``exc``: ``end`` "interrupted" and its step; the attempt in progress joins
-    its record, as "interrupted" unless a failure was recorded for it already (e.g. the connection lost before a
-    recovery that failed)."""
-    record, attempt = c.record, c.attempt
-    record.end, record.interrupted_in = CycleEnd.INTERRUPTED, state.value
-    if attempt is not None and not any(a is attempt for a in record.attempts):
-        why = f"stop requested ({exc})" if isinstance(exc, StopRequestedError) else f"{type(exc).__name__}: {exc}"
-        if attempt.outcome == Outcome.PICKED:  # the placeholder: nothing recorded yet
-            attempt.outcome, attempt.detail = Outcome.INTERRUPTED, f"{why} during {state.value}"
-        else:
-            attempt.detail = f"{attempt.detail}; then {why}"
-        record.attempts.append(attempt)

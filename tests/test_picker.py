@@ -16,7 +16,8 @@ from robot.cell_setup import load_cell_setup
 from robot.pick_arm import approach_legs
 from robot.pick_config import PickerConfig
 from robot.pick_report import CycleEnd, Outcome, StopReason, nothing_posed_reason
-from robot.picker import TRANSITIONS, CycleState, Picker
+from robot.pick_states import TRANSITIONS, CycleState
+from robot.picker import Picker
 from robot.ur_errors import (
     ConnectionLostError,
     MotionRefusedError,
