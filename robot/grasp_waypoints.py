@@ -112,7 +112,7 @@ class WaypointSolver:
             if T_grasp[:3, 0] @ r["T_grasp"][k][:3, 0] < 0:
                 part_box = part_box * np.array([-1.0, -1.0, 1.0])[None, :]
                 part_box = np.stack([part_box.min(axis=0), part_box.max(axis=0)])
-            lifted = self._clear_transits(q_seed, T_grasp, q_grasp, (T_lift, q_lift, q_place, T_place), part_box, r, k)
+            lifted = self._clear_transits(q_seed, T_grasp, q_grasp, (T_lift, q_lift, q_place), T_place, part_box, r, k)
             if lifted is None:
                 rejections["collision_transit"] += 1
                 continue
@@ -151,19 +151,19 @@ class WaypointSolver:
         q_seed: np.ndarray,
         T_grasp: np.ndarray,
         q_grasp: np.ndarray,
-        lift: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        lift: tuple[np.ndarray, np.ndarray, np.ndarray],
+        T_place: np.ndarray,
         part_box: np.ndarray,
         r: dict,
         k: int,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
         """``(T_lift, q_lift, q_place)`` whose joint moves (in: from ``q_seed``, fingers open; out: to the place
-        pose, fingers open or closed on the part) keep ``transit_clearance_m`` from the walls: the given lift
-        ``(T_lift, q_lift, q_place, T_place)``, else one ``_LIFT_RAISES_M`` further back along the approach (a joint
-        move between two higher poses swings less low); None when none does."""
+        pose ``T_place``, fingers open or closed on the part) keep ``transit_clearance_m`` from the walls: the given
+        lift, else one ``_LIFT_RAISES_M`` further back along the approach (a joint move between two higher poses
+        swings less low); None when none does."""
         cfg = self.config
-        T_place = lift[3]
         if cfg.transit_clearance_m is None:
-            return lift[:3]
+            return lift
         # out with the fingers open or closed (a failed grasp leaves the lift open): the open boxes and the part
         open_boxes = cfg.gripper.boxes(float(r["opening"][k]))
         out_boxes = np.concatenate([open_boxes, part_box[None]], axis=0)
@@ -179,15 +179,15 @@ class WaypointSolver:
                 q_place = ik_nearest(T_place, q_lift, T_flange_tcp, self._limits)
                 if q_place is None:
                     return None
-                lift = (T_lift, q_lift, q_place, T_place)
-            _, q_lift, q_place, _ = lift
+                lift = (T_lift, q_lift, q_place)
+            _, q_lift, q_place = lift
             if (
                 self.collision.transit_gap_m(q_seed, q_lift, open_boxes) >= cfg.transit_clearance_m
                 and self.collision.transit_gap_m(q_lift, q_place, out_boxes) >= cfg.transit_clearance_m
                 and self.collision.elbow_clear(q_seed, q_lift)
                 and self.collision.elbow_clear(q_lift, q_place)
             ):
-                return lift[:3]
+                return lift
         return None
 
     def _reference_configuration(self) -> np.ndarray:
