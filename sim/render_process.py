@@ -31,7 +31,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 NO_ANSWER = "render process did not answer"  # begins the error of a call that timed out (callers match it)
-RENDER_NICENESS = 10  # added to the render process's niceness (lower scheduling priority than the tick's process)
+RENDER_NICENESS = 10  # added to the render process's niceness where the idle scheduling class is not available
 
 
 class WorldMirror:
@@ -117,9 +117,20 @@ class _Renderer:
         }
 
 
+def _lower_priority() -> None:
+    """Where cores are short the tick runs first: a frame may wait, a late tick is a fault. Linux's idle
+    scheduling class (``SCHED_IDLE``) runs this process only on a core nothing else wants and lets any other task
+    take the core back at once, where a niceness only shrinks its share (its slices still delay a waking tick);
+    elsewhere the niceness is raised by ``RENDER_NICENESS``."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):  # not Linux, or refused
+        os.nice(RENDER_NICENESS)
+
+
 def _render_main(conn: Connection, state_conn: Connection) -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")  # a software rasteriser keeps to one core, beside the tick's
-    os.nice(RENDER_NICENESS)  # where cores are short the tick runs first: a frame may wait, a late tick is a fault
+    _lower_priority()
     renderer = _Renderer(state_conn)
     load_period_s: float | None = None
     next_load_s = 0.0

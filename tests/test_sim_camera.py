@@ -1,10 +1,13 @@
 """The MuJoCo-rendered camera: frame format, metric depth against ray-plane geometry, re-binding after parts are
-added, the sensor model, rendering beside a stepping thread, and the frame time."""
+added, the sensor model, rendering beside a stepping thread, the frame time, and the render process's priority."""
 
 from __future__ import annotations
 
 import itertools
 import logging
+import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -189,3 +192,12 @@ def test_captures_while_another_thread_steps_the_world(world: CellWorld) -> None
     assert not errors
     assert all(b >= a for a, b in itertools.pairwise(stamps)) and stamps[-1] > stamps[0]
     log.info("640x480 RGB + depth while stepping: median %.1f ms", float(np.median(times)) * 1e3)  # bench sim times it
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux scheduling classes")
+def test_the_render_process_runs_only_on_cores_the_tick_leaves_idle() -> None:
+    """The emulator's render process lowers itself to the idle scheduling class: a waking tick takes its core at
+    once (a niceness would only shrink its share)."""
+    code = "import os, sim.render_process as r; r._lower_priority(); print(os.sched_getscheduler(0))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert int(out.stdout) == os.SCHED_IDLE
