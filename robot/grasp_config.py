@@ -108,7 +108,7 @@ class PlannerConfig:
     rim_clearance_m: float = 0.01
     T_base_place: np.ndarray = field(default_factory=_default_place_pose)
     place_grid: tuple[int, int] = (3, 2)  # the simulated tray's 0.24 x 0.16 m floor: three along x, two along y
-    place_pitch_m: tuple[float, float] = (0.07, 0.06)
+    place_pitch_m: tuple[float, float] = (0.06, 0.05)
     transit_clearance_m: float | None = 0.005
     min_elbow_height_m: float | None = 0.06
     transit_step_rad: float = 0.02

@@ -1,7 +1,8 @@
 """``Arm``: the pick cycle's moves outside an attempt's steps: the joint move to the observe pose (where the arm waits
-while the camera looks), a nudge's strokes, and the recovery after a protective stop or a dropped link (hold the
-fingers, recover, go straight up, let go). ``approach_legs``: how an attempt's guarded approach is split by speed.
-Joint angles in radians, heights as base z in metres; the settings are ``PickerConfig``'s."""
+while the camera looks), letting go over the tray, a nudge's strokes, and the recovery after a protective stop or a
+dropped link (hold the fingers, recover, go straight up, let go). ``approach_legs``: how an attempt's guarded
+approach is split by speed. Joint angles in radians, heights as base z in metres; the settings are
+``PickerConfig``'s."""
 
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from robot.ur_errors import (
     RecoveryError,
     RobotConnectionError,
 )
+from sygrid.transforms import make_T
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +54,23 @@ class Arm:
             self.robot.move_j(self.q_observe, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
         if self._observe_height_m is None:
             self._observe_height_m = float(np.asarray(self.robot.T_base_tcp())[2, 3])
+
+    def let_go(self, T_base_place: np.ndarray, opening: float | None) -> bool:
+        """Lets go of the held part at the place pose ``T_base_place`` (where the arm is): straight down
+        ``release_drop_m`` along the tool's approach, guarded (it stops where the part meets what lies in the tray),
+        then open (``Fingers.release``). The arm stays there: the next cycle's plan checks the joint move out of it
+        (``q_seed``), and going back up first would cost a move per pick. A lowering the robot refuses (outside its
+        workspace) lets go at the place pose. Returns whether the fingers opened."""
+        cfg = self.config
+        if cfg.release_drop_m <= 0:
+            return self.fingers.release(opening)
+        T_low = T_base_place @ make_T(t=(0.0, 0.0, cfg.release_drop_m))
+        try:
+            self.robot.move_l(T_low, cfg.approach_speed_m_s, cfg.approach_accel_m_s2, cfg.approach_max_force_n)
+        except MotionRefusedError as exc:
+            log.warning("lowering the part to let it go was refused (%s): letting go at the place pose", exc)
+            return self.fingers.release(opening)
+        return self.fingers.release(opening)
 
     def nudge(self, nudge: NudgeLike, timer: StageTimer) -> tuple[NudgeOutcome, str]:
         """A nudge's strokes (timed as ``Stage.NUDGE``): close the fingers (the pads together are the paddle), joint

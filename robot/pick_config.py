@@ -40,7 +40,12 @@ class PickerConfig:
     refined ones included).
     open_tolerance_m / open_timeout_s: the fingers must reach a commanded opening less this within this time (a
     gripper may report "stopped" while its fingers still move); release_tries: how often the gripper is opened at
-    the place pose before the part counts as stuck. reconnect_timeout_s: how long recovery keeps trying to reach a
+    the place pose before the part counts as stuck. release_drop_m: at the place pose the arm goes this far straight
+    down along the tool's approach before letting go, guarded by ``approach_max_force_n`` (it stops where the held
+    part meets what already lies in the tray); the arm waits there for the next look: a part let go lower bounces
+    less, and off the tray less often (0: let go at the place pose; the place pose less this must still clear the
+    tray's rim, and the joint move from there to the next pick the bin's, which the planner checks).
+    reconnect_timeout_s: how long recovery keeps trying to reach a
     controller that does not answer (a network link that is down). max_nudges / max_nudges_per_part: nudges per
     run (0: never nudge) and per location (within ``exclusion_distance_m``); a nudge is not a failed cycle.
     min_unseen_area_m2: with no part estimated in the bin, a bin whose depth shows at least this much of it covered
@@ -85,6 +90,7 @@ class PickerConfig:
     open_tolerance_m: float = 0.003
     open_timeout_s: float = 2.0
     release_tries: int = 2
+    release_drop_m: float = 0.0
     reconnect_timeout_s: float = 30.0
     max_nudges: int = 8
     max_nudges_per_part: int = 2
@@ -117,6 +123,7 @@ class PickerConfig:
         for name in (
             "slip_width_tolerance_m", "still_there_distance_m", "exclusion_distance_m", "open_tolerance_m",
             "open_timeout_s", "slip_settle_s", "reconnect_timeout_s", "min_unseen_area_m2", "min_held_width_m",
+            "release_drop_m",
         ):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"PickerConfig.{name} must be >= 0, got {getattr(self, name)!r}")

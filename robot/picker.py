@@ -528,14 +528,14 @@ class Picker:
 
     def _place(self, c: _Cycle) -> CycleState:
         """Joint move to the place pose; a part no longer in the fingers there (``Fingers.slip_reason``) was lost on
-        the way (``dropped``: it lies somewhere between the bin and the tray). Else let go (else ``not_released``:
-        the run stops "gripper_blocked"). Whether the part left the bin is the next look's
-        (``PartMemory.look_after_last_pick``)."""
+        the way (``dropped``: it lies somewhere between the bin and the tray). Else let go, lowered first
+        (``Arm.let_go``; fingers that do not open: ``not_released``, the run stops "gripper_blocked"). Whether the
+        part left the bin is the next look's (``PartMemory.look_after_last_pick``)."""
         cfg = self.config
         with c.timer(Stage.PLACE):
             self.robot.move_j(c.grasp.q_place, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
             lost, _ = self.fingers.slip_reason(c.grasp)
-            released = self.fingers.release(c.opening)
+            released = self.fingers.release(c.opening) if lost else self.arm.let_go(c.grasp.T_base_place, c.opening)
         if released and lost:
             return _fail(c.attempt, Outcome.DROPPED, f"the part was lost on the way to the place pose: {lost}")
         if released:

@@ -76,6 +76,9 @@ class FakePlan:
         return self.text
 
 
+PLACE_X = -0.2
+
+
 @dataclass
 class FakeGrasp:
     part_index: int
@@ -89,6 +92,7 @@ class FakeGrasp:
     def __post_init__(self) -> None:
         self.q_lift = self.q_place = np.full(6, self.x)
         self.T_base_pregrasp = self.T_base_grasp = self.T_base_lift = make_T(t=(self.x, 0, 0.1))
+        self.T_base_place = make_T(np.diag([1.0, -1.0, -1.0]), (PLACE_X, -0.42, 0.22))  # tool pointing down
 
 
 class FakePlanner:
@@ -502,6 +506,26 @@ def test_each_part_let_go_moves_the_next_pick_to_the_next_place_slot():
     assert planner.slots == [0, 0, 1] and picker.n_placed == 2
 
 
+def test_a_part_is_lowered_into_the_tray_before_it_is_let_go_and_the_next_plan_starts_there():
+    picker, robot = make_picker(FakeBin([0.0]), config=PickerConfig(release_drop_m=0.1))
+    moves, real = [], robot.move_l
+
+    def record(T, speed_m_s=None, accel_m_s2=None, max_force_n=None, stop_on_contact=False):
+        moves.append((np.array(T), max_force_n, picker.gripper.held))
+        return real(T, speed_m_s, accel_m_s2, max_force_n, stop_on_contact)
+
+    robot.move_l = record
+    assert picker.run().n_picked == 1
+    # down along the tool's approach, guarded, holding the part; the fingers open there and the arm stays
+    ((T_low, guard, held_low),) = [m for m in moves if abs(m[0][0, 3] - PLACE_X) < 1e-9]
+    np.testing.assert_allclose(T_low[:3, 3], [PLACE_X, -0.42, 0.12], atol=1e-12)
+    assert guard == PickerConfig().approach_max_force_n and held_low and not picker.gripper.held
+    # a lowering the robot refuses lets go at the place pose
+    picker, robot = make_picker(FakeBin([0.0]), config=PickerConfig(release_drop_m=0.1), refuse_x=PLACE_X)
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["picked"] and report.stop_reason == "bin_empty"
+
+
 def test_part_still_there_after_its_pick_is_marked_failed():
     bin_ = FakeBin([0.0])
     picker, _ = make_picker(bin_)
@@ -791,7 +815,7 @@ def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
         ("[0, -1, 0, -0.42]", "[0, -1, 0, -0.42, 1]", r"bad\.toml.*place\.T_base_place"),
         ("wall_thickness_m = 0.01", "wall_thickness_m = -0.01", r"bad\.toml.*bin\.wall_thickness_m"),
         ("grid = [3, 2]", "grid = [3, 0]", r"bad\.toml: place\.grid\[1\]: must be >= 1, got 0"),
-        ("pitch_m = [0.07, 0.06]", "pitch_m = [0.07]", r"bad\.toml.*place\.pitch_m"),
+        ("pitch_m = [0.06, 0.05]", "pitch_m = [0.06]", r"bad\.toml.*place\.pitch_m"),
         ("floor_clearance_m = 0.002", "floor_clearance = 0.002", r"bad\.toml: \[planner\]: .*floor_clearance"),
     ]:
         bad = tmp_path / "bad.toml"
