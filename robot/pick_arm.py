@@ -58,9 +58,10 @@ class Arm:
     def let_go(self, T_base_place: np.ndarray, opening: float | None) -> bool:
         """Lets go of the held part at the place pose ``T_base_place`` (where the arm is): straight down
         ``release_drop_m`` along the tool's approach, guarded (it stops where the part meets what lies in the tray),
-        then open (``Fingers.release``). The arm stays there: the next cycle's plan checks the joint move out of it
-        (``q_seed``), and going back up first would cost a move per pick. A lowering the robot refuses (outside its
-        workspace) lets go at the place pose. Returns whether the fingers opened."""
+        open (``Fingers.release``) and straight back up, so that the next cycle's moves start from the place pose.
+        (Left low, a nudge's joint move out of the tray folded the wrist: the forearm met the gripper's housing, a
+        self-collision the planner does not check.) A lowering the robot refuses (outside its workspace) lets go at
+        the place pose. Returns whether the fingers opened."""
         cfg = self.config
         if cfg.release_drop_m <= 0:
             return self.fingers.release(opening)
@@ -70,6 +71,9 @@ class Arm:
         except MotionRefusedError as exc:
             log.warning("lowering the part to let it go was refused (%s): letting go at the place pose", exc)
             return self.fingers.release(opening)
+        released = self.fingers.release(opening)
+        self.robot.move_l(T_base_place, cfg.transit_linear_speed_m_s, cfg.approach_accel_m_s2)
+        return released
         return self.fingers.release(opening)
 
     def nudge(self, nudge: NudgeLike, timer: StageTimer) -> tuple[NudgeOutcome, str]:

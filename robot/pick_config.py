@@ -42,9 +42,8 @@ class PickerConfig:
     gripper may report "stopped" while its fingers still move); release_tries: how often the gripper is opened at
     the place pose before the part counts as stuck. release_drop_m: at the place pose the arm goes this far straight
     down along the tool's approach before letting go, guarded by ``approach_max_force_n`` (it stops where the held
-    part meets what already lies in the tray); the arm waits there for the next look: a part let go lower bounces
-    less, and off the tray less often (0: let go at the place pose; the place pose less this must still clear the
-    tray's rim, and the joint move from there to the next pick the bin's, which the planner checks).
+    part meets what already lies in the tray), and back up after: a part let go lower bounces less, and off the
+    tray less often (0: let go at the place pose; the place pose less this must still clear the tray's rim).
     reconnect_timeout_s: how long recovery keeps trying to reach a
     controller that does not answer (a network link that is down). max_nudges / max_nudges_per_part: nudges per
     run (0: never nudge) and per location (within ``exclusion_distance_m``); a nudge is not a failed cycle.

@@ -506,7 +506,7 @@ def test_each_part_let_go_moves_the_next_pick_to_the_next_place_slot():
     assert planner.slots == [0, 0, 1] and picker.n_placed == 2
 
 
-def test_a_part_is_lowered_into_the_tray_before_it_is_let_go_and_the_next_plan_starts_there():
+def test_a_part_is_lowered_into_the_tray_before_it_is_let_go_and_the_arm_goes_back_up():
     picker, robot = make_picker(FakeBin([0.0]), config=PickerConfig(release_drop_m=0.1))
     moves, real = [], robot.move_l
 
@@ -516,10 +516,12 @@ def test_a_part_is_lowered_into_the_tray_before_it_is_let_go_and_the_next_plan_s
 
     robot.move_l = record
     assert picker.run().n_picked == 1
-    # down along the tool's approach, guarded, holding the part; the fingers open there and the arm stays
-    ((T_low, guard, held_low),) = [m for m in moves if abs(m[0][0, 3] - PLACE_X) < 1e-9]
+    # down along the tool's approach, guarded, holding the part; back up to the place pose with the fingers open
+    (T_low, guard, held_low), (T_up, _, held_up) = [m for m in moves if abs(m[0][0, 3] - PLACE_X) < 1e-9]
     np.testing.assert_allclose(T_low[:3, 3], [PLACE_X, -0.42, 0.12], atol=1e-12)
-    assert guard == PickerConfig().approach_max_force_n and held_low and not picker.gripper.held
+    assert guard == PickerConfig().approach_max_force_n and held_low
+    np.testing.assert_allclose(T_up[:3, 3], [PLACE_X, -0.42, 0.22], atol=1e-12)
+    assert not held_up
     # a lowering the robot refuses lets go at the place pose
     picker, robot = make_picker(FakeBin([0.0]), config=PickerConfig(release_drop_m=0.1), refuse_x=PLACE_X)
     report = picker.run()
