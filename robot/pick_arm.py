@@ -74,7 +74,6 @@ class Arm:
         released = self.fingers.release(opening)
         self.robot.move_l(T_base_place, cfg.transit_linear_speed_m_s, cfg.approach_accel_m_s2)
         return released
-        return self.fingers.release(opening)
 
     def nudge(self, nudge: NudgeLike, timer: StageTimer) -> tuple[NudgeOutcome, str]:
         """A nudge's strokes (timed as ``Stage.NUDGE``): close the fingers (the pads together are the paddle), joint

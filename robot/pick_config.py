@@ -44,9 +44,9 @@ class PickerConfig:
     down along the tool's approach before letting go, guarded by ``approach_max_force_n`` (it stops where the held
     part meets what already lies in the tray), and back up after: a part let go lower bounces less, and off the
     tray less often (0: let go at the place pose; the place pose less this must still clear the tray's rim).
-    reconnect_timeout_s: how long recovery keeps trying to reach a
-    controller that does not answer (a network link that is down). max_nudges / max_nudges_per_part: nudges per
-    run (0: never nudge) and per location (within ``exclusion_distance_m``); a nudge is not a failed cycle.
+    reconnect_timeout_s: how long recovery keeps trying to reach a controller that does not answer (a network link
+    that is down). max_nudges / max_nudges_per_part: nudges per run (0: never nudge) and per location (within
+    ``exclusion_distance_m``); a nudge is not a failed cycle.
     min_unseen_area_m2: with no part estimated in the bin, a bin whose depth shows at least this much of it covered
     (something above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find or whose
     estimates land outside it: the run stops with "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top
