@@ -8,10 +8,10 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
     [robot]       robot.ur_config.URConfig fields (host defaults to [sim] host), workspace = {lo_m, hi_m}
     [gripper]     robot.gripper config: kind = "robotiq_socket" | "digital_output", ... (host defaults to the robot);
                   calibration = "gripper.json": robot.gripper_calibration's file (``sygrid calibrate gripper``)
-    [camera]      kind = "sim" | "oak" | "realsense"; oak: device, rgb_size, fps (perception.oak.OakConfig);
-                  realsense: serial, rgb_size, depth_size, fps, visual_preset, emitter_enabled, laser_power_mw
-                  (perception.realsense.RealSenseConfig); sim only: sensor = a sygrid.sensor preset the exact
-                  frames go through ("ideal", the default: exact; "oak-d", "d435", ...)
+    [camera]      kind = "sim" | "oak" | "realsense"; oak: device, rgb_size, stereo_size, fps
+                  (perception.oak.OakConfig); realsense: serial, rgb_size, depth_size, fps, visual_preset,
+                  emitter_enabled, laser_power_mw (perception.realsense.RealSenseConfig); sim only: sensor = a
+                  sygrid.sensor preset the exact frames go through ("ideal", the default: exact; "oak-d", "d435", ...)
     [calibration] source = "sim_handeye" (sim: the ChArUco hand-eye calibration run in the simulated cell,
                   launch.sim_calibration) | "sim" (sim: the camera's true pose) | "file", file = "calib.json"
                   (robot.calibration)
@@ -64,7 +64,7 @@ HARDWARE_SENSORS = {"oak": "oak-d", "realsense": "d435"}
 # [camera] fields per kind (besides kind); the rest must stay unset.
 _CAMERA_FIELDS = {
     "sim": ("sensor",),
-    "oak": ("device", "rgb_size", "fps"),
+    "oak": ("device", "rgb_size", "stereo_size", "fps"),
     "realsense": ("serial", "rgb_size", "depth_size", "fps", "visual_preset", "emitter_enabled", "laser_power_mw"),
 }
 
@@ -91,6 +91,7 @@ class CameraSection(_Strict):
     serial: str | None = None
     rgb_size: tuple[int, int] | None = None
     depth_size: tuple[int, int] | None = None
+    stereo_size: tuple[int, int] | None = None
     fps: float | None = None
     visual_preset: str | None = None
     emitter_enabled: StrictBool | None = None
@@ -238,9 +239,17 @@ class CellSetup:
 
     def depth_sensor(self) -> SensorModel:
         """The sensor model of the cell's depth, which the verification and the planner allow for: the simulated
-        camera's ``sensor``, or the stereo model of the hardware camera's kind (``HARDWARE_SENSORS``)."""
+        camera's ``sensor``, or the stereo model of the hardware camera's kind (``HARDWARE_SENSORS``) at the stereo
+        resolution the camera runs (an OAK's ``stereo_size``, a RealSense's ``depth_size``; the preset's otherwise):
+        the depth noise scales with it."""
         cam = self.data.camera
-        return sensor_preset(cam.sensor if cam.kind == "sim" else HARDWARE_SENSORS[cam.kind])
+        if cam.kind == "sim":
+            return sensor_preset(cam.sensor)
+        model = sensor_preset(HARDWARE_SENSORS[cam.kind])
+        size = cam.stereo_size if cam.kind == "oak" else cam.depth_size
+        if size is None or tuple(size) == model.stereo_size_px:
+            return model
+        return model.at_stereo_size(*size)
 
     def _camera_config(self) -> OakConfig | RealSenseConfig | None:
         """The hardware camera's config from [camera] (None for the simulated camera); ConfigError for a field of

@@ -146,6 +146,29 @@ class SensorModel:
             hole_fraction=min(1.0, self.hole_fraction * factor),
         )
 
+    def at_stereo_size(self, width: int, height: int, name: str | None = None) -> SensorModel:
+        """The same camera running its stereo pair at ``width`` x ``height`` (a binning or cropping mode of the same
+        imagers, same field of view): the focal length in stereo pixels scales with the width, and so does the
+        per-frame offset in pixels (an angular calibration error, the same relative depth error at every
+        resolution). The matching noise, the subpixel step and the disparity search range stay in stereo pixels (the
+        depth engine's), so the per-pixel depth noise and step scale with ``1 / f`` and the minimum depth with ``f``.
+        ``name`` defaults to ``"<name>@<height>p"``."""
+        if self.baseline_m == 0:
+            raise ConfigError(f"SensorModel.at_stereo_size: {self.name!r} has no stereo pair")
+        if not (int(width) > 0 and int(height) > 0) or self.stereo_size_px[0] <= 0:
+            raise ConfigError(
+                f"SensorModel.at_stereo_size: need a positive width and height and a model with a stereo size, got "
+                f"{width} x {height} for {self.name!r} ({self.stereo_size_px})"
+            )
+        scale = int(width) / self.stereo_size_px[0]
+        return replace(
+            self,
+            name=name or f"{self.name}@{int(height)}p",
+            stereo_focal_px=self.stereo_focal_px * scale,
+            stereo_size_px=(int(width), int(height)),
+            disparity_bias_px=self.disparity_bias_px * scale,
+        )
+
     # ------------------------------------------------------------------------------------------------- applying
     def sense(
         self,
@@ -303,6 +326,7 @@ _D435 = SensorModel(
 SENSOR_PRESETS: dict[str, SensorModel] = {
     "ideal": SensorModel(name="ideal"),
     "oak-d": _OAK_D,
+    "oak-d-800p": _OAK_D.at_stereo_size(1280, 800, "oak-d-800p"),
     "oak-d-pro": replace(_OAK_D, name="oak-d-pro", dark_dropout=0.3, specular_dropout=0.1),
     "d435": _D435,
     "d435i": replace(_D435, name="d435i"),

@@ -45,7 +45,7 @@ def _plane(z: float, size: int = 200) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------------ presets
 def test_presets_carry_the_sensors_geometry():
-    assert sorted(SENSOR_PRESETS) == ["d435", "d435i", "ideal", "oak-d", "oak-d-pro"]
+    assert sorted(SENSOR_PRESETS) == ["d435", "d435i", "ideal", "oak-d", "oak-d-800p", "oak-d-pro"]
     assert SENSOR_PRESETS["ideal"].is_ideal and not any(m.is_ideal for n, m in SENSOR_PRESETS.items() if n != "ideal")
     assert (OAK.baseline_m, OAK.stereo_size_px, OAK.disparity_step_px) == (0.075, (640, 400), 1 / 8)
     assert (D435.baseline_m, D435.stereo_size_px, D435.disparity_step_px) == (0.050, (848, 480), 1 / 32)
@@ -62,6 +62,30 @@ def test_presets_carry_the_sensors_geometry():
     mean_abs = math.sqrt(2 / math.pi)
     assert mean_abs * D435.depth_bias_sigma_m(2.0) / 2.0 == pytest.approx(0.02, rel=0.02)
     assert mean_abs * OAK.depth_bias_sigma_m(4.0) / 4.0 == pytest.approx(0.02, rel=0.02)
+
+
+def test_a_finer_stereo_resolution_halves_the_per_pixel_noise_not_the_offset():
+    oak800 = SENSOR_PRESETS["oak-d-800p"]
+    assert oak800 == OAK.at_stereo_size(1280, 800, "oak-d-800p")
+    # Luxonis: 882.5 px at 800P, twice 400P's; the RVC2's 95 px search then reaches 0.71 m at the nearest
+    assert oak800.stereo_focal_px == pytest.approx(882.5) and oak800.min_depth_m == pytest.approx(0.70, abs=0.01)
+    for z in (0.5, 1.0, 2.0):
+        assert oak800.depth_noise_sigma_m(z) == pytest.approx(OAK.depth_noise_sigma_m(z) / 2)
+        assert oak800.depth_bias_sigma_m(z) == pytest.approx(OAK.depth_bias_sigma_m(z))  # an angular error
+    assert OAK.at_stereo_size(640, 400) == replace(OAK, name="oak-d@400p")
+    assert D435.at_stereo_size(1280, 720).name == "d435@720p"
+    # measured on sensed frames: the per-pixel spread of a flat wall at 1 m halves
+    wall, camera = _plane(1.0, 400), CameraIntrinsics.from_fov(400, 400, 60.0)
+    spreads = []
+    for model in (OAK, oak800):
+        quiet = replace(model, disparity_bias_px=0.0, edge_dropout=0.0, flying_pixel_fraction=0.0, hole_fraction=0.0)
+        z = quiet.sense_depth(wall, camera, np.random.default_rng(0))
+        spreads.append(float(np.std(z[z > 0])))
+    assert spreads[1] == pytest.approx(spreads[0] / 2, rel=0.15)
+    with pytest.raises(ConfigError, match="has no stereo pair"):
+        SENSOR_PRESETS["ideal"].at_stereo_size(1280, 800)
+    with pytest.raises(ConfigError, match="need a positive width and height"):
+        OAK.at_stereo_size(0, 800)
 
 
 def test_bad_parameters_and_names_are_refused():
@@ -324,6 +348,12 @@ def test_a_cell_file_names_the_sim_cameras_sensor(tmp_path: Path):
     # a hardware camera's noise allowances assume its kind's stereo model
     assert load_cell_setup(ROOT / "launch" / "cells" / "ur5e_oak.toml").depth_sensor() == sensor_preset("oak-d")
     assert load_cell_setup(ROOT / "launch" / "cells" / "ur5e_realsense.toml").depth_sensor() == sensor_preset("d435")
+    # ... at the stereo resolution the camera runs: an OAK's 800P pair halves the per-pixel noise it allows for
+    path.write_text(oak.replace('[camera]\nkind = "oak"\n', '[camera]\nkind = "oak"\nstereo_size = [1280, 800]\n'))
+    oak800 = load_cell_setup(path).depth_sensor()
+    assert oak800 == OAK.at_stereo_size(1280, 800)
+    assert oak800.stereo_focal_px == SENSOR_PRESETS["oak-d-800p"].stereo_focal_px
+    assert oak800.depth_noise_sigma_m(0.9) == pytest.approx(OAK.depth_noise_sigma_m(0.9) / 2)
 
 
 def test_the_emulator_camera_applies_its_sensor():
