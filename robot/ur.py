@@ -314,16 +314,15 @@ class URRobot:
         speed_m_s: float | None = None,
         accel_m_s2: float | None = None,
         max_press_speed_m_s: float | None = None,
-        timeout_s: float | None = None,
     ) -> MotionResult:
         """A linear move to ``T_base_tcp`` in force mode: compliant along ``direction`` (base frame), pushing with
         ``force_n`` (at most ``max_press_force_n``) along it, which the target's own motion should not move along.
-        Force mode ends whatever happens. ``timeout_s`` as ``wait_for_motion``'s. Errors as ``move_l``."""
+        Force mode ends whatever happens. Errors as ``move_l``."""
         with self._link.lock:
             self._ensure_ready()
         with force_mode(self._link, direction, force_n, max_press_speed_m_s):
             self.start_move_l(T_base_tcp, speed_m_s, accel_m_s2)
-            return self.wait_for_motion(timeout_s)
+            return self.wait_for_motion()
 
     def wait_for_motion(self, timeout_s: float | None = None, max_force_n: float | None = None) -> MotionResult:
         """Waits for the motion in flight to end (``robot.ur_motion``); see the module docstring for the errors.

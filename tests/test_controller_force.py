@@ -277,7 +277,12 @@ def part_cell():
         em.place_parts(T, held=[i for i in range(len(names)) if i != gear])
         time.sleep(0.3)
         _listening(MUJOCO_HOST)
-        config = URConfig(host=MUJOCO_HOST, workspace=BOX, T_flange_tcp=make_T(t=(0.0, 0.0, 0.145)))
+        # The emulator paces force-sensitive motion by the physics, which runs slower than real time on a loaded
+        # machine (pads pressing on the gear's convex pieces): the wall-clock motion deadlines derived from the
+        # moves' durations get a generous margin here.
+        config = URConfig(
+            host=MUJOCO_HOST, workspace=BOX, T_flange_tcp=make_T(t=(0.0, 0.0, 0.145)), motion_timeout_margin_s=30.0
+        )
         with URRobot(config) as robot:
             yield em, robot, gear, height
 
@@ -316,10 +321,7 @@ def test_press_on_a_part_stops_on_contact_with_a_bounded_force_and_the_pressing_
     # slip on it for part of the way).
     T_end = robot.T_base_tcp()
     T_end[1, 3] += 0.03
-    # The emulator paces force-sensitive motion by the physics, which runs slower than real time on a loaded machine
-    # (pads pressing on the gear's convex pieces): the wall-clock deadline derived from the move's duration is too
-    # short for a test, so it gets a generous one.
-    robot.move_l_pressing(T_end, DOWN, 25.0, 0.03, timeout_s=30.0)
+    robot.move_l_pressing(T_end, DOWN, 25.0, 0.03)
     dragged = em.part_poses()[gear][:3, 3] - T_world_gear[:3, 3]
     assert dragged[1] > 0.015, dragged
     assert not em.state().protective_stopped
