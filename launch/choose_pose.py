@@ -13,10 +13,13 @@ corrected on the bin's floor first (the manifest's ``depth_tare``) and the verif
 dataset's sensor (``VerifyConfig.for_sensor``). Several ``--data`` sets (the same views noise-free and through a
 sensor model, say) are measured each with its own sensor's settings and pooled. The choice per part is the
 cheapest strategy whose recall of accepted estimates reaches ``--bar`` (refused poses are dropped by the pipeline),
-else the most accurate; the verification threshold is the lowest that keeps the chosen strategies' false accepts
-within ``--max-false-accept`` (the two chosen in turn until they agree). Writes ``MODELS/pose_strategies.json``
-(every figure, the command and the data) and the choice into ``MODELS/manifest.json`` (``pose.strategies`` and
-``verify.min_confidence``), both atomically.
+else the most accurate; the verification thresholds, one per part, are those that accept the most right poses while
+the chosen strategies' false accepts over all parts stay within ``--max-false-accept``
+(``perception.strategy_eval.choose_part_thresholds``; ``--one-threshold``: one for every part, the lowest that
+does), the two chosen in turn until they agree. Writes ``MODELS/pose_strategies.json`` (every figure, the command
+and the data) and the choice into ``MODELS/manifest.json`` (``pose.strategies``, ``verify.part_min_confidence``
+and ``verify.min_confidence``: the one threshold for every part, which parts without their own use), both
+atomically.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 
 if TYPE_CHECKING:
-    from perception.strategy_eval import StrategyRecord
+    from perception.strategy_eval import StrategyRecord, Thresholds
 
 RESULTS_NAME = "pose_strategies.json"
 CARD_HEADING = "### Pose strategies per part"
@@ -49,6 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-false-accept", type=float, default=0.01, help="of the accepted estimates (0..1)")
     parser.add_argument("--strategies", default=None, help="comma-separated subset of the strategies (default: all)")
     parser.add_argument("--wrong-class", action="store_true", help="also fit every instance with another part's model")
+    parser.add_argument("--one-threshold", action="store_true", help="one verification threshold for every part")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--dry-run", action="store_true", help="print the table, write nothing")
 
@@ -58,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from perception.manifest import load_manifest, manifest_models, tare_config
     from perception.pose import PoseEstimator
     from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
-    from perception.strategy_eval import choose_all, evaluate_strategies, summarize
+    from perception.strategy_eval import choose_all, choose_threshold, evaluate_strategies, summarize
     from perception.verify import PoseVerifier, VerifyConfig
 
     strategies = STRATEGIES if args.strategies is None else tuple(s.strip() for s in args.strategies.split(","))
@@ -86,17 +90,20 @@ def run(args: argparse.Namespace) -> int:
         for key, recs in measured.items():
             records.setdefault(key, []).extend(recs)
         sets.append({"data": str(data), "sensor": sensor.name, "verify_depth_noise_m": verify.depth_noise_m})
-    choice, threshold = choose_all(records, args.bar, args.max_false_accept)
+    choice, threshold = choose_all(records, args.bar, args.max_false_accept, per_part=not args.one_threshold)
     chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
     names = {obj_id: m.name for obj_id, m in models.items()}
-    print(format_choice(records, choice, threshold, names))
+    one = choose_threshold(chosen, args.max_false_accept)  # for parts without their own threshold
+    per_part = {names[obj_id]: t for obj_id, t in threshold.items()} if isinstance(threshold, dict) else {}
+    print(format_choice(records, choice, threshold, names, one))
     report = {
         "command": "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "sygrid models choose-pose",
         "data": sets,
         "max_images": args.max_images,
         "bar": args.bar,
         "max_false_accept": args.max_false_accept,
-        "min_confidence": threshold,
+        "min_confidence": one,
+        "part_min_confidence": per_part,
         "depth_tare": manifest.depth_tare.enabled,
         "choice": {names[k]: v for k, v in choice.items()},
         "rows": [
@@ -104,52 +111,66 @@ def run(args: argparse.Namespace) -> int:
             for (obj_id, s), recs in sorted(records.items())
         ],
         "chosen": summarize(chosen, threshold),
+        "chosen_one_threshold": summarize(chosen, one),
     }
     if args.dry_run:
         return 0
     write_json_atomic(args.models / RESULTS_NAME, report)
-    write_choice(args.models, report["choice"], threshold)
+    write_choice(args.models, report["choice"], one, per_part)
     replace_card_section(args.models / "pose.card.md", CARD_HEADING, [
         CARD_HEADING, "",
         f"`{report['command']}`: ground-truth masks, every strategy on every instance at least 10 % visible; the "
         "chosen strategy per part marked `*` (the cheapest whose accepted recall reaches the bar, else the most "
         f"accurate). Full figures: `{RESULTS_NAME}`.", "",
-        "```", format_choice(records, choice, threshold, names), "```",
+        "```", format_choice(records, choice, threshold, names, one), "```",
     ])  # fmt: skip
     print(f"wrote {args.models / RESULTS_NAME}, the choice into {args.models / 'manifest.json'} and the table into "
           f"{args.models / 'pose.card.md'}")  # fmt: skip
     return 0
 
 
-def write_choice(folder: Path, choice: dict[str, str], min_confidence: float) -> None:
-    """Writes ``pose.strategies`` and ``verify.min_confidence`` into the folder's manifest (atomically), keeping
-    everything else in it; the result must load."""
+def write_choice(
+    folder: Path, choice: dict[str, str], min_confidence: float, part_min_confidence: dict[str, float] | None = None
+) -> None:
+    """Writes ``pose.strategies``, ``verify.min_confidence`` and ``verify.part_min_confidence`` (removed where
+    None or empty) into the folder's manifest (atomically), keeping everything else in it; the result must load."""
     from perception.manifest import MANIFEST_NAME, load_manifest
 
     path = folder / MANIFEST_NAME
     data = read_json(path, "model manifest")
     data["pose"] = {**data["pose"], "strategies": dict(choice)}
-    data["verify"] = {**data.get("verify", {}), "min_confidence": min_confidence}
+    verify = {**data.get("verify", {}), "min_confidence": min_confidence}
+    verify.pop("part_min_confidence", None)
+    data["verify"] = {**verify, **({"part_min_confidence": part_min_confidence} if part_min_confidence else {})}
     write_json_atomic(path, data)
     load_manifest(folder)
 
 
 def format_choice(
-    records: dict[tuple[int, str], list[StrategyRecord]], choice: dict[int, str], threshold: float, names: dict
+    records: dict[tuple[int, str], list[StrategyRecord]],
+    choice: dict[int, str],
+    threshold: Thresholds,
+    names: dict,
+    one: float | None = None,
 ) -> str:
-    """The table: one row per part and strategy (the chosen one marked), then the chosen strategies together."""
-    from perception.strategy_eval import summarize
+    """The table: one row per part and strategy at its part's threshold (the chosen one marked), then the chosen
+    strategies together, and with ``one`` the same at that one threshold for every part."""
+    from perception.strategy_eval import summarize, threshold_of
 
     head = (
         f"{'part':<11}{'strategy':<12}{'n':>5}{'ADD(-S)':>9}{'accepted':>10}{'re deg':>8}{'te mm':>8}{'ms':>7}"
         f"{'CPU ms':>8}{'false acc':>10}{'false ref':>10}{'wrong cls':>10}"
     )
-    lines = [f"verification threshold {threshold:.2f} (fractions of the accepted / correct / wrong-class trials)", head]
+    parts = sorted({obj_id for obj_id, _ in records})
+    thresholds = ", ".join(f"{names[o]} {threshold_of(threshold, o):.2f}" for o in parts)
+    lines = [f"verification thresholds: {thresholds} (fractions of the accepted / correct / wrong-class trials)", head]
     for (obj_id, s), recs in sorted(records.items()):
         mark = " *" if choice.get(obj_id) == s else ""
         lines.append(_row(names[obj_id], s + mark, summarize(recs, threshold)))
     chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
     lines.append(_row("chosen", "", summarize(chosen, threshold)))
+    if one is not None:
+        lines.append(_row("chosen", f"one {one:.2f}", summarize(chosen, one)))
     return "\n".join(lines)
 
 

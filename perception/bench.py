@@ -4,12 +4,14 @@ For each dataset given (``--data``, generated without sensor noise; ``--noisy-da
 through a stereo sensor model, e.g. ``launch/recipes/builtin_test_noisy.json``), one pass of each of:
 
 - ground-truth masks, the pose stage alone (``perception.strategy_eval``): per strategy and per part, ADD(-S) < 0.1 d
-  recall of all estimates and of the accepted ones (verification at the manifest's ``verify.min_confidence``;
-  refused estimates count as failures), median re and te, median wall and CPU milliseconds per object (the
-  network's share where used, mask clean-up, hypotheses, refinement, verification), false accepts (wrong among the
-  accepted) and false refusals (refused among the correct). The reference row is the manifest's per-part choice
+  recall of all estimates and of the accepted ones (verification at the manifest's thresholds, each part's
+  ``verify.part_min_confidence`` else ``verify.min_confidence``; refused estimates count as failures), median re
+  and te, median wall and CPU milliseconds per object (the network's share where used, mask clean-up, hypotheses,
+  refinement, verification), false accepts (wrong among the accepted) and false refusals (refused among the
+  correct). The reference row is the manifest's per-part choice
   (``sygrid models choose-pose``), or without one the most accurate strategy per part; with a choice, it is also
-  measured without the resting search (``perception.resting``), the ablation row;
+  measured without the resting search (``perception.resting``), an ablation row, and with per-part thresholds the
+  same estimates are also counted at the one ``verify.min_confidence``, another;
 - end to end (``perception.evaluation.evaluate``): the model folder's detector and per-part strategies, ADD(-S)
   recall over every instance seen at least 10 % (missed or refused counts as a failure), per part, false accepts
   and false refusals of the verified estimates, median milliseconds per object (strategy, refinement and
@@ -45,10 +47,18 @@ from matplotlib.ticker import FixedLocator, FormatStrFormatter, NullFormatter
 
 from perception.detector_eval import dataset_region
 from perception.evaluation import EvalSettings, dataset_sensor, evaluate, frames_sensor
-from perception.manifest import load_manifest
+from perception.manifest import MANIFEST_NAME, load_manifest
 from perception.pipeline import PerceptionPipeline, PipelineOverrides
 from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
-from perception.strategy_eval import StrategyRecord, choose, evaluate_strategies, summarize, visibility_gates
+from perception.strategy_eval import (
+    StrategyRecord,
+    Thresholds,
+    choose,
+    evaluate_strategies,
+    summarize,
+    threshold_of,
+    visibility_gates,
+)
 from perception.verify import PoseVerifier
 from sygrid.bench.common import (
     DEFAULT_RESULTS_DIR,
@@ -94,7 +104,7 @@ def run_benchmark(
     sensors = {name: checked_sensor(name, path) for name, path in datasets.items()}
     manifest = load_manifest(models_dir)
     pipeline = PerceptionPipeline.from_folder(models_dir, PipelineOverrides(num_threads=threads))
-    min_confidence = manifest.verify.min_confidence
+    min_confidence = manifest.verify.thresholds(pipeline.models, models_dir / MANIFEST_NAME)
     verify = manifest.verify.config()
     measured = tuple(dict.fromkeys([*strategies, *(pipeline.strategies or {}).values()]))
     conditions = {}
@@ -106,7 +116,8 @@ def run_benchmark(
         pipeline.use_sensor(sensor)  # evaluate does it too; the ground-truth pass shares the pipeline's runner
         runner = pipeline.runner if pipeline.runner is not None else StrategyRunner(verifier=PoseVerifier(
             verify.for_sensor(sensor)))  # fmt: skip
-        one_pass = partial(measure, pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress)
+        one_pass = partial(measure, pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress,
+                           one_threshold=manifest.verify.min_confidence)  # fmt: skip
         conditions[name] = {
             "dataset_sensor": sensors[name],
             "region": settings.region,
@@ -121,7 +132,8 @@ def run_benchmark(
         "threads": threads,
         "max_images": max_images,
         "strategies": list(measured),
-        "min_confidence": min_confidence,
+        "min_confidence": manifest.verify.min_confidence,
+        "part_min_confidence": dict(manifest.verify.part_min_confidence),
         "wrong_class_trials": wrong_class,
         "targets": TARGETS,
         "conditions": conditions,
@@ -147,17 +159,27 @@ def measure(
     data_dir: Path,
     settings: EvalSettings,
     strategies: tuple[str, ...],
-    min_confidence: float,
+    min_confidence: Thresholds,
     wrong_class: bool = False,
     progress: bool = True,
+    one_threshold: float | None = None,
 ) -> dict:
-    """One dataset: the strategies with ground-truth masks (``pipeline.pose`` the network, ``runner`` the strategies),
-    the pipeline end to end, and the depth metrics."""
+    """One dataset: the strategies with ground-truth masks (``pipeline.pose`` the network, ``runner`` the strategies;
+    accepted at ``min_confidence``, and the reference also at ``one_threshold`` where ``min_confidence`` holds other
+    values), the pipeline end to end, and the depth metrics."""
     names = {obj_id: m.name for obj_id, m in pipeline.models.items()}
     records = evaluate_strategies(runner, pipeline.pose, pipeline.models, data_dir, strategies, settings,
                                   wrong_class=wrong_class, progress=progress,
                                   tare=pipeline.depth_tare)  # fmt: skip
     gt_masks = gt_mask_summary(records, min_confidence, names, pipeline.strategies)
+    choice = pipeline.strategies
+    if (
+        choice is not None
+        and one_threshold is not None
+        and {threshold_of(min_confidence, o) for o in names} != {one_threshold}
+    ):
+        chosen = summary_by_part(records, lambda o, s: choice.get(o) == s, one_threshold, names)
+        gt_masks["reference_one_threshold"] = chosen
     if pipeline.strategies is not None:  # the same choice without the resting search (perception.resting)
         no_rest = StrategyRunner(runner.icp_config, runner.verifier, runner.cleanup, replace(runner.config, rest=False))
         off = evaluate_strategies(no_rest, pipeline.pose, pipeline.models, data_dir, (), settings, progress=progress,
@@ -194,7 +216,7 @@ def part_key(obj_id: int, names: dict[int, str]) -> str:
 
 
 def summary_by_part(
-    records: Records, pick: Callable[[int, str], bool], min_confidence: float, names: dict[int, str]
+    records: Records, pick: Callable[[int, str], bool], min_confidence: Thresholds, names: dict[int, str]
 ) -> dict:
     """``strategy_eval.summarize`` of the records ``pick(obj_id, strategy)`` selects: over all of them and per part."""
     per_part = {part_key(o, names): summarize(recs, min_confidence) for (o, s), recs in sorted(records.items())
@@ -204,7 +226,7 @@ def summary_by_part(
 
 
 def gt_mask_summary(
-    records: Records, min_confidence: float, names: dict[int, str], choice: dict[int, str] | None
+    records: Records, min_confidence: Thresholds, names: dict[int, str], choice: dict[int, str] | None
 ) -> dict:
     """Per strategy (all parts, and per part), and the reference: ``choice`` (obj_id -> strategy, the manifest's),
     else the most accurate strategy per part (``strategy_eval.choose`` with an unreachable bar)."""
@@ -353,7 +375,9 @@ def _panel(ax, name: str, c: dict, strategies: list[str]) -> None:
 
 
 def format_results(results: dict) -> str:
-    lines = [f"onnxruntime threads {results['threads']}; verification threshold {results['min_confidence']:.2f}"]
+    own = ", ".join(f"{p} {t:.2f}" for p, t in (results.get("part_min_confidence") or {}).items())
+    lines = [f"onnxruntime threads {results['threads']}; verification threshold {results['min_confidence']:.2f}"
+             + (f"; per part: {own}" if own else "")]  # fmt: skip
     for name, c in results["conditions"].items():
         d = c["depth"]
         lines += ["", f"== {name}: {c['data']} (sensor {c['dataset_sensor']}), {c['n_images']} images; depth AbsRel "
@@ -381,6 +405,8 @@ def _gt_mask_lines(g: dict) -> list[str]:
     rows = {**{s: r["all"] for s, r in g["strategies"].items()}, g["reference"]["label"]: g["reference"]["all"]}
     if "reference_without_rest" in g:
         rows["  the same, no resting"] = g["reference_without_rest"]["all"]
+    if "reference_one_threshold" in g:
+        rows["  the same, one threshold"] = g["reference_one_threshold"]["all"]
     lines = [head] + [_row(s, r) for s, r in rows.items()]
     parts = list(next(iter(g["strategies"].values()))["per_part"]) if g["strategies"] else []
     lines.append(f"{'accepted recall per part':<24}" + "".join(f"{s:>14}" for s in g["strategies"]))

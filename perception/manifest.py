@@ -9,7 +9,7 @@ the pipeline's stages (``perception.pipeline``).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -66,11 +66,28 @@ class VerifyEntry(_Strict):
     """The verification of the strategies' poses (perception.verify.VerifyConfig)."""
 
     min_confidence: float = Field(default=VerifyConfig().min_confidence, ge=0, le=1)
+    # part name -> that part's own threshold (VerifyConfig.part_min_confidence); the others use min_confidence
+    part_min_confidence: dict[str, Annotated[float, Field(ge=0, le=1)]] = {}
     depth_noise_m: float = Field(default=0.0, ge=0, lt=0.1)
 
     def config(self) -> VerifyConfig:
         """The verifier's settings these entries set (the rest at VerifyConfig's defaults)."""
-        return VerifyConfig(min_confidence=self.min_confidence, depth_noise_m=self.depth_noise_m)
+        return VerifyConfig(
+            min_confidence=self.min_confidence,
+            part_min_confidence=dict(self.part_min_confidence),
+            depth_noise_m=self.depth_noise_m,
+        )
+
+    def thresholds(self, models: dict[int, ObjectModel], path: Path) -> dict[int, float]:
+        """obj_id -> the verification threshold of each of ``models``; ConfigError naming ``path`` when
+        ``part_min_confidence`` names a part that is not one of them."""
+        names = {m.name for m in models.values()}
+        unknown = sorted(set(self.part_min_confidence) - names)
+        if unknown:
+            raise ConfigError(f"{path}: verify.part_min_confidence: no object named {', '.join(unknown)} in objects "
+                              f"(the objects: {', '.join(sorted(names))})")  # fmt: skip
+        config = self.config()
+        return {obj_id: config.threshold(m.name) for obj_id, m in models.items()}
 
 
 class DepthTareEntry(_Strict):

@@ -19,11 +19,11 @@ models were trained with (``sygrid models pack --catalogue``). Its parts are res
 classes, boxes and masks. With ``pose.strategies`` (a strategy per object name, ``perception.pose_strategies``,
 written by ``sygrid models choose-pose``), each detection's pose comes from its part's strategy: the pose network
 runs only for the detections whose strategy uses it, every pose is verified against the depth and mask
-(``perception.verify``, accepted from ``verify.min_confidence``), and the refused ones are kept apart
-(``PerceptionResult.refused``). Without it, the pose model gives a pose per detection of a part it knows and the
-refiner (point-to-plane ICP against the depth inside the mask) a refined pose where it can be trusted. Any stage
-can be overridden by the caller (``PipelineOverrides``; a pose method or refinement override runs the network and
-refiner path), which is how the benchmark sweeps input sizes and methods.
+(``perception.verify``, accepted from ``verify.min_confidence`` or the part's own ``verify.part_min_confidence``),
+and the refused ones are kept apart (``PerceptionResult.refused``). Without it, the pose model gives a pose per
+detection of a part it knows and the refiner (point-to-plane ICP against the depth inside the mask) a refined pose
+where it can be trusted. Any stage can be overridden by the caller (``PipelineOverrides``; a pose method or
+refinement override runs the network and refiner path), which is how the benchmark sweeps input sizes and methods.
 
 A cell knows where parts can be (the bin), so the pipeline can be given that region as 3D points in the camera
 frame; the detector then looks only at their image box (``region_of_interest``), at the scale it would see the
@@ -222,6 +222,7 @@ class PerceptionPipeline:
         strategies, runner = None, None
         if manifest.pose.strategies is not None and o.pose_method is None and o.refine is None:
             strategies = strategy_ids(manifest.pose.strategies, models, folder / MANIFEST_NAME)
+            manifest.verify.thresholds(models, folder / MANIFEST_NAME)  # every part it names is one of the objects
             runner = StrategyRunner(verifier=PoseVerifier(manifest.verify.config()))
         pipeline = cls(
             detector,

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +39,8 @@ from sygrid.objects.model import ObjectModel
 from sygrid.writers import load_bop_item
 
 SenseFn = Callable[[ImageAnnotation, np.ndarray, np.ndarray | None], tuple[np.ndarray, np.ndarray | None]]
-THRESHOLDS = tuple(round(0.5 + 0.01 * k, 2) for k in range(50))  # the verification thresholds choose_threshold tries
+Thresholds = float | Mapping[int, float]  # the verification threshold: one for every part, or one per obj_id
+THRESHOLDS = tuple(round(0.5 + 0.01 * k, 2) for k in range(50))  # the verification thresholds the choice tries
 
 
 @dataclass(frozen=True)
@@ -61,14 +62,27 @@ class StrategyRecord:
     image: str = ""
 
 
-def summarize(records: list[StrategyRecord], min_confidence: float) -> dict:
-    """The records' figures with poses accepted at ``min_confidence``: ADD(-S) recall over all estimates and over
-    the accepted ones (of all instances), median re/te/ms, false accepts (wrong among the accepted), false refusals
-    (refused among the correct) and the wrong-class trials accepted (fractions; NaN where undefined)."""
+def threshold_of(min_confidence: Thresholds, obj_id: int) -> float:
+    """The verification threshold of part ``obj_id``: the one threshold, or the part's (KeyError when the
+    mapping lacks it)."""
+    return float(min_confidence) if isinstance(min_confidence, int | float) else float(min_confidence[obj_id])
+
+
+def accepted_by(records: list[StrategyRecord], min_confidence: Thresholds) -> np.ndarray:
+    """(n,) bool: which records' confidence reaches their part's threshold."""
+    return np.array([x.confidence >= threshold_of(min_confidence, x.obj_id) for x in records], dtype=bool)
+
+
+def summarize(records: list[StrategyRecord], min_confidence: Thresholds) -> dict:
+    """The records' figures with poses accepted at ``min_confidence`` (one threshold, or one per obj_id): ADD(-S)
+    recall over all estimates and over the accepted ones (of all instances), median re/te/ms, false accepts (wrong
+    among the accepted), false refusals (refused among the correct) and the wrong-class trials accepted (fractions;
+    NaN where undefined; a wrong-class trial is held to the threshold of the instance's own part)."""
     n = len(records)
     correct = np.array([x.correct for x in records], dtype=bool)
-    accepted = np.array([x.confidence >= min_confidence for x in records], dtype=bool)
-    wrong = np.array([x.wrong_class_confidence for x in records if math.isfinite(x.wrong_class_confidence)])
+    accepted = accepted_by(records, min_confidence)
+    trials = [x for x in records if math.isfinite(x.wrong_class_confidence)]
+    wrong = np.array([x.wrong_class_confidence >= threshold_of(min_confidence, x.obj_id) for x in trials], dtype=bool)
     return {
         "n": n,
         "add_recall": _ratio(correct.sum(), n),
@@ -79,18 +93,19 @@ def summarize(records: list[StrategyRecord], min_confidence: float) -> dict:
         "median_cpu_ms": _median([x.cpu_ms for x in records]),
         "false_accept": _ratio((accepted & ~correct).sum(), accepted.sum()),
         "false_refuse": _ratio((~accepted & correct).sum(), correct.sum()),
-        "wrong_class_accept": _ratio((wrong >= min_confidence).sum(), len(wrong)),
+        "wrong_class_accept": _ratio(wrong.sum(), len(wrong)),
     }
 
 
-def visibility_gates(records: list[StrategyRecord], min_confidence: float, gates: tuple[float, ...]) -> list[dict]:
+def visibility_gates(records: list[StrategyRecord], min_confidence: Thresholds, gates: tuple[float, ...]) -> list[dict]:
     """What refusing every instance less visible than a gate would trade (the ground truth's visible fraction, an
     oracle a runtime does not have): per gate, the false accepts among the accepted instances at least that visible
     and the accepted recall over all instances (a refused instance counts as a failure)."""
     n = len(records)
     rows = []
     for gate in gates:
-        kept = [x for x in records if x.confidence >= min_confidence and x.visib_fract >= gate]
+        kept = [x for x, ok in zip(records, accepted_by(records, min_confidence), strict=True)
+                if ok and x.visib_fract >= gate]  # fmt: skip
         right = sum(x.correct for x in kept)
         rows.append({"min_visible": gate, "accepted": len(kept), "false_accept": _ratio(len(kept) - right, len(kept)),
                      "accepted_recall": _ratio(right, n)})  # fmt: skip
@@ -216,7 +231,9 @@ def _record(
     )
 
 
-def choose(records: dict[tuple[int, str], list[StrategyRecord]], bar: float, min_confidence: float) -> dict[int, str]:
+def choose(
+    records: dict[tuple[int, str], list[StrategyRecord]], bar: float, min_confidence: Thresholds
+) -> dict[int, str]:
     """Per obj_id: the cheapest strategy (median CPU ms) whose recall of accepted estimates (at
     ``min_confidence``: what the pipeline delivers, refused poses being dropped) reaches ``bar``, else the most
     accurate (ties: the cheaper)."""
@@ -234,16 +251,18 @@ def choose(records: dict[tuple[int, str], list[StrategyRecord]], bar: float, min
 
 
 def choose_all(
-    records: dict[tuple[int, str], list[StrategyRecord]], bar: float, max_false_accept: float
-) -> tuple[dict[int, str], float]:
-    """The strategy per obj_id (``choose``) and the verification threshold that keeps the chosen strategies' false
-    accepts within ``max_false_accept`` (``choose_threshold``), each chosen given the other until they agree
-    (a few rounds; the threshold starts from all records together)."""
-    threshold = choose_threshold([r for recs in records.values() for r in recs], max_false_accept)
+    records: dict[tuple[int, str], list[StrategyRecord]], bar: float, max_false_accept: float, per_part: bool = True
+) -> tuple[dict[int, str], Thresholds]:
+    """The strategy per obj_id (``choose``) and the verification thresholds that keep the chosen strategies' false
+    accepts within ``max_false_accept``: one per part (``choose_part_thresholds``), or with ``per_part`` False one
+    for all (``choose_threshold``); each chosen given the other until they agree (a few rounds; the thresholds
+    start from all records together)."""
+    pick = choose_part_thresholds if per_part else choose_threshold
+    threshold = pick([r for recs in records.values() for r in recs], max_false_accept)
     choice = choose(records, bar, threshold)
     for _ in range(4):
         chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
-        threshold = choose_threshold(chosen, max_false_accept)
+        threshold = pick(chosen, max_false_accept)
         again = choose(records, bar, threshold)
         if again == choice:
             break
@@ -261,3 +280,42 @@ def choose_threshold(
         if not fa > max_false_accept:  # NaN (nothing accepted) passes
             return threshold
     return grid[-1]
+
+
+# The trade-off prices choose_part_thresholds tries: wrong poses accepted, in right poses given up for each.
+_PRICES = (0.0, *np.geomspace(0.01, 1e4, 300))
+
+
+def choose_part_thresholds(
+    records: list[StrategyRecord], max_false_accept: float, grid: tuple[float, ...] = THRESHOLDS
+) -> dict[int, float]:
+    """A threshold on ``grid`` per obj_id of ``records`` such that the right estimates accepted, over all parts, are
+    as many as the false accepts over all parts (wrong among accepted) within ``max_false_accept`` allow.
+
+    One threshold for every part spends the false-accept budget where it buys least: a part whose confidence
+    separates right from wrong poses well loses right poses to a threshold set by a part where it does not. For
+    each price ``p`` (wrong poses accepted, in right ones), each part takes the threshold that maximises its
+    ``right - p x wrong`` accepted (ties: the higher threshold, the margin for views not in ``records``); the
+    richest choice within the budget wins. These are the optimal choices on the convex hull of the parts'
+    trade-offs; a part with no wrong estimate takes the highest threshold that keeps all its right ones. The grid's
+    last value for every part when no price meets the budget."""
+    by_part: dict[int, list[StrategyRecord]] = {}
+    for r in records:
+        by_part.setdefault(r.obj_id, []).append(r)
+    t = np.asarray(grid)[:, None]
+    counts = {}  # obj_id -> (right accepted, wrong accepted) per threshold of the grid
+    for obj_id, recs in by_part.items():
+        conf = np.array([r.confidence for r in recs])[None, :]
+        right = np.array([r.correct for r in recs])[None, :]
+        counts[obj_id] = (((conf >= t) & right).sum(axis=1), ((conf >= t) & ~right).sum(axis=1))
+    best, best_right = {obj_id: len(grid) - 1 for obj_id in by_part}, -1
+    for price in _PRICES:
+        pick = {}
+        for obj_id, (right, wrong) in counts.items():
+            gain = right - price * wrong
+            pick[obj_id] = int(np.flatnonzero(gain == gain.max())[-1])  # ties: the higher threshold
+        n_right = sum(int(counts[o][0][k]) for o, k in pick.items())
+        n_wrong = sum(int(counts[o][1][k]) for o, k in pick.items())
+        if n_wrong <= max_false_accept * (n_right + n_wrong) and n_right > best_right:
+            best, best_right = pick, n_right
+    return {obj_id: float(grid[k]) for obj_id, k in sorted(best.items())}

@@ -22,7 +22,8 @@ the support, which an under-segmenting detector missed): where depth cannot spea
 thin part whose top quantises to the floor's depth, a fragment of a buried part), the outline still does. With
 footprints (the verdict), a pixel the model's outline crosses counts neither way either. The pose's confidence is
 ``sqrt(fit * coverage * iou)`` in [0, 1] (the depth's agreement ``sqrt(fit * coverage)`` times the outline's
-``sqrt(iou)``); it is accepted when the confidence reaches ``min_confidence``.
+``sqrt(iou)``); it is accepted when the confidence reaches ``min_confidence`` (or the part's own threshold,
+``part_min_confidence``).
 
 The verdict (``verify(..., footprint=True)``) compares each pixel's observed depth with the range of the model's
 depth over the pixel's footprint (its centre and four corners, ray-cast where the model has a silhouette or a depth
@@ -42,7 +43,8 @@ a sub-pixel shift of an edge changes the depth by millimetres.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from typing import TYPE_CHECKING
 
@@ -66,7 +68,10 @@ class VerifyConfig:
         tolerance_fraction: depth agreement tolerance, x the object diameter ...
         tolerance_min_m: ... and at least this.
         depth_noise_m: the camera's depth noise (one standard deviation) at 1 m; 0 for exact depth.
-        min_confidence: a pose whose confidence is below this is refused.
+        min_confidence: a pose whose confidence is below this is refused ...
+        part_min_confidence: ... unless its part has a threshold of its own here (model name -> threshold in
+            [0, 1]; ``sygrid models choose-pose`` chooses them, so that each part is held to what tells its right
+            poses from its wrong ones).
         max_rays: rays cast at most per verification (a large window is sampled with a pixel stride).
         coarse_rays: rays cast at most for a coarse score (``align``, ranking unrefined hypotheses).
         window_margin_px: pixels added around the window (mask box united with the model's projected box).
@@ -79,6 +84,7 @@ class VerifyConfig:
     tolerance_min_m: float = 0.001
     depth_noise_m: float = 0.0
     min_confidence: float = 0.7
+    part_min_confidence: Mapping[str, float] = field(default_factory=dict)
     max_rays: int = 1500
     coarse_rays: int = 500
     window_margin_px: int = 4
@@ -100,6 +106,13 @@ class VerifyConfig:
                 "VerifyConfig: need min_confidence in [0, 1], max_rays and coarse_rays >= 16 and window_margin_px >= 0,"
                 f" got {self.min_confidence}, {self.max_rays}, {self.coarse_rays}, {self.window_margin_px}"
             )
+        bad = {name: t for name, t in self.part_min_confidence.items() if not 0.0 <= t <= 1.0}
+        if bad:
+            raise ValueError(f"VerifyConfig: part_min_confidence must be in [0, 1], got {bad}")
+
+    def threshold(self, part: str) -> float:
+        """The confidence a pose of the part named ``part`` needs to be accepted."""
+        return float(self.part_min_confidence.get(part, self.min_confidence))
 
     def for_sensor(self, sensor: SensorModel) -> VerifyConfig:
         """These settings for frames from ``sensor``: ``depth_noise_m`` at least the sensor's per-pixel depth noise at
@@ -113,8 +126,9 @@ class VerifyConfig:
 class Verification:
     """How well a pose agrees with the observation. Fractions in [0, 1]; counts in (strided) pixels.
 
-    ``confidence``: ``sqrt(fit * coverage * iou)``; ``accepted``: ``confidence >= min_confidence``. ``rmse_m``: the RMS
-    depth residual of the inliers (the visible-surface discrepancy), NaN without inliers.
+    ``confidence``: ``sqrt(fit * coverage * iou)``; ``accepted``: ``confidence >=`` the part's threshold
+    (``VerifyConfig.threshold``). ``rmse_m``: the RMS depth residual of the inliers (the visible-surface
+    discrepancy), NaN without inliers.
     """
 
     confidence: float
@@ -363,7 +377,7 @@ class PoseVerifier:
         rmse = float(np.sqrt(np.mean(np.square(residual[inlier])))) if n_inlier else math.nan
         return Verification(
             confidence=confidence,
-            accepted=confidence >= cfg.min_confidence,
+            accepted=confidence >= cfg.threshold(model.name),
             fit=fit,
             coverage=coverage,
             iou=iou,

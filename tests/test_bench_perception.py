@@ -187,15 +187,15 @@ def test_a_stopped_run_resumes_from_its_checkpoint_without_measuring_a_finished_
     passes: list[str] = []
     real_measure = bench.measure
 
-    def counted(pipeline, runner, path, *rest):
+    def counted(pipeline, runner, path, *rest, **options):
         passes.append(Path(path).name)
-        return real_measure(pipeline, runner, path, *rest)
+        return real_measure(pipeline, runner, path, *rest, **options)
 
-    def stopped_at_noisy(pipeline, runner, path, *rest):
+    def stopped_at_noisy(pipeline, runner, path, *rest, **options):
         passes.append(Path(path).name)
         if Path(path) == noisy_dataset:
             raise KeyboardInterrupt  # the run is stopped during its second stage
-        return real_measure(pipeline, runner, path, *rest)
+        return real_measure(pipeline, runner, path, *rest, **options)
 
     monkeypatch.setattr(bench, "measure", stopped_at_noisy)
     with pytest.raises(KeyboardInterrupt):

@@ -24,6 +24,7 @@ from perception.strategy_eval import (
     StrategyRecord,
     choose,
     choose_all,
+    choose_part_thresholds,
     choose_threshold,
     summarize,
     visibility_gates,
@@ -153,12 +154,36 @@ def test_the_choice_is_the_cheapest_strategy_that_meets_the_bar_else_the_most_ac
     assert choose(records, 0.95, 0.9) == {1: "depth+icp", 2: "depth+icp"}
     # at 0.975 rgbd+icp's 0.97 are refused; on part 2 everything is, and the cheaper of the two stays
     assert choose(records, 0.9, 0.975) == {1: "depth+icp", 2: "rgbd+icp"}
-    assert choose_all(records, 0.9, 0.2) == ({1: "rgbd+icp", 2: "depth+icp"}, 0.5)
+    assert choose_all(records, 0.9, 0.2, per_part=False) == ({1: "rgbd+icp", 2: "depth+icp"}, 0.5)
+    assert choose_all(records, 0.9, 0.2) == ({1: "rgbd+icp", 2: "depth+icp"}, {1: 0.97, 2: 0.9})
     mixed = [_record(1, "s", True, 1.0, 0.9 + 0.001 * k) for k in range(99)] + [_record(1, "s", False, 1.0, 0.92)]
     assert choose_threshold(mixed, 0.0) == 0.93  # the one wrong estimate (0.92) is refused from 0.93 on
     row = summarize(mixed, 0.93)
     assert row["false_accept"] == 0.0 and row["wrong_class_accept"] == 0.0 and row["n"] == 100
     assert math.isclose(row["false_refuse"], 30 / 99)
+
+
+def test_thresholds_per_part_spend_the_false_accept_budget_where_it_buys_most():
+    """Part 1's confidence tells right from wrong at 0.85, part 2's only at 0.97: one threshold that refuses every
+    wrong estimate refuses all of part 1's right ones too. Part 3's one wrong estimate lies between its right ones:
+    accepting it keeps five more right ones, which a 5 % budget allows and a zero budget does not."""
+    records = (
+        [_record(1, "s", True, 1.0, 0.85)] * 10 + [_record(1, "s", False, 1.0, 0.80)]
+        + [_record(2, "s", True, 1.0, 0.97)] * 10 + [_record(2, "s", False, 1.0, 0.95)]
+        + [_record(3, "s", True, 1.0, 0.90)] * 5 + [_record(3, "s", False, 1.0, 0.88)]
+        + [_record(3, "s", True, 1.0, 0.86)] * 5
+    )  # fmt: skip
+    strict = choose_part_thresholds(records, 0.0)
+    assert strict == {1: 0.85, 2: 0.97, 3: 0.9}  # ties: the highest threshold that keeps the same right ones
+    one = choose_threshold(records, 0.0)
+    assert one == 0.96
+    per_part, single = summarize(records, strict), summarize(records, one)
+    assert per_part["false_accept"] == single["false_accept"] == 0.0
+    assert per_part["accepted_recall"] == 25 / 33 and single["accepted_recall"] == 10 / 33
+    budget = choose_part_thresholds(records, 0.05)
+    assert budget == {1: 0.85, 2: 0.97, 3: 0.86}
+    assert math.isclose(summarize(records, budget)["false_accept"], 1 / 31)
+    assert choose_part_thresholds([_record(1, "s", False, 1.0, 0.999)], 0.0) == {1: 0.99}  # none meets it: the last
 
 
 def test_the_manifest_choice_round_trip(tmp_path: Path):
@@ -172,8 +197,19 @@ def test_the_manifest_choice_round_trip(tmp_path: Path):
     pipeline = PerceptionPipeline.from_folder(folder)
     assert {pipeline.models[i].name: s for i, s in pipeline.strategies.items()} == choice
     assert pipeline.runner.verifier.config.min_confidence == 0.93
+    write_choice(folder, choice, 0.93, {names[0]: 0.81})
+    config = PerceptionPipeline.from_folder(folder).runner.verifier.config
+    assert config.threshold(names[0]) == 0.81 and config.threshold(names[1]) == 0.93
+    write_choice(folder, choice, 0.93)  # one threshold again: the parts' own are removed
+    assert load_manifest(folder).verify.part_min_confidence == {}
     data = json.loads((folder / "manifest.json").read_text())
     assert data["detector"]["onnx"] == "detector.onnx"  # everything else kept
+    too_high = rf"verify.part_min_confidence.{names[0]}: must be <= 1.0, got 1.5"
+    for bad, message in (({"sprocket": 0.8}, "verify.part_min_confidence: no object named sprocket"),
+                         ({names[0]: 1.5}, too_high)):  # fmt: skip
+        (folder / "manifest.json").write_text(json.dumps({**data, "verify": {"part_min_confidence": bad}}))
+        with pytest.raises(ConfigError, match=rf"manifest.json: {message}"):
+            PerceptionPipeline.from_folder(folder)
     data["pose"]["strategies"][names[0]] = "depth+magic"
     (folder / "manifest.json").write_text(json.dumps(data))
     with pytest.raises(ConfigError, match=rf"manifest.json: pose.strategies: .*{names[0]}: unknown pose strategy"):

@@ -50,6 +50,20 @@ def test_the_true_pose_is_accepted_and_wrong_poses_refused(scene, k, model):
         assert not v.accepted and v.confidence < true.confidence - 0.2, v
 
 
+def test_a_part_is_held_to_its_own_threshold_where_it_has_one(scene):
+    obs, T = _obs(scene, 0, NUT), scene.poses[0].copy()
+    T[0, 3] += 0.1 * NUT.diameter_m  # a pose the outline agrees with in part
+    confidence = PoseVerifier().verify(T, NUT, obs).confidence
+    assert 0.1 < confidence < 0.99
+    strict = VerifyConfig(min_confidence=0.0, part_min_confidence={"hex_nut": min(confidence + 0.01, 1.0)})
+    lenient = VerifyConfig(min_confidence=1.0, part_min_confidence={"hex_nut": confidence - 0.01})
+    assert not PoseVerifier(strict).verify(T, NUT, obs).accepted
+    assert PoseVerifier(lenient).verify(T, NUT, obs).accepted
+    assert strict.threshold("washer") == 0.0 and lenient.threshold("washer") == 1.0  # the others: min_confidence
+    with pytest.raises(ValueError, match="part_min_confidence must be in"):
+        VerifyConfig(part_min_confidence={"hex_nut": 1.5})
+
+
 @pytest.mark.parametrize(("k", "model"), [(0, NUT), (1, WASHER), (2, BRACKET)])
 def test_a_half_pixel_error_costs_little(scene, k, model):
     """The true pose seen half a pixel off (the principal point moved): an edge is known to a pixel at best, so the

@@ -7,7 +7,7 @@ fraction, nominal size in image pixels (``fx * diameter / z``) and, per method, 
   box or the whole frame (``perception.detector_eval.run_detector``); found = matched by a detection of its part
   with mask IoU >= ``match_iou`` (``sygrid.detection_breakdown.match_instances``);
 - pose strategies with ground-truth masks (``perception.strategy_eval.evaluate_strategies``): success = ADD(-S) <
-  0.1 d and accepted by the verification at the manifest's ``verify.min_confidence`` (refused counts as a failure);
+  0.1 d and accepted by the verification at the manifest's thresholds (refused counts as a failure);
   ``any_correct`` keeps ADD(-S) < 0.1 d before the verification.
 
 Frames may go through a sensor model first (``sensing``: the exact depth sensed again, seeded per image). A pass is
@@ -67,10 +67,11 @@ class PerceptionStack:
         return PerceptionPipeline.from_folder(self.models_dir, PipelineOverrides(num_threads=self.threads))
 
     @cached_property
-    def min_confidence(self) -> float:
-        from perception.manifest import load_manifest
+    def min_confidence(self) -> dict[int, float]:
+        """obj_id -> the manifest's verification threshold for that part."""
+        from perception.manifest import MANIFEST_NAME, load_manifest
 
-        return float(load_manifest(self.models_dir).verify.min_confidence)
+        return load_manifest(self.models_dir).verify.thresholds(self.pipeline.models, self.models_dir / MANIFEST_NAME)
 
     @cached_property
     def runner(self):
@@ -203,7 +204,7 @@ def _measure(stack, data_dir, max_images, detection, sensor, frames, sensor_seed
         for r in recs:
             row = rows.setdefault(r.image, {"obj_id": obj_id, "visib": r.visib_fract, "nominal_px": None,
                                             "found": {}, "pose": {}, "any_correct": {}})  # fmt: skip
-            row["pose"][strategy] = bool(r.correct and r.confidence >= stack.min_confidence)
+            row["pose"][strategy] = bool(r.correct and r.confidence >= stack.min_confidence[obj_id])
             row["any_correct"][strategy] = bool(r.correct)
     return [{"instance": k, **v} for k, v in rows.items()]
 
