@@ -13,13 +13,14 @@ corrected on the bin's floor first (the manifest's ``depth_tare``) and the verif
 dataset's sensor (``VerifyConfig.for_sensor``). Several ``--data`` sets (the same views noise-free and through a
 sensor model, say) are measured each with its own sensor's settings and pooled. The choice per part is the
 cheapest strategy whose recall of accepted estimates reaches ``--bar`` (refused poses are dropped by the pipeline),
-else the most accurate; the verification thresholds, one per part, are those that accept the most right poses while
-the chosen strategies' false accepts over all parts stay within ``--max-false-accept``
-(``perception.strategy_eval.choose_part_thresholds``; ``--one-threshold``: one for every part, the lowest that
-does), the two chosen in turn until they agree. Writes ``MODELS/pose_strategies.json`` (every figure, the command
-and the data) and the choice into ``MODELS/manifest.json`` (``pose.strategies``, ``verify.part_min_confidence``
-and ``verify.min_confidence``: the one threshold for every part, which parts without their own use), both
-atomically.
+else the most accurate; the verification threshold is the lowest that keeps the chosen strategies' false accepts
+within ``--max-false-accept`` (with ``--per-part-thresholds`` one per part instead, those that accept the most right
+poses while the false accepts over all parts stay within it: ``perception.strategy_eval.choose_part_thresholds``),
+the two chosen in turn until they agree. Writes ``MODELS/pose_strategies.json`` (every figure, the command and the
+data) and the choice into ``MODELS/manifest.json`` (``pose.strategies``, ``verify.min_confidence``: the one
+threshold, and with ``--per-part-thresholds`` ``verify.part_min_confidence``), both atomically. Per-part thresholds
+fit the calibration views closer than one threshold does: measure them on a test set (``sygrid bench perception``)
+before shipping them.
 """
 
 from __future__ import annotations
@@ -52,7 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-false-accept", type=float, default=0.01, help="of the accepted estimates (0..1)")
     parser.add_argument("--strategies", default=None, help="comma-separated subset of the strategies (default: all)")
     parser.add_argument("--wrong-class", action="store_true", help="also fit every instance with another part's model")
-    parser.add_argument("--one-threshold", action="store_true", help="one verification threshold for every part")
+    parser.add_argument("--per-part-thresholds", action="store_true",
+                        help="a verification threshold per part (default: one for every part)")  # fmt: skip
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--dry-run", action="store_true", help="print the table, write nothing")
 
@@ -90,12 +92,13 @@ def run(args: argparse.Namespace) -> int:
         for key, recs in measured.items():
             records.setdefault(key, []).extend(recs)
         sets.append({"data": str(data), "sensor": sensor.name, "verify_depth_noise_m": verify.depth_noise_m})
-    choice, threshold = choose_all(records, args.bar, args.max_false_accept, per_part=not args.one_threshold)
+    choice, threshold = choose_all(records, args.bar, args.max_false_accept, per_part=args.per_part_thresholds)
     chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
     names = {obj_id: m.name for obj_id, m in models.items()}
-    one = choose_threshold(chosen, args.max_false_accept)  # for parts without their own threshold
+    one = choose_threshold(chosen, args.max_false_accept)  # the one threshold; with per-part ones, the default
     per_part = {names[obj_id]: t for obj_id, t in threshold.items()} if isinstance(threshold, dict) else {}
-    print(format_choice(records, choice, threshold, names, one))
+    beside = one if per_part else None  # per-part thresholds: the same choice at the one threshold beside them
+    print(format_choice(records, choice, threshold, names, beside))
     report = {
         "command": "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "sygrid models choose-pose",
         "data": sets,
@@ -111,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
             for (obj_id, s), recs in sorted(records.items())
         ],
         "chosen": summarize(chosen, threshold),
-        "chosen_one_threshold": summarize(chosen, one),
+        **({"chosen_one_threshold": summarize(chosen, one)} if per_part else {}),
     }
     if args.dry_run:
         return 0
@@ -122,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         f"`{report['command']}`: ground-truth masks, every strategy on every instance at least 10 % visible; the "
         "chosen strategy per part marked `*` (the cheapest whose accepted recall reaches the bar, else the most "
         f"accurate). Full figures: `{RESULTS_NAME}`.", "",
-        "```", format_choice(records, choice, threshold, names, one), "```",
+        "```", format_choice(records, choice, threshold, names, beside), "```",
     ])  # fmt: skip
     print(f"wrote {args.models / RESULTS_NAME}, the choice into {args.models / 'manifest.json'} and the table into "
           f"{args.models / 'pose.card.md'}")  # fmt: skip
@@ -161,9 +164,12 @@ def format_choice(
         f"{'part':<11}{'strategy':<12}{'n':>5}{'ADD(-S)':>9}{'accepted':>10}{'re deg':>8}{'te mm':>8}{'ms':>7}"
         f"{'CPU ms':>8}{'false acc':>10}{'false ref':>10}{'wrong cls':>10}"
     )
-    parts = sorted({obj_id for obj_id, _ in records})
-    thresholds = ", ".join(f"{names[o]} {threshold_of(threshold, o):.2f}" for o in parts)
-    lines = [f"verification thresholds: {thresholds} (fractions of the accepted / correct / wrong-class trials)", head]
+    if isinstance(threshold, int | float):
+        thresholds = f"threshold {threshold:.2f}"
+    else:
+        parts = sorted({obj_id for obj_id, _ in records})
+        thresholds = "thresholds " + ", ".join(f"{names[o]} {threshold_of(threshold, o):.2f}" for o in parts)
+    lines = [f"verification {thresholds} (fractions of the accepted / correct / wrong-class trials)", head]
     for (obj_id, s), recs in sorted(records.items()):
         mark = " *" if choice.get(obj_id) == s else ""
         lines.append(_row(names[obj_id], s + mark, summarize(recs, threshold)))

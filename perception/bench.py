@@ -22,12 +22,13 @@ through a stereo sensor model, e.g. ``launch/recipes/builtin_test_noisy.json``),
 
 The verification allows the depth noise of each dataset's sensor (``VerifyConfig.for_sensor``).
 
-Writes ``bench/results/perception.{json,png}``: accuracy against median milliseconds per object, one point per
-strategy, one panel per dataset, the targets (``TARGETS``) drawn, and with ``--thresholds`` a second row: end-to-end
-accuracy against the pipeline's median milliseconds per frame, one point per detector threshold; the printed table
-ends with every target and its measured value. Each dataset's pass and each threshold's is saved when done in
-``perception.partial.json`` beside the results: ``--resume`` goes on with a stopped run of the same settings (models,
-datasets, options and this package's code; another run's checkpoint is refused).
+Writes ``bench/results/NAME.{json,png}`` (``--name``, default ``perception``): accuracy against median milliseconds
+per object, one point per strategy, one panel per dataset, the targets (``TARGETS``) drawn, and with
+``--thresholds`` a second row: end-to-end accuracy against the pipeline's median milliseconds per frame, one point
+per detector threshold; the printed table ends with every target and its measured value. Each dataset's pass and
+each threshold's is saved when done in ``NAME.partial.json`` beside the results: ``--resume`` goes on with a
+stopped run of the same settings (models, datasets, options and this package's code; another run's checkpoint is
+refused).
 """
 
 from __future__ import annotations
@@ -476,10 +477,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated detector confidence thresholds to run end to end beside the manifest's",
     )
     parser.add_argument("--quick", action="store_true", help="20 images")
-    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved perception.json")
+    parser.add_argument("--name", default="perception", help="results file name (NAME.json, NAME.png)")
+    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
     parser.add_argument(
         "--resume", action="store_true",
-        help="go on with a stopped run of the same settings from its checkpoint (perception.partial.json)",
+        help="go on with a stopped run of the same settings from its checkpoint (NAME.partial.json)",
     )  # fmt: skip
 
 
@@ -511,7 +513,7 @@ def parse_thresholds(value: str | None) -> tuple[float, ...]:
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     if args.replot:
-        replot("perception", chart, out_dir)
+        replot(args.name, chart, out_dir)
         return 0
     strategies, thresholds = parse_strategies(args.strategies), parse_thresholds(args.thresholds)
     max_images = 20 if args.quick and args.max_images is None else args.max_images
@@ -523,7 +525,7 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         # the code that measures: a checkpoint of an older version is measured again, not mixed in
         "code": folder_digest(PACKAGE),
     }  # fmt: skip
-    checkpoint = StageCheckpoint(out_dir / "perception.partial.json", settings, resume=args.resume)
+    checkpoint = StageCheckpoint(out_dir / f"{args.name}.partial.json", settings, resume=args.resume)
     if checkpoint.done:
         print(f"resuming from {checkpoint.path}: {', '.join(checkpoint.done)} already measured")
     results = run_benchmark(
@@ -531,7 +533,7 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         wrong_class=args.wrong_class, thresholds=thresholds, checkpoint=checkpoint,
     )  # fmt: skip
     print(format_results(results))
-    json_path, png_path = save_results("perception", results, chart(results), out_dir)
+    json_path, png_path = save_results(args.name, results, chart(results), out_dir)
     checkpoint.finish()
     print(f"wrote {json_path} and {png_path}")
     return 0

@@ -251,12 +251,12 @@ def choose(
 
 
 def choose_all(
-    records: dict[tuple[int, str], list[StrategyRecord]], bar: float, max_false_accept: float, per_part: bool = True
+    records: dict[tuple[int, str], list[StrategyRecord]], bar: float, max_false_accept: float, per_part: bool = False
 ) -> tuple[dict[int, str], Thresholds]:
     """The strategy per obj_id (``choose``) and the verification thresholds that keep the chosen strategies' false
-    accepts within ``max_false_accept``: one per part (``choose_part_thresholds``), or with ``per_part`` False one
-    for all (``choose_threshold``); each chosen given the other until they agree (a few rounds; the thresholds
-    start from all records together)."""
+    accepts within ``max_false_accept``: one for all (``choose_threshold``), or with ``per_part`` one per part
+    (``choose_part_thresholds``); each chosen given the other until they agree (a few rounds; the thresholds start
+    from all records together)."""
     pick = choose_part_thresholds if per_part else choose_threshold
     threshold = pick([r for recs in records.values() for r in recs], max_false_accept)
     choice = choose(records, bar, threshold)

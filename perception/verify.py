@@ -70,8 +70,8 @@ class VerifyConfig:
         depth_noise_m: the camera's depth noise (one standard deviation) at 1 m; 0 for exact depth.
         min_confidence: a pose whose confidence is below this is refused ...
         part_min_confidence: ... unless its part has a threshold of its own here (model name -> threshold in
-            [0, 1]; ``sygrid models choose-pose`` chooses them, so that each part is held to what tells its right
-            poses from its wrong ones).
+            [0, 1]; ``sygrid models choose-pose --per-part-thresholds`` chooses them, so that each part is held to
+            what tells its right poses from its wrong ones).
         max_rays: rays cast at most per verification (a large window is sampled with a pixel stride).
         coarse_rays: rays cast at most for a coarse score (``align``, ranking unrefined hypotheses).
         window_margin_px: pixels added around the window (mask box united with the model's projected box).

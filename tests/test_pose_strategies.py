@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from launch.choose_pose import write_choice
+from launch.choose_pose import format_choice, write_choice
 from perception.manifest import load_manifest
 from perception.mask_cleanup import clean_mask, support_plane
 from perception.observation import Observation
@@ -154,8 +154,8 @@ def test_the_choice_is_the_cheapest_strategy_that_meets_the_bar_else_the_most_ac
     assert choose(records, 0.95, 0.9) == {1: "depth+icp", 2: "depth+icp"}
     # at 0.975 rgbd+icp's 0.97 are refused; on part 2 everything is, and the cheaper of the two stays
     assert choose(records, 0.9, 0.975) == {1: "depth+icp", 2: "rgbd+icp"}
-    assert choose_all(records, 0.9, 0.2, per_part=False) == ({1: "rgbd+icp", 2: "depth+icp"}, 0.5)
-    assert choose_all(records, 0.9, 0.2) == ({1: "rgbd+icp", 2: "depth+icp"}, {1: 0.97, 2: 0.9})
+    assert choose_all(records, 0.9, 0.2) == ({1: "rgbd+icp", 2: "depth+icp"}, 0.5)
+    assert choose_all(records, 0.9, 0.2, per_part=True) == ({1: "rgbd+icp", 2: "depth+icp"}, {1: 0.97, 2: 0.9})
     mixed = [_record(1, "s", True, 1.0, 0.9 + 0.001 * k) for k in range(99)] + [_record(1, "s", False, 1.0, 0.92)]
     assert choose_threshold(mixed, 0.0) == 0.93  # the one wrong estimate (0.92) is refused from 0.93 on
     row = summarize(mixed, 0.93)
@@ -184,6 +184,18 @@ def test_thresholds_per_part_spend_the_false_accept_budget_where_it_buys_most():
     assert budget == {1: 0.85, 2: 0.97, 3: 0.86}
     assert math.isclose(summarize(records, budget)["false_accept"], 1 / 31)
     assert choose_part_thresholds([_record(1, "s", False, 1.0, 0.999)], 0.0) == {1: 0.99}  # none meets it: the last
+
+
+def test_the_choice_table_names_its_thresholds_and_sets_per_part_ones_beside_the_one():
+    records = {(1, "s"): [_record(1, "s", True, 1.0, 0.85)] * 3, (2, "s"): [_record(2, "s", False, 1.0, 0.95)]}
+    names = {1: "hex_nut", 2: "washer"}
+    one = format_choice(records, {1: "s", 2: "s"}, 0.9, names)
+    assert one.startswith("verification threshold 0.90 ") and "one 0.90" not in one
+    per_part = format_choice(records, {1: "s", 2: "s"}, {1: 0.8, 2: 0.96}, names, 0.9).splitlines()
+    assert per_part[0].startswith("verification thresholds hex_nut 0.80, washer 0.96 ")
+    chosen, at_one = per_part[-2].split(), per_part[-1].split()
+    assert chosen[:2] == ["chosen", "4"] and chosen[-3] == "0.0%"  # false accepts: the washer's wrong one refused
+    assert at_one[:3] == ["chosen", "one", "0.90"] and at_one[-3] == "100.0%"  # at 0.90 only it is accepted
 
 
 def test_the_manifest_choice_round_trip(tmp_path: Path):
