@@ -95,9 +95,10 @@ def run(args: argparse.Namespace) -> int:
     choice, threshold = choose_all(records, args.bar, args.max_false_accept, per_part=args.per_part_thresholds)
     chosen = [r for (obj_id, s), recs in records.items() if choice[obj_id] == s for r in recs]
     names = {obj_id: m.name for obj_id, m in models.items()}
-    one = choose_threshold(chosen, args.max_false_accept)  # the one threshold; with per-part ones, the default
     per_part = {names[obj_id]: t for obj_id, t in threshold.items()} if isinstance(threshold, dict) else {}
-    beside = one if per_part else None  # per-part thresholds: the same choice at the one threshold beside them
+    # the one threshold; beside per-part ones, the default for other parts and the table's comparison row
+    one = choose_threshold(chosen, args.max_false_accept) if per_part else threshold
+    beside = one if per_part else None
     print(format_choice(records, choice, threshold, names, beside))
     report = {
         "command": "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "sygrid models choose-pose",

@@ -57,7 +57,6 @@ from perception.strategy_eval import (
     choose,
     evaluate_strategies,
     summarize,
-    threshold_of,
     visibility_gates,
 )
 from perception.verify import PoseVerifier
@@ -106,6 +105,7 @@ def run_benchmark(
     manifest = load_manifest(models_dir)
     pipeline = PerceptionPipeline.from_folder(models_dir, PipelineOverrides(num_threads=threads))
     min_confidence = manifest.verify.thresholds(pipeline.models, models_dir / MANIFEST_NAME)
+    one_threshold = manifest.verify.min_confidence if manifest.verify.part_min_confidence else None
     verify = manifest.verify.config()
     measured = tuple(dict.fromkeys([*strategies, *(pipeline.strategies or {}).values()]))
     conditions = {}
@@ -118,7 +118,7 @@ def run_benchmark(
         runner = pipeline.runner if pipeline.runner is not None else StrategyRunner(verifier=PoseVerifier(
             verify.for_sensor(sensor)))  # fmt: skip
         one_pass = partial(measure, pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress,
-                           one_threshold=manifest.verify.min_confidence)  # fmt: skip
+                           one_threshold=one_threshold)  # fmt: skip
         conditions[name] = {
             "dataset_sensor": sensors[name],
             "region": settings.region,
@@ -166,19 +166,15 @@ def measure(
     one_threshold: float | None = None,
 ) -> dict:
     """One dataset: the strategies with ground-truth masks (``pipeline.pose`` the network, ``runner`` the strategies;
-    accepted at ``min_confidence``, and the reference also at ``one_threshold`` where ``min_confidence`` holds other
-    values), the pipeline end to end, and the depth metrics."""
+    accepted at ``min_confidence``; ``one_threshold``, given where ``min_confidence`` holds per-part thresholds: the
+    reference counted at it too), the pipeline end to end, and the depth metrics."""
     names = {obj_id: m.name for obj_id, m in pipeline.models.items()}
     records = evaluate_strategies(runner, pipeline.pose, pipeline.models, data_dir, strategies, settings,
                                   wrong_class=wrong_class, progress=progress,
                                   tare=pipeline.depth_tare)  # fmt: skip
     gt_masks = gt_mask_summary(records, min_confidence, names, pipeline.strategies)
     choice = pipeline.strategies
-    if (
-        choice is not None
-        and one_threshold is not None
-        and {threshold_of(min_confidence, o) for o in names} != {one_threshold}
-    ):
+    if choice is not None and one_threshold is not None:
         chosen = summary_by_part(records, lambda o, s: choice.get(o) == s, one_threshold, names)
         gt_masks["reference_one_threshold"] = chosen
     if pipeline.strategies is not None:  # the same choice without the resting search (perception.resting)

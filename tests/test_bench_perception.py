@@ -113,13 +113,22 @@ def test_perfect_poses_score_one_and_the_counts_add_up(tiny_dataset: Path, noisy
     conditions = {}
     for name, data in (("ideal", tiny_dataset), ("noisy", noisy_dataset)):
         pipeline = _PerfectPipeline(data, models)
+        # noisy: per-part thresholds (every pose accepted), with the reference counted at the one threshold too
+        thresholds, one = (0.7, None) if name == "ideal" else ({obj_id: 0.0 for obj_id in models}, 0.7)
         conditions[name] = {
             "dataset_sensor": checked_sensor(name, data),
-            **measure(pipeline, StrategyRunner(), data, EvalSettings(max_images=2), ("rgb", "depth"), 0.7,
-                      progress=False),
+            **measure(pipeline, StrategyRunner(), data, EvalSettings(max_images=2), ("rgb", "depth"), thresholds,
+                      progress=False, one_threshold=one),
         }  # fmt: skip
         c = conditions[name]
         _check_consistent(c)
+        at_one = c["gt_masks"].get("reference_one_threshold")
+        if one is None:
+            assert at_one is None
+        else:
+            ref = c["gt_masks"]["reference"]["all"]
+            assert ref["accepted_recall"] == ref["add_recall"]  # threshold 0: nothing refused
+            assert at_one["all"]["n"] == ref["n"] and at_one["all"]["accepted_recall"] <= ref["accepted_recall"]
         rgb = c["gt_masks"]["strategies"]["rgb"]
         assert rgb["all"]["add_recall"] == 1.0 and all(r["add_recall"] == 1.0 for r in rgb["per_part"].values())
         assert rgb["all"]["median_te_mm"] == pytest.approx(0.0, abs=1e-6)
