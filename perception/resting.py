@@ -23,6 +23,7 @@ keeps its free fit).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -162,29 +163,52 @@ def planar_search(
     steps: tuple[tuple[float, float], ...],
 ) -> tuple[np.ndarray, Verification]:
     """The pose slid along the plane and turned about its normal (through the object's origin) while the
-    verification improves: steps of (fraction of the diameter, degrees) from ``steps``, coarse to fine,
-    the best of the six moves taken while it improves the confidence. The height and tilt stay as given."""
+    verification improves: steps of (fraction of the diameter, degrees) from ``steps``, coarse to fine. A compass
+    search: the six moves (two slides each way, a turn each way) are tried in turn, the last one that paid first,
+    and the first that improves the confidence is taken; a step size ends when none does. It evaluates fewer
+    poses than taking the best of all six each time (a walk in one direction costs one evaluation a step), and
+    every search ends where no move of the finest step improves. The height and tilt stay as given."""
     n = np.asarray(plane[:3], dtype=float)
     e1 = _perpendicular(n)
     e2 = np.cross(n, e1)
     T, v = np.array(T_camera_object, dtype=float), verifier.verify(T_camera_object, model, obs)
     for fraction, degrees in steps:
-        shift = fraction * float(model.diameter_m)
-        turns = [rotation_about(n, np.radians(s * degrees)) for s in (1.0, -1.0)]
-        while True:  # steepest ascent: the best of the moves, while it improves
-            tries = []
-            for sign in (1.0, -1.0):
-                for e in (e1, e2):
-                    T_try = T.copy()
-                    T_try[:3, 3] += sign * shift * e
-                    tries.append(T_try)
-            for turn in turns:
-                T_try = T.copy()
-                T_try[:3, :3] = turn @ T[:3, :3]
-                tries.append(T_try)
-            scored = [(verifier.verify(T_try, model, obs), T_try) for T_try in tries]
-            v_best, T_best = max(scored, key=lambda s: s[0].confidence)
-            if v_best.confidence <= v.confidence + 1e-3:
-                break
-            T, v = T_best, v_best
+        moves = _planar_moves(n, (e1, e2), fraction * float(model.diameter_m), np.radians(degrees))
+        first = 0
+        improved = True
+        while improved:
+            improved = False
+            for k in range(len(moves)):
+                i = (first + k) % len(moves)
+                T_try = moves[i](T)
+                v_try = verifier.verify(T_try, model, obs)
+                if v_try.confidence > v.confidence + 1e-3:
+                    T, v, first, improved = T_try, v_try, i, True
+                    break
     return T, v
+
+
+def _planar_moves(
+    n: np.ndarray, axes: tuple[np.ndarray, np.ndarray], shift_m: float, turn_rad: float
+) -> list[Callable[[np.ndarray], np.ndarray]]:
+    """The six moves of the planar search: slides by ``shift_m`` along each in-plane axis both ways, turns by
+    ``turn_rad`` about the normal ``n`` both ways (each a function of the pose, returning a new pose)."""
+
+    def slide(d: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        def move(T: np.ndarray) -> np.ndarray:
+            out = T.copy()
+            out[:3, 3] += d
+            return out
+
+        return move
+
+    def turn(R: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        def move(T: np.ndarray) -> np.ndarray:
+            out = T.copy()
+            out[:3, :3] = R @ T[:3, :3]
+            return out
+
+        return move
+
+    slides = [slide(sign * shift_m * e) for e in axes for sign in (1.0, -1.0)]
+    return slides + [turn(rotation_about(n, sign * turn_rad)) for sign in (1.0, -1.0)]

@@ -358,8 +358,7 @@ class PoseVerifier:
         # and no part of the outline either.
         reach = cfg.background_reach_fraction * model.diameter_m * obs.intrinsics.fx / T[2, 3] / stride
         reach = max(2, math.ceil(reach))
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
-        nearby = cv2.dilate(rendered.astype(np.float32), kernel)
+        nearby = cv2.dilate(rendered.astype(np.float32), _disc(reach))
         past = valid & ~hit & (nearby > 0) & (observed > nearby + self.tolerance_m(model, nearby))
         background = in_mask & past
         n_mask = int((in_mask & valid & ~background & ~(within & ~hit)).sum())
@@ -417,9 +416,16 @@ def mask_holes(mask: np.ndarray) -> np.ndarray:
     """(h, w) bool: the pixels outside ``mask`` that no 4-connected path of outside pixels joins to the border
     (``scipy.ndimage.binary_fill_holes(mask) & ~mask``). A flood fill from the border in OpenCV: one pass, where
     scipy's dilates to convergence, and this runs in every verification."""
-    padded = np.pad(mask.astype(np.uint8), 1)  # a free border joins every outside pixel that reaches the edge
+    # a free border joins every outside pixel that reaches the edge
+    padded = cv2.copyMakeBorder(mask.astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     cv2.floodFill(padded, None, (0, 0), 1, flags=4)
     return padded[1:-1, 1:-1] == 0
+
+
+@lru_cache(maxsize=32)
+def _disc(radius: int) -> np.ndarray:
+    """The elliptical structuring element of ``radius`` pixels (cached: every verification dilates with one)."""
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
 def _centre_range(rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

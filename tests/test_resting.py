@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from perception.observation import Observation
 from perception.pose_strategies import StrategyConfig, StrategyRunner
-from perception.resting import rest_on_support, stable_poses
+from perception.resting import _perpendicular, planar_search, rest_on_support, stable_poses
 from perception.verify import PoseVerifier, VerifyConfig
 from sygrid.metrics import pose_errors
 from sygrid.objects.parts import builtin_part
@@ -125,3 +126,35 @@ def test_bad_rest_settings_are_refused():
         StrategyConfig(rest_steps=((0.0, 1.0),))
     with pytest.raises(ValueError, match="rest_confident"):
         StrategyConfig(rest_confident=0.0)
+
+
+class _Counting:
+    """A verifier that counts the poses it is asked to verify."""
+
+    def __init__(self, verifier: PoseVerifier) -> None:
+        self.verifier, self.calls = verifier, 0
+
+    def verify(self, *args, **kwargs):
+        self.calls += 1
+        return self.verifier.verify(*args, **kwargs)
+
+
+def test_the_planar_search_walks_a_slid_and_turned_part_back_one_evaluation_a_step():
+    T_true = on_floor(NUT, 0.0, 0.0, 20.0)
+    seen = render([(NUT, T_true)])
+    crop = Observation.of_detection(seen.depth, detection(NUT, seen.masks[0]), CAMERA)
+    obs = crop.with_mask(crop.mask, FLOOR)
+    step_m = 0.05 * NUT.diameter_m
+    start = T_true.copy()
+    start[:3, 3] -= 4 * step_m * _perpendicular(NORMAL)  # four steps of the first move (the first in-plane axis)
+    counting = _Counting(PoseVerifier())
+    T, v = planar_search(start, NUT, obs, FLOOR, counting, ((0.05, 5.0),))
+    np.testing.assert_allclose(T, T_true, atol=1e-9)
+    assert v.confidence > 0.99
+    # one evaluation to start, one for each step of the walk (the move that paid is tried first), then the six
+    # moves that confirm no step improves: steepest ascent would have evaluated all six moves for every step
+    assert counting.calls == 1 + 4 + 6
+    turned = T_true.copy()
+    turned[:3, :3] = rotation_about(NORMAL, np.radians(-15.0)) @ T_true[:3, :3]  # three turns of 5 degrees
+    T, _ = planar_search(turned, NUT, obs, FLOOR, PoseVerifier(), ((0.05, 5.0),))
+    assert pose_errors(T, T_true, NUT).re_deg < 0.1
