@@ -23,7 +23,6 @@ keeps its free fit).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -180,7 +179,7 @@ def planar_search(
             improved = False
             for k in range(len(moves)):
                 i = (first + k) % len(moves)
-                T_try = moves[i](T)
+                T_try = _moved(T, moves[i])
                 v_try = verifier.verify(T_try, model, obs)
                 if v_try.confidence > v.confidence + 1e-3:
                     T, v, first, improved = T_try, v_try, i, True
@@ -190,25 +189,17 @@ def planar_search(
 
 def _planar_moves(
     n: np.ndarray, axes: tuple[np.ndarray, np.ndarray], shift_m: float, turn_rad: float
-) -> list[Callable[[np.ndarray], np.ndarray]]:
-    """The six moves of the planar search: slides by ``shift_m`` along each in-plane axis both ways, turns by
-    ``turn_rad`` about the normal ``n`` both ways (each a function of the pose, returning a new pose)."""
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The six moves of the planar search as (shift [m], rotation) pairs: slides by ``shift_m`` along each in-plane
+    axis both ways, turns by ``turn_rad`` about the normal ``n`` both ways (``_moved`` applies one)."""
+    slides = [(sign * shift_m * e, np.eye(3)) for e in axes for sign in (1.0, -1.0)]
+    return slides + [(np.zeros(3), rotation_about(n, sign * turn_rad)) for sign in (1.0, -1.0)]
 
-    def slide(d: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-        def move(T: np.ndarray) -> np.ndarray:
-            out = T.copy()
-            out[:3, 3] += d
-            return out
 
-        return move
-
-    def turn(R: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-        def move(T: np.ndarray) -> np.ndarray:
-            out = T.copy()
-            out[:3, :3] = R @ T[:3, :3]
-            return out
-
-        return move
-
-    slides = [slide(sign * shift_m * e) for e in axes for sign in (1.0, -1.0)]
-    return slides + [turn(rotation_about(n, sign * turn_rad)) for sign in (1.0, -1.0)]
+def _moved(T: np.ndarray, move: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """``T`` shifted by the move's shift and turned by its rotation about the object's origin."""
+    shift, R = move
+    out = T.copy()
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] += shift
+    return out
