@@ -94,11 +94,14 @@ def run_benchmark(
     thresholds: tuple[float, ...] = (),
     progress: bool = True,
     checkpoint: StageCheckpoint | None = None,
+    search_bars: tuple[float, ...] = (),
 ) -> dict:
     """Measures ``strategies`` (and the manifest's chosen ones) with ground-truth masks and the folder's pipeline end
     to end on each dataset, also at each detector confidence threshold of ``thresholds``; returns the results as a
-    JSON-able dict (``conditions`` "ideal" and, with ``noisy_dir``, "noisy"). With a ``checkpoint``, each dataset's
-    pass and each threshold's is a stage: saved when done, not measured again when the checkpoint has it."""
+    JSON-able dict (``conditions`` "ideal" and, with ``noisy_dir``, "noisy"); ``search_bars``: the manifest's choice
+    again with each of these as the search's stopping bar (``StrategyConfig.good_confidence``). With a
+    ``checkpoint``, each dataset's pass and each threshold's is a stage: saved when done, not measured again when the
+    checkpoint has it."""
     stages = checkpoint or StageCheckpoint.in_memory()
     datasets = {"ideal": Path(data_dir), **({"noisy": Path(noisy_dir)} if noisy_dir is not None else {})}
     sensors = {name: checked_sensor(name, path) for name, path in datasets.items()}
@@ -118,7 +121,7 @@ def run_benchmark(
         runner = pipeline.runner if pipeline.runner is not None else StrategyRunner(verifier=PoseVerifier(
             verify.for_sensor(sensor)))  # fmt: skip
         one_pass = partial(measure, pipeline, runner, path, settings, measured, min_confidence, wrong_class, progress,
-                           one_threshold=one_threshold)  # fmt: skip
+                           one_threshold=one_threshold, search_bars=search_bars)  # fmt: skip
         conditions[name] = {
             "dataset_sensor": sensors[name],
             "region": settings.region,
@@ -164,10 +167,12 @@ def measure(
     wrong_class: bool = False,
     progress: bool = True,
     one_threshold: float | None = None,
+    search_bars: tuple[float, ...] = (),
 ) -> dict:
     """One dataset: the strategies with ground-truth masks (``pipeline.pose`` the network, ``runner`` the strategies;
     accepted at ``min_confidence``; ``one_threshold``, given where ``min_confidence`` holds per-part thresholds: the
-    reference counted at it too), the pipeline end to end, and the depth metrics."""
+    reference counted at it too; the manifest's choice again without the resting search and at each of
+    ``search_bars``), the pipeline end to end, and the depth metrics."""
     names = {obj_id: m.name for obj_id, m in pipeline.models.items()}
     records = evaluate_strategies(runner, pipeline.pose, pipeline.models, data_dir, strategies, settings,
                                   wrong_class=wrong_class, progress=progress,
@@ -177,11 +182,11 @@ def measure(
     if choice is not None and one_threshold is not None:
         chosen = summary_by_part(records, lambda o, s: choice.get(o) == s, one_threshold, names)
         gt_masks["reference_one_threshold"] = chosen
-    if pipeline.strategies is not None:  # the same choice without the resting search (perception.resting)
-        no_rest = StrategyRunner(runner.icp_config, runner.verifier, runner.cleanup, replace(runner.config, rest=False))
-        off = evaluate_strategies(no_rest, pipeline.pose, pipeline.models, data_dir, (), settings, progress=progress,
-                                  tare=pipeline.depth_tare, per_part=pipeline.strategies)  # fmt: skip
-        gt_masks["reference_without_rest"] = summary_by_part(off, lambda o, s: True, min_confidence, names)
+    if pipeline.strategies is not None:  # the same choice with other search settings
+        again = partial(_choice_with, pipeline, runner, data_dir, settings, min_confidence, names, progress)
+        gt_masks["reference_without_rest"] = again(rest=False)  # perception.resting's share
+        if search_bars:
+            gt_masks["reference_at_search_bar"] = {f"{b:g}": again(good_confidence=b) for b in search_bars}
     report = evaluate(pipeline, data_dir, settings, progress=progress)
     return {
         "data": str(data_dir),
@@ -193,6 +198,25 @@ def measure(
         "gt_masks": gt_masks,
         "end_to_end": end_to_end_summary(report),
     }
+
+
+def _choice_with(
+    pipeline: PerceptionPipeline,
+    runner: StrategyRunner,
+    data_dir: Path,
+    settings: EvalSettings,
+    min_confidence: Thresholds,
+    names: dict[int, str],
+    progress: bool,
+    **changes,
+) -> dict:
+    """The manifest's choice with ground-truth masks, ``runner``'s search settings changed by ``changes``
+    (``StrategyConfig`` fields), summarised per part."""
+    config = replace(runner.config, **changes)
+    varied = StrategyRunner(runner.icp_config, runner.verifier, runner.cleanup, config)
+    records = evaluate_strategies(varied, pipeline.pose, pipeline.models, data_dir, (), settings, progress=progress,
+                                  tare=pipeline.depth_tare, per_part=pipeline.strategies)  # fmt: skip
+    return summary_by_part(records, lambda o, s: True, min_confidence, names)
 
 
 def end_to_end_at(
@@ -355,6 +379,11 @@ def _panel(ax, name: str, c: dict, strategies: list[str]) -> None:
         off = c["gt_masks"]["reference_without_rest"]["all"]
         ax.scatter(off["median_ms"], off["accepted_recall"], marker="D", s=50, facecolors="none", edgecolors="k",
                    label="the same without resting")  # fmt: skip
+    for k, (bar, r) in enumerate(c["gt_masks"].get("reference_at_search_bar", {}).items()):
+        ax.scatter(r["all"]["median_ms"], r["all"]["accepted_recall"], marker="s", s=40, facecolors="none",
+                   edgecolors="k", label="the same, other search bars" if k == 0 else None)  # fmt: skip
+        ax.annotate(bar, (r["all"]["median_ms"], r["all"]["accepted_recall"]), fontsize=7,
+                    textcoords="offset points", xytext=(4, -8))  # fmt: skip
     if e2e["ms_per_object_median"] is not None:
         ax.scatter(e2e["ms_per_object_median"], e2e["all"]["add_recall"], marker="*", s=140, color="k",
                    label="end to end")  # fmt: skip
@@ -404,6 +433,8 @@ def _gt_mask_lines(g: dict) -> list[str]:
         rows["  the same, no resting"] = g["reference_without_rest"]["all"]
     if "reference_one_threshold" in g:
         rows["  the same, one threshold"] = g["reference_one_threshold"]["all"]
+    for bar, r in g.get("reference_at_search_bar", {}).items():
+        rows[f"  the same, bar {bar}"] = r["all"]
     lines = [head] + [_row(s, r) for s, r in rows.items()]
     parts = list(next(iter(g["strategies"].values()))["per_part"]) if g["strategies"] else []
     lines.append(f"{'accepted recall per part':<24}" + "".join(f"{s:>14}" for s in g["strategies"]))
@@ -472,6 +503,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="comma-separated detector confidence thresholds to run end to end beside the manifest's",
     )
+    parser.add_argument(
+        "--search-bars", default=None,
+        help="comma-separated stopping bars of the pose search (StrategyConfig.good_confidence, in (0, 1]) to run the "
+        "manifest's choice at beside its own",
+    )  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="20 images")
     parser.add_argument("--name", default="perception", help="results file name (NAME.json, NAME.png)")
     parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
@@ -496,14 +532,26 @@ def parse_strategies(value: str | None) -> tuple[str, ...]:
 
 def parse_thresholds(value: str | None) -> tuple[float, ...]:
     """``--thresholds``: the confidence thresholds in order (none without a value); each in (0, 1)."""
+    return _fractions(value, "--thresholds", "(0, 1)", lambda t: 0.0 < t < 1.0)
+
+
+def parse_search_bars(value: str | None) -> tuple[float, ...]:
+    """``--search-bars``: the search's stopping bars in order (none without a value); each in (0, 1]."""
+    return _fractions(value, "--search-bars", "(0, 1]", lambda t: 0.0 < t <= 1.0)
+
+
+def _fractions(value: str | None, option: str, interval: str, valid: Callable[[float], bool]) -> tuple[float, ...]:
+    """Comma-separated numbers in order (none without a value); a ConfigError naming ``option`` unless each is
+    ``valid``."""
     if value is None:
         return ()
+    error = ConfigError(f"{option} {value!r}: expected comma-separated numbers in {interval}")
     try:
         out = tuple(float(t) for t in value.split(",") if t.strip())
     except ValueError:
-        raise ConfigError(f"--thresholds {value!r}: expected comma-separated numbers in (0, 1)") from None
-    if not out or not all(0.0 < t < 1.0 for t in out):
-        raise ConfigError(f"--thresholds {value!r}: expected comma-separated numbers in (0, 1)")
+        raise error from None
+    if not out or not all(valid(t) for t in out):
+        raise error
     return out
 
 
@@ -512,12 +560,13 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         replot(args.name, chart, out_dir)
         return 0
     strategies, thresholds = parse_strategies(args.strategies), parse_thresholds(args.thresholds)
+    search_bars = parse_search_bars(args.search_bars)
     max_images = 20 if args.quick and args.max_images is None else args.max_images
     settings = {
         "models": folder_digest(args.models), "data": dataset_digest(args.data),
         "noisy_data": None if args.noisy_data is None else dataset_digest(args.noisy_data),
         "strategies": strategies, "max_images": max_images, "threads": args.threads, "wrong_class": args.wrong_class,
-        "thresholds": thresholds,
+        "thresholds": thresholds, "search_bars": search_bars,
         # the code that measures: a checkpoint of an older version is measured again, not mixed in
         "code": folder_digest(PACKAGE),
     }  # fmt: skip
@@ -526,7 +575,7 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         print(f"resuming from {checkpoint.path}: {', '.join(checkpoint.done)} already measured")
     results = run_benchmark(
         args.models, args.data, args.noisy_data, strategies=strategies, max_images=max_images, threads=args.threads,
-        wrong_class=args.wrong_class, thresholds=thresholds, checkpoint=checkpoint,
+        wrong_class=args.wrong_class, thresholds=thresholds, checkpoint=checkpoint, search_bars=search_bars,
     )  # fmt: skip
     print(format_results(results))
     json_path, png_path = save_results(args.name, results, chart(results), out_dir)

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from perception.depth_tare import TareConfig
-from perception.pose_strategies import STRATEGIES
+from perception.pose_strategies import STRATEGIES, StrategyConfig
 from perception.tiling import DEFAULT_TILE_OVERLAP
 from perception.verify import VerifyConfig
 from sygrid.drop import resolve_parts
@@ -52,6 +52,9 @@ class PoseEntry(_Strict):
     method: Literal["direct", "pnp"] = "direct"
     # part name -> pose strategy (perception.pose_strategies.STRATEGIES); None: the network + the refiner
     strategies: dict[str, str] | None = None
+    # the strategies' search ends once a fit's depth agreement reaches this (StrategyConfig.good_confidence): lower
+    # is faster under depth noise and accepts fewer right poses (sygrid bench perception --search-bars)
+    search_bar: float = Field(default=StrategyConfig().good_confidence, gt=0, le=1)
 
     @field_validator("strategies")
     @classmethod

@@ -70,7 +70,7 @@ from perception.manifest import (
     tare_config,
 )
 from perception.pose import PoseEstimator
-from perception.pose_strategies import NETWORK_STRATEGIES, StrategyRunner
+from perception.pose_strategies import NETWORK_STRATEGIES, StrategyConfig, StrategyRunner
 from perception.refine import DepthRefiner, RefineConfig
 from perception.results import Detection, ObjectPose
 from perception.tiling import ViewSettings
@@ -223,7 +223,8 @@ class PerceptionPipeline:
         if manifest.pose.strategies is not None and o.pose_method is None and o.refine is None:
             strategies = strategy_ids(manifest.pose.strategies, models, folder / MANIFEST_NAME)
             manifest.verify.thresholds(models, folder / MANIFEST_NAME)  # every part it names is one of the objects
-            runner = StrategyRunner(verifier=PoseVerifier(manifest.verify.config()))
+            search = StrategyConfig(good_confidence=manifest.pose.search_bar)
+            runner = StrategyRunner(verifier=PoseVerifier(manifest.verify.config()), config=search)
         pipeline = cls(
             detector,
             pose,

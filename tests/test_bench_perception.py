@@ -19,6 +19,7 @@ from perception.bench import (
     checked_sensor,
     format_results,
     measure,
+    parse_search_bars,
     parse_strategies,
     parse_thresholds,
     run,
@@ -157,7 +158,7 @@ def test_perfect_poses_score_one_and_the_counts_add_up(tiny_dataset: Path, noisy
 def test_the_command_on_the_shipped_models(tiny_dataset: Path, noisy_dataset: Path, tmp_path: Path):
     argv = ["bench", "--out-dir", str(tmp_path), "perception", "--models", str(ROOT / "models" / "builtin"),
             "--data", str(tiny_dataset), "--noisy-data", str(noisy_dataset), "--max-images", "1",
-            "--strategies", "rgb,depth", "--thresholds", "0.1"]  # fmt: skip
+            "--strategies", "rgb,depth", "--thresholds", "0.1", "--search-bars", "1,0.5"]  # fmt: skip
     args = build_parser("bench").parse_args(argv)
     assert run(args, out_dir=args.out_dir) == 0
     results = json.loads((tmp_path / "perception.json").read_text())
@@ -171,6 +172,9 @@ def test_the_command_on_the_shipped_models(tiny_dataset: Path, noisy_dataset: Pa
         # the choice measured again without the resting search: the same instances
         ablation, reference = condition["gt_masks"]["reference_without_rest"], condition["gt_masks"]["reference"]
         assert ablation["all"]["n"] == reference["all"]["n"] and set(ablation["per_part"]) == set(reference["per_part"])
+        # and at each stopping bar of the search, in the order given
+        bars = condition["gt_masks"]["reference_at_search_bar"]
+        assert list(bars) == ["1", "0.5"] and all(b["all"]["n"] == reference["all"]["n"] for b in bars.values())
         # the visibility gates: the ungated row is the reference's own, gating never accepts more
         gates = reference["visibility_gates"]
         assert [g["min_visible"] for g in gates] == [0.1, 0.2, 0.3, 0.4, 0.5]
@@ -243,3 +247,7 @@ def test_bad_arguments_name_the_flag(tiny_dataset: Path, noisy_dataset: Path):
     for bad in ("0.3,x", "1.5", ","):
         with pytest.raises(ConfigError, match="--thresholds"):
             parse_thresholds(bad)
+    assert parse_search_bars("0.95,1") == (0.95, 1.0) and parse_search_bars(None) == ()
+    for bad in ("0", "1.01", "a"):
+        with pytest.raises(ConfigError, match=r"--search-bars .*: expected comma-separated numbers in \(0, 1\]"):
+            parse_search_bars(bad)

@@ -32,6 +32,7 @@ from perception.strategy_eval import (
 from sygrid.errors import ConfigError
 from sygrid.metrics import pose_errors
 from sygrid.objects.parts import builtin_part
+from sygrid.sensor import sensor_preset
 from sygrid.transforms import make_T, rotation_about
 from tests.raycast_scene import CAMERA, T_CAMERA_FLOOR, blob, detection, on_floor, render
 
@@ -222,6 +223,16 @@ def test_the_manifest_choice_round_trip(tmp_path: Path):
         (folder / "manifest.json").write_text(json.dumps({**data, "verify": {"part_min_confidence": bad}}))
         with pytest.raises(ConfigError, match=rf"manifest.json: {message}"):
             PerceptionPipeline.from_folder(folder)
+    (folder / "manifest.json").write_text(json.dumps(data))
+    assert PerceptionPipeline.from_folder(folder).runner.config.good_confidence == 0.95  # the search bar's default
+    (folder / "manifest.json").write_text(json.dumps({**data, "pose": {**data["pose"], "search_bar": 0.92}}))
+    pipeline = PerceptionPipeline.from_folder(folder)
+    assert pipeline.runner.config.good_confidence == 0.92
+    pipeline.use_sensor(sensor_preset("oak-d"))  # a sensor changes the verification, not the search
+    assert pipeline.runner.config.good_confidence == 0.92
+    (folder / "manifest.json").write_text(json.dumps({**data, "pose": {**data["pose"], "search_bar": 0}}))
+    with pytest.raises(ConfigError, match=r"manifest.json: pose.search_bar: must be > 0.0, got 0"):
+        load_manifest(folder)
     data["pose"]["strategies"][names[0]] = "depth+magic"
     (folder / "manifest.json").write_text(json.dumps(data))
     with pytest.raises(ConfigError, match=rf"manifest.json: pose.strategies: .*{names[0]}: unknown pose strategy"):
