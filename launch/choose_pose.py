@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from perception.evaluation import EvalSettings, frames_sensor
     from perception.manifest import load_manifest, manifest_models, tare_config
     from perception.pose import PoseEstimator
-    from perception.pose_strategies import STRATEGIES, StrategyConfig, StrategyRunner, check_strategy
+    from perception.pose_strategies import STRATEGIES, StrategyRunner, check_strategy
     from perception.strategy_eval import choose_all, choose_threshold, evaluate_strategies, summarize
     from perception.verify import PoseVerifier, VerifyConfig
 
@@ -86,9 +86,7 @@ def run(args: argparse.Namespace) -> int:
     for data in args.data:
         sensor = frames_sensor(data, settings)
         verify = VerifyConfig(depth_noise_m=manifest.verify.depth_noise_m).for_sensor(sensor)
-        runner = StrategyRunner(
-            verifier=PoseVerifier(verify), config=StrategyConfig(good_confidence=manifest.pose.search_bar)
-        )
+        runner = StrategyRunner(verifier=PoseVerifier(verify), config=manifest.pose.search_config())
         measured = evaluate_strategies(runner, network, models, data, strategies, settings, args.wrong_class,
                                        tare=tare.for_sensor(sensor) if tare is not None else None)  # fmt: skip
         for key, recs in measured.items():

@@ -179,10 +179,11 @@ def measure(
                                   tare=pipeline.depth_tare)  # fmt: skip
     gt_masks = gt_mask_summary(records, min_confidence, names, pipeline.strategies)
     choice = pipeline.strategies
-    if choice is not None and one_threshold is not None:
-        chosen = summary_by_part(records, lambda o, s: choice.get(o) == s, one_threshold, names)
-        gt_masks["reference_one_threshold"] = chosen
-    if pipeline.strategies is not None:  # the same choice with other search settings
+    if choice is not None:
+        if one_threshold is not None:
+            chosen = summary_by_part(records, lambda o, s: choice.get(o) == s, one_threshold, names)
+            gt_masks["reference_one_threshold"] = chosen
+        # the same choice with other search settings
         again = partial(_choice_with, pipeline, runner, data_dir, settings, min_confidence, names, progress)
         gt_masks["reference_without_rest"] = again(rest=False)  # perception.resting's share
         if search_bars:

@@ -56,6 +56,10 @@ class PoseEntry(_Strict):
     # is faster under depth noise and accepts fewer right poses (sygrid bench perception --search-bars)
     search_bar: float = Field(default=StrategyConfig().good_confidence, gt=0, le=1)
 
+    def search_config(self) -> StrategyConfig:
+        """The strategies' search settings this entry sets (the rest at their defaults)."""
+        return StrategyConfig(good_confidence=self.search_bar)
+
     @field_validator("strategies")
     @classmethod
     def _known_strategies(cls, value: dict[str, str] | None) -> dict[str, str] | None:

@@ -70,7 +70,7 @@ from perception.manifest import (
     tare_config,
 )
 from perception.pose import PoseEstimator
-from perception.pose_strategies import NETWORK_STRATEGIES, StrategyConfig, StrategyRunner
+from perception.pose_strategies import NETWORK_STRATEGIES, StrategyRunner
 from perception.refine import DepthRefiner, RefineConfig
 from perception.results import Detection, ObjectPose
 from perception.tiling import ViewSettings
@@ -223,8 +223,8 @@ class PerceptionPipeline:
         if manifest.pose.strategies is not None and o.pose_method is None and o.refine is None:
             strategies = strategy_ids(manifest.pose.strategies, models, folder / MANIFEST_NAME)
             manifest.verify.thresholds(models, folder / MANIFEST_NAME)  # every part it names is one of the objects
-            search = StrategyConfig(good_confidence=manifest.pose.search_bar)
-            runner = StrategyRunner(verifier=PoseVerifier(manifest.verify.config()), config=search)
+            verifier = PoseVerifier(manifest.verify.config())
+            runner = StrategyRunner(verifier=verifier, config=manifest.pose.search_config())
         pipeline = cls(
             detector,
             pose,
