@@ -22,7 +22,10 @@ observation's ``support``), every refined strategy (``+icp``, ``+search``) also 
 that surface in the nearest stable pose and slid and turned in its plane (``perception.resting``): it replaces the
 free fit when that needed a tilt of at most ``rest_max_tilt_deg`` and the verification rates it within
 ``rest_slack`` of the free fit (a free fit of a small part tilts and floats with the depth noise; a part leaning on
-a neighbour is no stable pose and keeps its free fit). Where too little of the part stands out of the support to
+a neighbour is no stable pose and keeps its free fit). A best ICP fit short of ``good_confidence`` is tried at rest
+before the escapes when levelling it alone brings it near the depth (``rest_first_gate``): under stereo noise that
+is how a right fit usually falls short, and confirming it at rest costs a few verifications where the escapes cost
+a dozen ICP runs. Where too little of the part stands out of the support to
 fit, the part is placed from its mask at rest on the support (``resting.mask_hypotheses``).
 
 The mask is cleaned with depth first (``perception.mask_cleanup``). The search ranks hypotheses by the verification
@@ -81,6 +84,8 @@ class StrategyConfig:
     rest_settled_deg, rest_settled_m: a fit that levelling turns and moves no more than this is left as it is.
     rest_confident: a free fit whose (ranking) depth agreement (``depth_confidence``) reaches this is left as it is
         (above 1: never).
+    rest_first_gate: a best ICP fit short of ``good_confidence`` is tried at rest before the escapes when levelling
+        it brings its depth agreement to this (``StrategyRunner._rest_first``; above 1: never).
     """
 
     icp_hypotheses: int = 3
@@ -99,16 +104,18 @@ class StrategyConfig:
     rest_settled_deg: float = 3.0
     rest_settled_m: float = 0.0015
     rest_confident: float = 0.99
+    rest_first_gate: float = 0.85
 
     def __post_init__(self) -> None:
         steps_ok = all(f > 0 and deg > 0 for f, deg in self.rest_steps)
-        bounds_ok = self.rest_settled_deg >= 0 and self.rest_settled_m >= 0 and self.rest_confident > 0
+        settled_ok = self.rest_settled_deg >= 0 and self.rest_settled_m >= 0
+        bounds_ok = settled_ok and min(self.rest_confident, self.rest_first_gate) > 0
         if not 0 <= self.rest_max_tilt_deg <= 180 or self.rest_slack < 0 or not steps_ok or not bounds_ok:
             raise ValueError(
                 "StrategyConfig: need rest_max_tilt_deg in [0, 180], rest_slack, rest_settled_deg and rest_settled_m"
-                " >= 0, rest_confident > 0 and positive rest_steps, got "
+                " >= 0, rest_confident and rest_first_gate > 0 and positive rest_steps, got "
                 f"{self.rest_max_tilt_deg}, {self.rest_slack}, {self.rest_settled_deg}, {self.rest_settled_m}, "
-                f"{self.rest_confident}, {self.rest_steps}"
+                f"{self.rest_confident}, {self.rest_first_gate}, {self.rest_steps}"
             )
         if self.icp_hypotheses < 1 or self.escape_rounds < 0 or self.min_points < 3 or self.align_steps < 0:
             raise ValueError(
@@ -273,12 +280,13 @@ class StrategyRunner:
                     hypotheses.append((T, f"axes_{k}"))
         if not hypotheses:
             return self._unverified(network_pose, strategy, "no hypothesis shows any surface to the camera", t0)
+        rested: dict[int, _Candidate] = {}  # id of a fit -> that fit at rest, where the search has levelled it
         if base == "rgb":  # the network's pose as it is: depth only verifies it
             candidates = [
                 _Candidate(hypotheses[0][0], hypotheses[0][1], self.verifier.verify(hypotheses[0][0], model, obs))
             ]
         elif refine:
-            candidates = self._search(hypotheses, scene, model, obs, quick=refine == "search")
+            candidates = self._search(hypotheses, scene, model, obs, rested, quick=refine == "search")
         else:
             candidates = []
             for T, src in hypotheses:
@@ -286,7 +294,7 @@ class StrategyRunner:
                 candidates.append(_Candidate(T_aligned, src, self.verifier.verify(T_aligned, model, obs)))
         best = max(candidates, key=lambda c: c.verification.confidence)
         if refine and self.config.rest and obs.support is not None:
-            best = self._rested(best, model, obs)
+            best = rested[id(best)] if id(best) in rested else self._rested(best, model, obs)
         return self._result(best, model, obs, detection, strategy, network_pose, len(hypotheses), cleanup, t0, c0)
 
     def _result(
@@ -328,13 +336,20 @@ class StrategyRunner:
         scene: np.ndarray,
         model: ObjectModel,
         obs: Observation,
+        rested: dict[int, _Candidate],
         quick: bool = False,
     ) -> list[_Candidate]:
-        """ICP from the best hypotheses (``quick``: ranked after a short ICP each); short of ``good_confidence``, from
-        the best fit's turns (``_turns``), then the slide search (``_polish``). Every fit comes back verified."""
+        """ICP from the best hypotheses (``quick``: ranked after a short ICP each); short of ``good_confidence``, the
+        best fit at rest where that is promising (``_rest_first``; ``rested`` keeps it, so that the final levelling
+        does not search again), then from the best fit's turns (``_turns``), then the slide search (``_polish``).
+        Every fit comes back verified."""
         cfg = self.config
         candidates = self._refine_ranked(hypotheses, scene, model, obs, quick)
         best = max(candidates, key=lambda c: c.verification.confidence)
+        if best.verification.depth_confidence < cfg.good_confidence and self._rest_first(best, model, obs):
+            rested[id(best)] = at_rest = self._rested(best, model, obs)
+            if at_rest.verification.depth_confidence >= cfg.good_confidence:
+                return [at_rest if c is best else c for c in candidates]
         for _ in range(cfg.escape_rounds):
             if best.verification.depth_confidence >= cfg.good_confidence:
                 break
@@ -360,6 +375,19 @@ class StrategyRunner:
             T, v = planar_search(T, model, obs, obs.support, self.verifier, self.config.rest_steps)
             out.append(_Candidate(T, source, v))
         return out
+
+    def _rest_first(self, best: _Candidate, model: ObjectModel, obs: Observation) -> bool:
+        """Whether to level the best ICP fit onto the support before escaping from it: its levelled pose's depth
+        agreement reaches ``rest_first_gate``. Under stereo noise a right fit of a small part tilts and floats short
+        of ``good_confidence``, and the search at rest (a few verifications) confirms it where the escapes (a dozen
+        ICP runs) would not; a fit that levelling does not bring near the depth is more likely the wrong one."""
+        cfg = self.config
+        if not cfg.rest or obs.support is None or cfg.rest_first_gate > 1:
+            return False
+        T, tilt = rest_on_support(best.T, model, obs.support)
+        if tilt > cfg.rest_max_tilt_deg:
+            return False
+        return self.verifier.verify(T, model, obs).depth_confidence >= cfg.rest_first_gate
 
     def _rested(self, best: _Candidate, model: ObjectModel, obs: Observation) -> _Candidate:
         """The best fit at rest on the observation's support where the verification agrees, else the fit itself."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from perception import pose_strategies
 from perception.observation import Observation
 from perception.pose_strategies import StrategyConfig, StrategyRunner
 from perception.resting import _perpendicular, planar_search, rest_on_support, stable_poses
@@ -119,6 +120,30 @@ def test_a_fit_to_noisy_depth_is_levelled_onto_the_floor():
     assert not trusting.details["hypothesis"].endswith("+rest")  # a free fit this confident is left as it is
 
 
+def test_a_noisy_fit_is_tried_at_rest_before_escaping_from_it(monkeypatch):
+    """Depth noise beyond the verification's allowance here leaves the right ICP fit short of the search's bar: the
+    fit levelled onto the floor is searched first and confirmed there, instead of escaping from it (turns, slides:
+    a dozen ICP runs more) and then polishing it."""
+    T_true = on_floor(NUT, 0.0, 0.0, 20.0)
+    seen = render([(NUT, T_true)])
+    noise = np.random.default_rng(1).normal(0.0, 0.003, seen.depth.shape)
+    noisy = np.where(seen.depth > 0, seen.depth + noise, 0.0).astype(np.float32)
+    det = detection(NUT, seen.masks[0])
+    runs = []
+    counted = pose_strategies.icp
+    monkeypatch.setattr(pose_strategies, "icp", lambda *a, **k: runs.append(1) or counted(*a, **k))
+    poses = {}
+    for gate in (0.85, 2.0):  # 2: never at rest first
+        runs.clear()
+        pose = _noisy_runner(rest_first_gate=gate).estimate("depth+icp", det, noisy, CAMERA, NUT, None, FLOOR)
+        poses[gate] = (pose, len(runs))
+    (first, n_first), (late, n_late) = poses[0.85], poses[2.0]
+    assert first.details["hypothesis"] == "axes_0+icp+rest" and n_first == 3  # the ranked starts only
+    assert "polish" in late.details["hypothesis"] and n_late > 10
+    for pose in (first, late):
+        assert pose.verified and pose_errors(pose.T_camera_object, T_true, NUT).correct()
+
+
 def test_bad_rest_settings_are_refused():
     with pytest.raises(ValueError, match="rest_max_tilt_deg"):
         StrategyConfig(rest_max_tilt_deg=200.0)
@@ -126,6 +151,8 @@ def test_bad_rest_settings_are_refused():
         StrategyConfig(rest_steps=((0.0, 1.0),))
     with pytest.raises(ValueError, match="rest_confident"):
         StrategyConfig(rest_confident=0.0)
+    with pytest.raises(ValueError, match="rest_first_gate"):
+        StrategyConfig(rest_first_gate=0.0)
 
 
 class _Counting:
