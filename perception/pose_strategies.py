@@ -25,8 +25,8 @@ free fit when that needed a tilt of at most ``rest_max_tilt_deg`` and the verifi
 a neighbour is no stable pose and keeps its free fit). A best ICP fit short of ``good_confidence`` is tried at rest
 before the escapes when levelling it alone brings it near the depth (``rest_first_gate``): under stereo noise that
 is how a right fit usually falls short, and confirming it at rest costs a few verifications where the escapes cost
-a dozen ICP runs. Where too little of the part stands out of the support to
-fit, the part is placed from its mask at rest on the support (``resting.mask_hypotheses``).
+a dozen ICP runs. Where too little of the part stands out of the support to fit, the part is placed from its mask
+at rest on the support (``resting.mask_hypotheses``).
 
 The mask is cleaned with depth first (``perception.mask_cleanup``). The search ranks hypotheses by the verification
 at the pixels' centres; every estimate carries the verdict's verification of the chosen one (each pixel over its

@@ -19,7 +19,7 @@ torch = pytest.importorskip("torch")
 
 from pycocotools import mask as mask_utils  # noqa: E402
 
-from sygrid.bench.training import run_curve  # noqa: E402
+from sygrid.bench.training import earlier_curves, run_curve  # noqa: E402
 from sygrid.errors import ConfigError  # noqa: E402
 from sygrid.letterbox import Letterbox  # noqa: E402
 from sygrid.train.detector.assigner import TaskAlignedAssigner  # noqa: E402
@@ -428,6 +428,17 @@ def test_learning_curve_of_a_folder_without_a_log_is_a_clear_error(tmp_path):
     (tmp_path / "train_log.json").write_text('{"epochs": []}')
     with pytest.raises(ConfigError, match="not a detector training log"):
         run_curve(tmp_path)
+
+
+def test_an_earlier_result_charts_its_runs_marked_and_a_wrong_file_is_a_clear_error(tmp_path):
+    run = {"run": "runs/gone", "width": "p", "points": [{"epoch": 1, "images_seen": 8, "hours": 0.1, "box_map50": 0.2}]}
+    result = tmp_path / "training.json"
+    result.write_text(json.dumps({"machine": {}, "runs": [run]}))
+    assert earlier_curves(result) == [{**run, "earlier": str(result)}]
+    for bad in ('{"runs": []}', '{"runs": [{"run": "x"}]}', "[1, 2]"):
+        result.write_text(bad)
+        with pytest.raises(ConfigError, match=r"training\.json: not a `sygrid bench training` result"):
+            earlier_curves(result)
 
 
 def test_resume_without_checkpoint_is_a_clear_error(tiny_dataset, tmp_path):

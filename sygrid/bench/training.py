@@ -6,6 +6,8 @@
 mAP50-95 on the run's own val split, the images seen so far (iterations x batch) and the cumulative training
 hours (training and validation seconds). Nothing is trained here: the figures are the runs' own logs, so the chart
 shows where more compute stops paying (a curve that is still rising when the run stops did not converge).
+``--earlier RESULT.json`` charts the runs of an earlier result of this benchmark beside them (``earlier_curves``):
+a run whose folder is gone (another machine's, a session's) stays comparable, from the figures it was charted with.
 """
 
 from __future__ import annotations
@@ -67,6 +69,17 @@ def run_curve(run_dir: Path) -> dict:
     }
 
 
+def earlier_curves(path: Path) -> list[dict]:
+    """The runs of an earlier result of this benchmark (``bench/results/NAME.json``), each marked with the file it
+    came from (``earlier``). Raises ``ConfigError`` naming the file when it is not such a result."""
+    data = read_json(path, "training benchmark result")
+    runs = data.get("runs") if isinstance(data, dict) else None
+    if not isinstance(runs, list) or not runs or not all(isinstance(r, dict) and {"run", "points"} <= r.keys()
+                                                         for r in runs):  # fmt: skip
+        raise ConfigError(f"{path}: not a `sygrid bench training` result (expected a list of runs with points)")
+    return [{**r, "earlier": str(path)} for r in runs]
+
+
 def chart(curves: list[dict]):
     """Val accuracy against epochs, images seen and hours, one line per run."""
     fig, axes = plt.subplots(len(METRICS), 3, figsize=(14, 7), sharey="row", squeeze=False)
@@ -76,7 +89,8 @@ def chart(curves: list[dict]):
             for col, x_key in enumerate(("epoch", "images_seen", "hours")):
                 xs = [p[x_key] for p in curve["points"] if p[key] is not None]
                 ys = [p[key] for p in curve["points"] if p[key] is not None]
-                axes[row, col].plot(xs, ys, marker=".", label=label)
+                style = "--" if curve.get("earlier") else "-"
+                axes[row, col].plot(xs, ys, style, marker=".", label=label)
                 axes[row, 0].set_ylabel(name)
     for col, x_name in enumerate(("epoch", "training images seen", "training hours (this machine)")):
         axes[-1, col].set_xlabel(x_name)
@@ -90,7 +104,8 @@ def chart(curves: list[dict]):
 
 def _label(curve: dict) -> str:
     extras = (" +P2" if curve["p2"] else "") + (f" proto/{curve['proto_stride']}" if curve["proto_stride"] != 4 else "")
-    return f"{Path(curve['run']).name}: {curve['width']}{extras} @{curve['imgsz']}, {curve['train_images']} images"
+    name = Path(curve["run"]).name + (" (earlier result)" if curve.get("earlier") else "")
+    return f"{name}: {curve['width']}{extras} @{curve['imgsz']}, {curve['train_images']} images"
 
 
 def format_results(curves: list[dict]) -> str:
@@ -110,10 +125,12 @@ def format_results(curves: list[dict]) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("runs", nargs="+", type=Path, help="`sygrid train detector` output folders")
     parser.add_argument("--name", default="training", help="result name: bench/results/NAME.{json,png}")
+    parser.add_argument("--earlier", type=Path, action="append", default=[],
+                        help="an earlier result of this benchmark (JSON): its runs charted beside, dashed")  # fmt: skip
 
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
-    curves = [run_curve(r) for r in args.runs]
+    curves = [run_curve(r) for r in args.runs] + [c for path in args.earlier for c in earlier_curves(path)]
     print(format_results(curves))
     json_path, png_path = save_results(args.name, {"runs": curves}, chart(curves), out_dir)
     print(f"wrote {json_path} and {png_path}")
