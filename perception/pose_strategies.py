@@ -85,7 +85,7 @@ class StrategyConfig:
     rest_confident: a free fit whose (ranking) depth agreement (``depth_confidence``) reaches this is left as it is
         (above 1: never).
     rest_first_gate: a best ICP fit short of ``good_confidence`` is tried at rest before the escapes when levelling
-        it brings its depth agreement to this (``StrategyRunner._rest_first``; above 1: never).
+        it brings its depth agreement to this (``StrategyRunner._search``; above 1: never).
     """
 
     icp_hypotheses: int = 3
@@ -340,16 +340,22 @@ class StrategyRunner:
         quick: bool = False,
     ) -> list[_Candidate]:
         """ICP from the best hypotheses (``quick``: ranked after a short ICP each); short of ``good_confidence``, the
-        best fit at rest where that is promising (``_rest_first``; ``rested`` keeps it, so that the final levelling
+        best fit at rest where that is promising (``rest_first_gate``; ``rested`` keeps it, so that the final levelling
         does not search again), then from the best fit's turns (``_turns``), then the slide search (``_polish``).
         Every fit comes back verified."""
         cfg = self.config
         candidates = self._refine_ranked(hypotheses, scene, model, obs, quick)
         best = max(candidates, key=lambda c: c.verification.confidence)
-        if best.verification.depth_confidence < cfg.good_confidence and self._rest_first(best, model, obs):
-            rested[id(best)] = at_rest = self._rested(best, model, obs)
-            if at_rest.verification.depth_confidence >= cfg.good_confidence:
-                return [at_rest if c is best else c for c in candidates]
+        # a right fit under stereo noise usually falls short of the bar tilted and afloat: at rest (a few
+        # verifications) it is confirmed where the escapes (a dozen ICP runs) would not; a fit that levelling does not
+        # bring near the depth (``rest_first_gate``) is more likely the wrong one, and escapes first
+        rest_first = cfg.rest and obs.support is not None and cfg.rest_first_gate <= 1
+        if rest_first and best.verification.depth_confidence < cfg.good_confidence:
+            at_rest = self._rested(best, model, obs, gate=cfg.rest_first_gate)
+            if at_rest is not None:
+                rested[id(best)] = at_rest
+                if at_rest.verification.depth_confidence >= cfg.good_confidence:
+                    return [at_rest if c is best else c for c in candidates]
         for _ in range(cfg.escape_rounds):
             if best.verification.depth_confidence >= cfg.good_confidence:
                 break
@@ -376,21 +382,10 @@ class StrategyRunner:
             out.append(_Candidate(T, source, v))
         return out
 
-    def _rest_first(self, best: _Candidate, model: ObjectModel, obs: Observation) -> bool:
-        """Whether to level the best ICP fit onto the support before escaping from it: its levelled pose's depth
-        agreement reaches ``rest_first_gate``. Under stereo noise a right fit of a small part tilts and floats short
-        of ``good_confidence``, and the search at rest (a few verifications) confirms it where the escapes (a dozen
-        ICP runs) would not; a fit that levelling does not bring near the depth is more likely the wrong one."""
-        cfg = self.config
-        if not cfg.rest or obs.support is None or cfg.rest_first_gate > 1:
-            return False
-        T, tilt = rest_on_support(best.T, model, obs.support)
-        if tilt > cfg.rest_max_tilt_deg:
-            return False
-        return self.verifier.verify(T, model, obs).depth_confidence >= cfg.rest_first_gate
-
-    def _rested(self, best: _Candidate, model: ObjectModel, obs: Observation) -> _Candidate:
-        """The best fit at rest on the observation's support where the verification agrees, else the fit itself."""
+    def _rested(self, best: _Candidate, model: ObjectModel, obs: Observation, gate: float = 0.0) -> _Candidate | None:
+        """The best fit at rest on the observation's support where the verification agrees, else the fit itself;
+        None, without the in-plane search, where the levelled pose's depth agreement is below ``gate`` (the search
+        trying a fit at rest before its escapes, ``rest_first_gate``)."""
         cfg = self.config
         T, tilt = rest_on_support(best.T, model, obs.support)
         if tilt > cfg.rest_max_tilt_deg:
@@ -399,7 +394,10 @@ class StrategyRunner:
             return best  # already at rest: nothing to gain, and the search is the dearer part
         if best.verification.depth_confidence >= cfg.rest_confident:
             return best  # the depth confirms the free fit: a part leaning on a neighbour, or exact depth
-        T, v = planar_search(T, model, obs, obs.support, self.verifier, cfg.rest_steps)
+        levelled = self.verifier.verify(T, model, obs)
+        if levelled.depth_confidence < gate:
+            return None
+        T, v = planar_search(T, model, obs, obs.support, self.verifier, cfg.rest_steps, start=levelled)
         if v.confidence < best.verification.confidence - cfg.rest_slack:
             return best
         return _Candidate(T, f"{best.source}+rest", v, best.icp)

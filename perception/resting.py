@@ -160,17 +160,20 @@ def planar_search(
     plane: np.ndarray,
     verifier: PoseVerifier,
     steps: tuple[tuple[float, float], ...],
+    start: Verification | None = None,
 ) -> tuple[np.ndarray, Verification]:
     """The pose slid along the plane and turned about its normal (through the object's origin) while the
     verification improves: steps of (fraction of the diameter, degrees) from ``steps``, coarse to fine. A compass
     search: the six moves (two slides each way, a turn each way) are tried in turn, the last one that paid first,
     and the first that improves the confidence is taken; a step size ends when none does. It evaluates fewer
     poses than taking the best of all six each time (a walk in one direction costs one evaluation a step), and
-    every search ends where no move of the finest step improves. The height and tilt stay as given."""
+    every search ends where no move of the finest step improves. The height and tilt stay as given. ``start``: the
+    given pose's verification where the caller has it already."""
     n = np.asarray(plane[:3], dtype=float)
     e1 = _perpendicular(n)
     e2 = np.cross(n, e1)
-    T, v = np.array(T_camera_object, dtype=float), verifier.verify(T_camera_object, model, obs)
+    T = np.array(T_camera_object, dtype=float)
+    v = start if start is not None else verifier.verify(T, model, obs)
     for fraction, degrees in steps:
         moves = _planar_moves(n, (e1, e2), fraction * float(model.diameter_m), np.radians(degrees))
         first = 0
