@@ -11,6 +11,7 @@ BENCHMARKS = {
     "physics": "sygrid.bench.physics",
     "sim": "sim.bench",
     "render": "sygrid.bench.render",
+    "generation": "sygrid.bench.generation",
     "parts": "sygrid.bench.parts",
     "perception": "perception.bench",
     "cell": "launch.bench_cell",

@@ -10,8 +10,9 @@ their definitions: ``perception.transfer``.
 Prints the matrix (rows detectors, columns sources: class-aware box mAP50, its ratio to the detector's home cell,
 class-agnostic box mAP50, median ms per image), then per detector and source the box AP50 per part and per size
 bin and the recall per size bin, then with ``--held-apart`` each target with its measured value. Writes
-``bench/results/transfer.{json,png}``: every cell's figures, the matrix and the target checks; the chart is a
-heatmap of box mAP50 with the ratio in each cell (left) and the recall per size bin of each cell (right).
+``bench/results/NAME.{json,png}`` (``--name``, default ``transfer``): every cell's figures, the matrix and the
+target checks; the chart is a heatmap of box mAP50 with the ratio in each cell (left) and the recall per size bin
+of each cell (right).
 """
 
 from __future__ import annotations
@@ -188,7 +189,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-images", type=int, default=None, help="at most this many images per source")
     parser.add_argument("--timing-images", type=int, default=20, help="images of each cell's timing pass")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
-    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved transfer.json")
+    parser.add_argument("--name", default="transfer", help="result name: bench/results/NAME.{json,png}")
+    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
 
 
 def _positive(value: int | None, option: str) -> None:
@@ -198,7 +200,7 @@ def _positive(value: int | None, option: str) -> None:
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     if args.replot:
-        replot("transfer", chart, out_dir)
+        replot(args.name, chart, out_dir)
         return 0
     if not args.detector or not args.source:
         raise ConfigError("sygrid bench transfer: give at least one --detector NAME=PATH and one --source "
@@ -218,6 +220,6 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     results = run_benchmark(detectors, sources, home, args.held_apart, args.max_images, args.threads,
                             args.timing_images)  # fmt: skip
     print(format_results(results))
-    json_path, png_path = save_results("transfer", results, chart(results), out_dir)
+    json_path, png_path = save_results(args.name, results, chart(results), out_dir)
     print(f"wrote {json_path} and {png_path}")
     return 0

@@ -140,6 +140,16 @@ def test_the_matrix_of_three_detectors_on_two_sources(detectors, tiny_dataset, o
     assert _bench(["--replot"], tmp_path) == 0
 
 
+def test_a_named_run_keeps_the_default_result(detectors, tiny_dataset, tmp_path):
+    (tmp_path / "transfer.json").write_text("{}")
+    argv = [f"--detector=tiny={detectors['tiny']}", f"--source=tiny={tiny_dataset}", "--name", "transfer_ablation",
+            "--max-images", "1", "--timing-images", "1", "--threads", "1"]  # fmt: skip
+    assert _bench(argv, tmp_path) == 0
+    assert json.loads((tmp_path / "transfer_ablation.json").read_text())["matrix"]["detectors"] == ["tiny"]
+    assert (tmp_path / "transfer.json").read_text() == "{}"
+    assert _bench(["--replot", "--name", "transfer_ablation"], tmp_path) == 0
+
+
 def test_a_detector_knowing_some_or_none_of_a_sources_parts(tiny_dataset, tmp_path):
     split = eval_items(tiny_dataset, EvalSettings())[1]
     assert shared_parts({1: "hex_nut", 3: "washer", 4: "l_bracket", 9: "x"}, tiny_dataset, split) == ([1, 3, 4], None)

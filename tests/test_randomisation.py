@@ -285,3 +285,16 @@ def test_a_held_apart_family_is_never_drawn_in_training_and_is_in_testing():
     assert test_seen >= HELD_APART
     shared = {"area_light", "point_light", "plastic", "worn_paint"}  # the families both recipes allow
     assert train_seen - shared and not test_seen & (train_seen - shared)
+
+
+@pytest.mark.parametrize("knob", KNOBS)
+def test_an_ablation_recipe_is_the_randomised_training_recipe_with_one_knob_off(knob):
+    """The transfer ablation (Makefile ``transfer-ablation``) compares the randomised training recipe with each
+    knob switched off in turn: the variants must stay the same recipe in everything else."""
+    base = load_recipe(ROOT / "launch" / "recipes" / "builtin_train_random.json").to_json()
+    variant = load_recipe(ROOT / "launch" / "recipes" / "ablation" / f"without_{knob}.json").to_json()
+    assert base["randomisation"][knob]["enabled"] and not variant["randomisation"][knob]["enabled"]
+    assert variant["name"] == f"{base['name']}_without_{knob}"
+    for data in (base, variant):
+        del data["name"], data["randomisation"][knob]
+    assert variant == base

@@ -240,11 +240,37 @@ def bench_recipe(scene: SceneSpec, base_dir: Path) -> Recipe:
     return parse_recipe(data, "bench render recipe", base_dir)
 
 
-def complete_items(recipe: Recipe, count: int, seed: int, progress: bool = True) -> dict:
-    """``count`` consecutive complete items (``make_item`` + BOP/YOLO/COCO writes into a temporary folder).
+def complete_item(recipe: Recipe, output: DatasetOutput, seed: int, index: int) -> dict:
+    """Item ``index`` of ``recipe`` made (``make_item``) and written by ``output``; its row: stage seconds,
+    ``item_s`` = drop + render + annotate + write, ``cpu_s`` (this process, every thread), the render ``mode``,
+    ``instances`` and ``rss_mb`` after the item. Raises ``SygridError`` for a drop that never settles."""
+    cpu0 = time.process_time()
+    item = make_item(recipe, seed, index)
+    t = time.perf_counter()
+    output.write(item)
+    write_s = time.perf_counter() - t
+    cpu_s = time.process_time() - cpu0
+    tm = item.timings
+    render_s = tm.get("render_total", 0.0)
+    row = {"index": index, "mode": item.mode, "drop_s": tm["drop"], "render_s": render_s}
+    row.update({k.removeprefix("render_"): v for k, v in tm.items() if k.startswith("render_")})
+    row.pop("total")
+    row.update(
+        annotate_s=max(tm["item"] - tm["drop"] - render_s, 0.0),
+        write_s=write_s,
+        item_s=tm["item"] + write_s,
+        cpu_s=cpu_s,
+        instances=len(item.annotation.instances),
+        rss_mb=rss_bytes() / 2**20,
+    )
+    return row
 
-    Returns ``items`` (per item: stage seconds, ``item_s`` = drop + render + annotate + write, ``rss_mb`` after the
-    item) plus ``failed`` (index -> error) and ``finish_s`` (assembling the COCO JSON / data.yaml once at the end).
+
+def complete_items(recipe: Recipe, count: int, seed: int, progress: bool = True) -> dict:
+    """``count`` consecutive complete items (``complete_item``, written into a temporary folder).
+
+    Returns ``items`` (``complete_item``'s rows) plus ``failed`` (index -> error) and ``finish_s`` (assembling the
+    COCO JSON / data.yaml once at the end).
     """
     models = resolve_objects(recipe.scene, recipe.base_dir)
     items: list[dict] = []
@@ -252,31 +278,10 @@ def complete_items(recipe: Recipe, count: int, seed: int, progress: bool = True)
     with tempfile.TemporaryDirectory(prefix="sygrid_bench_render_") as tmp:
         output = DatasetOutput(Path(tmp), recipe, models)
         for i in tqdm(range(count), desc="complete items", unit="item", disable=not progress):
-            cpu0 = time.process_time()
             try:
-                item = make_item(recipe, seed, i)
+                items.append(complete_item(recipe, output, seed, i))
             except SygridError as exc:  # a drop that never settles: recorded, the run goes on
                 failed[i] = f"{type(exc).__name__}: {exc}"
-                continue
-            t = time.perf_counter()
-            output.write(item)
-            write_s = time.perf_counter() - t
-            cpu_s = time.process_time() - cpu0
-            tm = item.timings
-            render_s = tm.get("render_total", 0.0)
-            row = {"index": i, "drop_s": tm["drop"], "render_s": render_s}
-            row.update({k.removeprefix("render_"): v for k, v in tm.items() if k.startswith("render_")})
-            row.pop("total")
-            row.update(
-                annotate_s=max(tm["item"] - tm["drop"] - render_s, 0.0),
-                write_s=write_s,
-                item_s=tm["item"] + write_s,
-                cpu_s=cpu_s,
-                instances=len(item.annotation.instances),
-                rss_mb=rss_bytes() / 2**20,
-            )
-            items.append(row)
-            del item
         t = time.perf_counter()
         output.finish()
         finish_s = time.perf_counter() - t
