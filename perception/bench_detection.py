@@ -6,7 +6,8 @@ variant: box and mask mAP (confidence 0.001), recall at the manifest's threshold
 median detector milliseconds per frame at that threshold (onnxruntime CPU, ``--threads``; timed on the first
 ``--timing-images`` images in a separate pass, since a 0.001 threshold makes the masks of many more boxes).
 
-Writes ``bench/results/detection.{json,png}``; the chart puts latency on the x axis and accuracy on the y axis.
+Writes ``bench/results/NAME.{json,png}`` (``--name``, default ``detection``); the chart puts latency on the x axis
+and accuracy on the y axis.
 """
 
 from __future__ import annotations
@@ -174,12 +175,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timing-images", type=int, default=30, help="images of the timing pass")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--quick", action="store_true", help="three variants, 20 images")
-    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved detection.json")
+    parser.add_argument("--name", default="detection", help="result name: bench/results/NAME.{json,png}")
+    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
 
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     if args.replot:
-        replot("detection", chart, out_dir)
+        replot(args.name, chart, out_dir)
         return 0
     results = run_benchmark(
         args.models,
@@ -190,6 +192,6 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
         threads=args.threads,
     )
     print(format_results(results))
-    json_path, png_path = save_results("detection", results, chart(results), out_dir)
+    json_path, png_path = save_results(args.name, results, chart(results), out_dir)
     print(f"wrote {json_path} and {png_path}")
     return 0
