@@ -63,6 +63,7 @@ from perception.verify import PoseVerifier
 from sygrid.bench.common import (
     DEFAULT_RESULTS_DIR,
     StageCheckpoint,
+    add_result_arguments,
     dataset_digest,
     folder_digest,
     replot,
@@ -510,8 +511,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "manifest's choice at beside its own",
     )  # fmt: skip
     parser.add_argument("--quick", action="store_true", help="20 images")
-    parser.add_argument("--name", default="perception", help="results file name (NAME.json, NAME.png)")
-    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
+    add_result_arguments(parser, "perception")
     parser.add_argument(
         "--resume", action="store_true",
         help="go on with a stopped run of the same settings from its checkpoint (NAME.partial.json)",

@@ -27,7 +27,7 @@ from perception.detector_eval import COCO_CONF, detector_report, region_box, run
 from perception.evaluation import EvalSettings, eval_items
 from perception.manifest import load_manifest
 from perception.tiling import ViewSettings
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, replot, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, add_result_arguments, median, replot, save_results
 from sygrid.dataset import DatasetBin
 from sygrid.detection_breakdown import SIZE_BINS
 from sygrid.errors import ConfigError
@@ -175,8 +175,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timing-images", type=int, default=30, help="images of the timing pass")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--quick", action="store_true", help="three variants, 20 images")
-    parser.add_argument("--name", default="detection", help="result name: bench/results/NAME.{json,png}")
-    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
+    add_result_arguments(parser, "detection")
 
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:

@@ -41,7 +41,7 @@ from perception.transfer import (
     transfer_matrix,
     unique,
 )
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, replot, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, add_result_arguments, replot, save_results
 from sygrid.detection_breakdown import SIZE_BINS
 from sygrid.errors import ConfigError
 
@@ -189,8 +189,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-images", type=int, default=None, help="at most this many images per source")
     parser.add_argument("--timing-images", type=int, default=20, help="images of each cell's timing pass")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
-    parser.add_argument("--name", default="transfer", help="result name: bench/results/NAME.{json,png}")
-    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
+    add_result_arguments(parser, "transfer")
 
 
 def _positive(value: int | None, option: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import platform
@@ -43,6 +44,13 @@ def save_chart(name: str, figure, out_dir: Path = DEFAULT_RESULTS_DIR) -> Path:
     png_path = out_dir / f"{name}.png"
     figure.savefig(png_path, dpi=110, bbox_inches="tight")
     return png_path
+
+
+def add_result_arguments(parser: argparse.ArgumentParser, default_name: str) -> None:
+    """``--name`` (the results' file name, ``default_name`` unless given) and ``--replot`` (redraw the chart from the
+    saved results only): what every benchmark that keeps its results under a chosen name offers."""
+    parser.add_argument("--name", default=default_name, help="result name: bench/results/NAME.{json,png}")
+    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
 
 
 def replot(name: str, chart, out_dir: Path = DEFAULT_RESULTS_DIR) -> Path:

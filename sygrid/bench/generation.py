@@ -27,7 +27,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from tqdm import tqdm
 
-from sygrid.bench.common import DEFAULT_RESULTS_DIR, median, percentile, replot, save_results
+from sygrid.bench.common import DEFAULT_RESULTS_DIR, add_result_arguments, median, percentile, replot, save_results
 from sygrid.bench.render import complete_item, warmup_items
 from sygrid.dataset import DatasetOutput
 from sygrid.drop import resolve_objects
@@ -161,8 +161,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "first is the others' reference")  # fmt: skip
     parser.add_argument("--items", type=int, default=30, help="items per recipe (the first few are warm-up)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--name", default="generation", help="result name: bench/results/NAME.{json,png}")
-    parser.add_argument("--replot", action="store_true", help="only redraw the chart from the saved NAME.json")
+    add_result_arguments(parser, "generation")
 
 
 def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
