@@ -33,19 +33,19 @@ models: setup
 	$(VENV)/bin/sygrid generate launch/recipes/builtin_train.json --out datasets/builtin_train --count 2000 --seed 0 --workers 2
 	$(VENV)/bin/sygrid generate launch/recipes/builtin_test.json --out datasets/builtin_test --count 200 --seed 1000 --workers 2
 	# the detector: TrainConfig's defaults are the shipped recipe (models/builtin/detector.card.md)
-	$(VENV)/bin/sygrid train detector --data datasets/builtin_train --out runs/detector --threads 2 --seed 0 $(if $(wildcard runs/detector/last.pt),--resume)
+	$(VENV)/bin/sygrid train detector --data datasets/builtin_train --out runs/detector --threads 2 --seed 0 --half-weights $(if $(wildcard runs/detector/last.pt),--resume)
 	# the shipped pose model: 12 epochs, then resumed to 24 (see models/builtin/pose.card.md)
 	test -f runs/pose/last.pt || $(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 12 --threads 1 --seed 0
 	$(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 24 --threads 1 --seed 0 --resume
-	# the detector looks at the bin's box upscaled 1.5 times, at confidence 0.2 (docs/bench/detection.md and
+	# the detector looks at the bin's box upscaled 1.25 times, at confidence 0.2 (docs/bench/detection.md and
 	# perception.md); the pose strategies and the verification threshold are chosen on calibration views (the test
 	# recipe with another seed, noise-free and through the OAK-D model), then the folder is packed again so that its
 	# cards measure them
-	$(VENV)/bin/sygrid models pack --detector runs/detector --pose runs/pose --out models/builtin --test-data datasets/builtin_test --scale 1.5 --conf-threshold 0.2
+	$(VENV)/bin/sygrid models pack --detector runs/detector --pose runs/pose --out models/builtin --test-data datasets/builtin_test --scale 1.25 --conf-threshold 0.2
 	$(VENV)/bin/sygrid generate launch/recipes/builtin_test.json --out datasets/builtin_cal --count 80 --seed 5000 --workers 2
 	$(VENV)/bin/sygrid generate launch/recipes/builtin_test_noisy.json --out datasets/builtin_cal_noisy --count 80 --seed 5000 --workers 2
 	$(VENV)/bin/sygrid models choose-pose --models models/builtin --data datasets/builtin_cal --data datasets/builtin_cal_noisy --strategies $(POSE_CANDIDATES) --threads 1
-	$(VENV)/bin/sygrid models pack --detector runs/detector --pose models/builtin --out models/builtin --test-data datasets/builtin_test --scale 1.5 --conf-threshold 0.2
+	$(VENV)/bin/sygrid models pack --detector runs/detector --pose models/builtin --out models/builtin --test-data datasets/builtin_test --scale 1.25 --conf-threshold 0.2
 
 # The simulated cell's models (models/sim_cell): the shipped detector fine-tuned on views of the cell's camera
 # (0.82-0.98 m above the bin, at the cell's 800 px input size) and the shipped pose network. Needs `make models`'
@@ -73,9 +73,10 @@ transfer: setup
 
 # The transfer ablation (docs/bench/transfer.md): the randomised training recipe with every knob on, with each knob
 # off in turn (launch/recipes/ablation/), and with none (the plain recipe); a short run of the shipped training
-# recipe on each (and on the randomised items without the photometric augmentation, and with a second seed: the
-# runs' own spread), every detector on the plain, randomised and held-apart test sources. Hours on a 2-core CPU;
-# every step resumes where it stopped. ABLATION_ITEMS / ABLATION_EPOCHS size the runs.
+# recipe at width p (a knob changes the data, not the network: the cheaper width ranks them) on each (and on the
+# randomised items without the photometric augmentation, and with a second seed: the runs' own spread), every
+# detector on the plain, randomised and held-apart test sources. Hours on a 2-core CPU; every step resumes where it
+# stopped. ABLATION_ITEMS / ABLATION_EPOCHS size the runs.
 ABLATION_KNOBS := surfaces parts lighting distractors camera geometry
 ABLATION_ITEMS ?= 300
 ABLATION_EPOCHS ?= 20
@@ -88,7 +89,7 @@ transfer-ablation: setup
 	for k in $(ABLATION_KNOBS); do $(VENV)/bin/sygrid generate launch/recipes/ablation/without_$$k.json --out datasets/ablation/without_$$k --count $(ABLATION_ITEMS) --seed 0 --workers 2 --no-progress || exit 1; done
 	for v in $(ABLATION_RUNS); do \
 		case $$v in random_seed1) data=random seed=1 aug='{}';; random_no_photometric) data=random seed=0 aug='$(PHOTOMETRIC_OFF)';; *) data=$$v seed=0 aug='{}';; esac; \
-		$(VENV)/bin/sygrid train detector --data datasets/ablation/$$data --out runs/ablation/$$v --epochs $(ABLATION_EPOCHS) --seed $$seed --augment "$$aug" --threads 2 --no-progress $$(test -f runs/ablation/$$v/last.pt && echo --resume) || exit 1; \
+		$(VENV)/bin/sygrid train detector --data datasets/ablation/$$data --out runs/ablation/$$v --epochs $(ABLATION_EPOCHS) --width p --seed $$seed --augment "$$aug" --threads 2 --no-progress $$(test -f runs/ablation/$$v/last.pt && echo --resume) || exit 1; \
 	done
 	$(VENV)/bin/sygrid bench transfer --name transfer_ablation $(foreach v,$(ABLATION_RUNS),--detector $(v)=runs/ablation/$(v) --home $(v)=$(if $(filter plain,$(v)),builtin,random)) \
 		--source builtin=datasets/builtin_test --source random=datasets/builtin_test_random \

@@ -61,6 +61,16 @@ DEFAULT_VARIANTS = (
 QUICK_VARIANTS = (DEFAULT_VARIANTS[0], DEFAULT_VARIANTS[4], DEFAULT_VARIANTS[8])
 
 
+def select_variants(names: list[str]) -> tuple[Variant, ...]:
+    """The named default variants, in the default table's order."""
+    known = {v.name for v in DEFAULT_VARIANTS}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ConfigError(f"--variant: unknown {', '.join(map(repr, unknown))}; expected one of "
+                          f"{', '.join(repr(v.name) for v in DEFAULT_VARIANTS)}")  # fmt: skip
+    return tuple(v for v in DEFAULT_VARIANTS if v.name in names)
+
+
 def run_benchmark(
     models_dir: Path,
     data_dir: Path,
@@ -175,6 +185,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timing-images", type=int, default=30, help="images of the timing pass")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--quick", action="store_true", help="three variants, 20 images")
+    parser.add_argument(
+        "--variant",
+        action="append",
+        default=None,
+        metavar="NAME",
+        help="run only this variant (repeatable; names as in the default table, e.g. 'bin @ 1.0')",
+    )
     add_result_arguments(parser, "detection")
 
 
@@ -185,7 +202,7 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     results = run_benchmark(
         args.models,
         args.data,
-        QUICK_VARIANTS if args.quick else DEFAULT_VARIANTS,
+        select_variants(args.variant) if args.variant else QUICK_VARIANTS if args.quick else DEFAULT_VARIANTS,
         max_images=20 if args.quick and args.max_images is None else args.max_images,
         timing_images=args.timing_images,
         threads=args.threads,

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from launch.cli import build_parser
-from perception.bench_detection import QUICK_VARIANTS, run
+from perception.bench_detection import QUICK_VARIANTS, run, select_variants
+from sygrid.errors import ConfigError
 
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation:DeprecationWarning")
 
@@ -55,3 +56,9 @@ def test_every_quick_view_is_measured_and_a_named_run_keeps_the_default_result(m
         assert r["ms_median"] > 0 and 0.0 <= r["box_map50"] <= 1.0
         assert set(r["recall_by_size"]) == {"<20", "20-50", ">50"}
     assert _bench(["--replot", "--name", "detection_n"], tmp_path) == 0
+
+
+def test_named_variants_run_in_the_table_order_and_an_unknown_name_is_refused_with_the_choices():
+    assert [v.name for v in select_variants(["bin @ 1.5", "full @ 480"])] == ["full @ 480", "bin @ 1.5"]
+    with pytest.raises(ConfigError, match=r"--variant: unknown 'bin @ 2'; expected one of 'full @ 480'"):
+        select_variants(["bin @ 1.0", "bin @ 2"])

@@ -57,11 +57,11 @@ class AugmentConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run. The defaults are the shipped recipe (docs/perception.md gives its measurements): the pico
-    network trained on 320 px crops at the frame's own scale (``imgsz`` 640 for 640 px frames, so that the
-    runtime's crop and tile views, which run at scale 1, see parts at the trained size), with ultralytics' default
-    colour, zoom (+-50 %) and mosaic augmentation and EMA time constant, and mask prototypes at stride 2 (at stride
-    4 even a perfect prediction's masks cannot reach the mask mAP the built-in parts need: docs/perception.md).
+    """One training run. The defaults are the shipped recipe (docs/perception.md gives its measurements): the nano
+    (YOLOv8n-scale) network trained on 320 px crops at the frame's own scale (``imgsz`` 640 for 640 px frames, so
+    that the runtime's crop and tile views, which run at scale 1, see parts at the trained size), with ultralytics'
+    default colour, zoom (+-50 %) and mosaic augmentation and EMA time constant, and mask prototypes at stride 2 (at
+    stride 4 even a perfect prediction's masks cannot reach the mask mAP the built-in parts need: docs/perception.md).
 
     Args:
         data: dataset folder (``sygrid generate`` output, or a YOLO folder / ``data.yaml``).
@@ -107,7 +107,7 @@ class TrainConfig:
     imgsz: int = 640
     train_size: int | None = 320
     batch: int = 8
-    size: str = "p"
+    size: str = "n"
     p2: bool = False
     proto_stride: int = 2
     device: str = "auto"
