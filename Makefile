@@ -69,7 +69,7 @@ transfer: setup
 	for s in $(TRANSFER_SOURCES); do $(VENV)/bin/sygrid generate launch/recipes/$$s.json --out datasets/$$s --count 200 --seed 1000 --workers 2 || exit 1; done
 	$(VENV)/bin/sygrid bench transfer --detector builtin=models/builtin --source builtin=datasets/builtin_test \
 		--source raster=datasets/builtin_test_raster --source random=datasets/builtin_test_random \
-		--source heldout=datasets/builtin_test_heldout --held-apart heldout
+		--source heldout=datasets/builtin_test_heldout --held-apart heldout --cards
 
 # The transfer ablation (docs/bench/transfer.md): the randomised training recipe with every knob on, with each knob
 # off in turn (launch/recipes/ablation/), and with none (the plain recipe); a short run of the shipped training
@@ -93,4 +93,4 @@ transfer-ablation: setup
 	done
 	$(VENV)/bin/sygrid bench transfer --name transfer_ablation $(foreach v,$(ABLATION_RUNS),--detector $(v)=runs/ablation/$(v) --home $(v)=$(if $(filter plain,$(v)),builtin,random)) \
 		--source builtin=datasets/builtin_test --source random=datasets/builtin_test_random \
-		--source heldout=datasets/builtin_test_heldout --held-apart heldout
+		--source heldout=datasets/builtin_test_heldout --held-apart heldout --cards

@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from launch.model_card import replace_card_section
+from perception.model_card import replace_card_section
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 

@@ -36,7 +36,7 @@ import math
 import shutil
 from pathlib import Path
 
-from launch.model_card import replace_card_section
+from perception.model_card import replace_card_section
 from sygrid.catalogue import copy_catalogue, load_catalogue
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_bytes_atomic, write_json_atomic

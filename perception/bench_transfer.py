@@ -12,13 +12,17 @@ class-agnostic box mAP50, median ms per image), then per detector and source the
 bin and the recall per size bin, then with ``--held-apart`` each target with its measured value. Writes
 ``bench/results/NAME.{json,png}`` (``--name``, default ``transfer``): every cell's figures, the matrix and the
 target checks; the chart is a heatmap of box mAP50 with the ratio in each cell (left) and the recall per size bin
-of each cell (right).
+of each cell (right). With ``--cards`` each model folder's row goes into its ``detector.card.md`` as the section
+``CARD_HEADING`` (replacing that section of an earlier run; packing the folder again drops it with the rest of
+the card, since a new detector has not been measured).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import shlex
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -29,6 +33,7 @@ import numpy as np
 
 from perception.detector_eval import COCO_CONF
 from perception.evaluation import EvalSettings
+from perception.model_card import replace_card_section
 from perception.transfer import (
     MIN_SIDE_PX,
     TARGETS,
@@ -81,6 +86,38 @@ def run_benchmark(
         "targets": TARGETS,
         "target_checks": target_checks(cells, home, held_apart) if held_apart else [],
     }
+
+
+CARD_HEADING = "## Transfer to other image sources"
+
+
+def card_section(results: dict, detector: str, command: str) -> list[str]:
+    """The model card section of ``detector``'s row of the matrix: per source box mAP50, its ratio to the home
+    source, class-agnostic box mAP50 and recall of large parts, recall of small parts; the held-apart targets."""
+    m, small = results["matrix"], SIZE_BINS[0][0]
+    k, held_apart = m["detectors"].index(detector), results["held_apart"]
+    lines = [CARD_HEADING, "",
+             f"`{command}` ({results['max_images'] or 'all'} images per source; `bench/results/*.json` holds every "
+             f"figure): box mAP50 at confidence {results['coco_conf']}, its ratio to the home source, class-agnostic "
+             f"box mAP50 and recall of parts of {results['min_side_px']:g} px or more, and recall of parts under "
+             f"{SIZE_BINS[0][2]:g} px at the operating threshold.", "",
+             f"| source | box mAP50 | ratio to home | class-agnostic box mAP50 | class-agnostic recall >= "
+             f"{results['min_side_px']:g} px | recall < {SIZE_BINS[0][2]:g} px |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
+    for j, source in enumerate(m["sources"]):
+        c = results["cells"][detector][source]
+        tag = " (home)" if source == m["home"][detector] else " (held apart)" if source == held_apart else ""
+        recall_small = c["recall_by_size"][small] if c["recall_by_size"] else None
+        figures = (_num(c["box_map50"]), _num(m["ratio"][k][j], 2), _num(c["agnostic_box_map50"]),
+                   _pct(c["agnostic_recall_large"]), _pct(recall_small))  # fmt: skip
+        lines.append(f"| {source}{tag} | " + " | ".join(figures) + " |")
+    checks = [t for t in results["target_checks"] if t["detector"] == detector]
+    if checks:
+        met = {True: "met", False: "not met", None: "not measured"}
+        lines += ["", f"Targets on the held-apart source ({held_apart}): " + "; ".join(
+            f"{t['target']} {_num(t['measured'])} against >= {_num(t['threshold'], 2)} ({met[t['met']]})"
+            for t in checks) + "."]  # fmt: skip
+    return lines
 
 
 def _num(x: float | None, digits: int = 3) -> str:
@@ -189,6 +226,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-images", type=int, default=None, help="at most this many images per source")
     parser.add_argument("--timing-images", type=int, default=20, help="images of each cell's timing pass")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    parser.add_argument("--cards", action="store_true",
+                        help="write each model folder's row into its detector.card.md")  # fmt: skip
     add_result_arguments(parser, "transfer")
 
 
@@ -221,4 +260,11 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     print(format_results(results))
     json_path, png_path = save_results(args.name, results, chart(results), out_dir)
     print(f"wrote {json_path} and {png_path}")
+    if args.cards:
+        command = "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "sygrid bench transfer"
+        for spec in detectors:
+            if spec.kind == "model folder":
+                card = spec.folder / "detector.card.md"
+                replace_card_section(card, CARD_HEADING, card_section(results, spec.name, command))
+                print(f"wrote the transfer section of {card}")
     return 0

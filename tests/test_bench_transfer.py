@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -191,3 +192,20 @@ def test_bad_arguments_are_configuration_errors_naming_the_option(argv, message,
     argv = [a.format(run=run_dir, data=tiny_dataset) for a in argv]
     with pytest.raises(ConfigError, match=message):
         _bench(argv, tmp_path)
+
+
+def test_cards_get_the_model_folders_row_once_and_keep_the_rest(detectors, tiny_dataset, other_source, tmp_path):
+    folder = tmp_path / "oracle"
+    shutil.copytree(detectors["tiny"], folder)
+    (folder / "detector.card.md").write_text("# Model card: detector\n\n## Held-out test set: x\n\nkept\n")
+    argv = [f"--detector=tiny={folder}", f"--detector=trained={detectors['trained']}", f"--source=tiny={tiny_dataset}",
+            f"--source=other={other_source}", "--held-apart", "other", "--max-images", "1", "--timing-images", "1",
+            "--threads", "1", "--cards"]  # fmt: skip
+    for _ in range(2):  # a second run replaces the section
+        assert _bench(argv, tmp_path) == 0
+    card = (folder / "detector.card.md").read_text()
+    assert card.startswith("# Model card: detector\n\n## Held-out test set: x\n\nkept\n\n## Transfer to other image")
+    assert card.count("## Transfer to other image sources") == 1
+    assert "| tiny (home) | 1.000 | 1.00 | 1.000 |" in card and "| other (held apart) | " in card
+    assert "Targets on the held-apart source (other): " in card
+    assert not (detectors["trained"] / "detector.card.md").exists()  # a training run has no card

@@ -369,17 +369,3 @@ def test_pose_recall_matches_estimates_by_pose_error_whatever_their_masks(scene)
     )  # a miss
     assert bracket is poses[3] and e_bracket.correct()  # the mask IoU rule would have left it unmatched
     assert bolt is None and not e_bolt.correct()
-
-
-def test_a_card_section_is_replaced_not_repeated(tmp_path: Path):
-    from launch.model_card import replace_card_section
-
-    card = tmp_path / "pose.card.md"
-    card.write_text("# Model card: pose\n\nkept text\n")
-    replace_card_section(card, "### Pose strategies per part", ["### Pose strategies per part", "", "first run"])
-    replace_card_section(card, "### Pose strategies per part", ["### Pose strategies per part", "", "second run"])
-    text = card.read_text()
-    assert text.count("### Pose strategies per part") == 1 and "second run" in text and "first run" not in text
-    assert text.startswith("# Model card: pose\n\nkept text\n")
-    replace_card_section(tmp_path / "new.card.md", "### A", ["### A", "x"])
-    assert (tmp_path / "new.card.md").read_text() == "# Model card: new\n\n### A\nx\n"
