@@ -93,4 +93,4 @@ transfer-ablation: setup
 	done
 	$(VENV)/bin/sygrid bench transfer --name transfer_ablation $(foreach v,$(ABLATION_RUNS),--detector $(v)=runs/ablation/$(v) --home $(v)=$(if $(filter plain,$(v)),builtin,random)) \
 		--source builtin=datasets/builtin_test --source random=datasets/builtin_test_random \
-		--source heldout=datasets/builtin_test_heldout --held-apart heldout --cards
+		--source heldout=datasets/builtin_test_heldout --held-apart heldout

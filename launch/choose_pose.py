@@ -27,12 +27,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import shlex
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from perception.model_card import replace_card_section
+from perception.model_card import invoked_command, replace_card_section
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
 
@@ -101,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     beside = one if per_part else None
     print(format_choice(records, choice, threshold, names, beside))
     report = {
-        "command": "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "sygrid models choose-pose",
+        "command": invoked_command("sygrid models choose-pose"),
         "data": sets,
         "max_images": args.max_images,
         "bar": args.bar,

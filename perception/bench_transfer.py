@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import shlex
-import sys
 from pathlib import Path
 
 import matplotlib
@@ -33,7 +31,7 @@ import numpy as np
 
 from perception.detector_eval import COCO_CONF
 from perception.evaluation import EvalSettings
-from perception.model_card import replace_card_section
+from perception.model_card import invoked_command, replace_card_section
 from perception.transfer import (
     MIN_SIDE_PX,
     TARGETS,
@@ -261,7 +259,7 @@ def run(args: argparse.Namespace, out_dir: Path = DEFAULT_RESULTS_DIR) -> int:
     json_path, png_path = save_results(args.name, results, chart(results), out_dir)
     print(f"wrote {json_path} and {png_path}")
     if args.cards:
-        command = "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else "sygrid bench transfer"
+        command = invoked_command("sygrid bench transfer")
         for spec in detectors:
             if spec.kind == "model folder":
                 card = spec.folder / "detector.card.md"

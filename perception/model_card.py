@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import shlex
+import sys
 from pathlib import Path
 
 from sygrid.fileio import write_bytes_atomic
+
+
+def invoked_command(fallback: str) -> str:
+    """The ``sygrid`` command line this process was started with, for a card or a report to name; ``fallback``
+    where it was called without arguments (from Python)."""
+    return "sygrid " + shlex.join(sys.argv[1:]) if sys.argv[1:] else fallback
 
 
 def replace_card_section(card_path: Path, heading: str, lines: list[str]) -> None:
