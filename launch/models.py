@@ -298,8 +298,9 @@ def detector_card(log: dict, args: argparse.Namespace, evals: dict[str, dict]) -
     cfg, epochs = log["config"], log["epochs"]
     seconds = sum(e.get("train_seconds", 0.0) + e.get("val_seconds", 0.0) for e in epochs)
     last_val = next((e["val"] for e in reversed(epochs) if e.get("val")), None)
+    data = [cfg["data"]] if isinstance(cfg["data"], str) else cfg["data"]
     command = (
-        f"sygrid train detector --data {cfg['data']} --out {cfg['out']} --epochs {cfg['epochs']} "
+        f"sygrid train detector {' '.join(f'--data {d}' for d in data)} --out {cfg['out']} --epochs {cfg['epochs']} "
         f"--imgsz {cfg['imgsz']} --batch {cfg['batch']} --width {cfg['size']} --lr {cfg['lr']} --seed {cfg['seed']} "
         f"--threads {cfg['threads']}" + (f" --init {cfg['init']}" if cfg.get("init") else "")
     )
@@ -309,7 +310,7 @@ def detector_card(log: dict, args: argparse.Namespace, evals: dict[str, dict]) -
         f"- file: {_file_line(args.out / 'detector.onnx')}; ultralytics YOLOv8-seg output layout, dynamic input",
         f"- network: size `{cfg['size']}`, {log['model']['parameters'] / 1e6:.2f} M parameters, "
         f"{log['model']['num_classes']} classes: {', '.join(log['dataset']['names'])}",
-        f"- data: {_dataset_line(Path(cfg['data']))}; {log['dataset']['train_images']} training / "
+        f"- data: {'; '.join(_dataset_line(Path(d)) for d in data)}; {log['dataset']['train_images']} training / "
         f"{log['dataset']['val_images']} validation images",
         f"- command: `{command}`",
         f"- seed: {cfg['seed']}; training time {seconds / 3600:.2f} h on this project's 2-core CPU machine "

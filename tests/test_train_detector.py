@@ -38,7 +38,13 @@ from sygrid.train.detector.boxes import (  # noqa: E402
     make_anchors,
 )
 from sygrid.train.detector.config import MODEL_SIZES, AugmentConfig, TrainConfig  # noqa: E402
-from sygrid.train.detector.data import DetectorDataError, open_dataset, parse_data_yaml  # noqa: E402
+from sygrid.train.detector.data import (  # noqa: E402
+    DetectorDataError,
+    combine_datasets,
+    open_dataset,
+    open_datasets,
+    parse_data_yaml,
+)
 from sygrid.train.detector.evaluate import ImageDetections, coco_evaluate, val_detections  # noqa: E402
 from sygrid.train.detector.export import _store_weights_as_half  # noqa: E402
 from sygrid.train.detector.loss import SegmentationLoss, Targets  # noqa: E402
@@ -299,6 +305,36 @@ def test_coco_evaluate_of_the_ground_truth_is_perfect(tiny_dataset):
         detections.append(ImageDetections(boxes, np.ones(len(rles)), labels.classes, rles))
     metrics = coco_evaluate(gt, detections, ds.obj_ids)
     assert metrics.box_map50 == pytest.approx(1.0) and metrics.mask_map50_95 == pytest.approx(1.0)
+
+
+def test_datasets_trained_together_are_one_dataset(tiny_dataset, tmp_path):
+    """--data twice: the union of the images and labels, the validation ground truth renumbered so that perfect
+    detections of every image still score 1; a YOLO-polygon copy joins a COCO-labelled set; other classes are
+    refused with both folders named."""
+    one = open_dataset(tiny_dataset)
+    shutil.copytree(tiny_dataset / "yolo", tmp_path / "yolo")
+    both = open_datasets([tiny_dataset, tmp_path / "yolo" / "data.yaml"], obj_ids=[1, 3, 4])
+    assert both.label_source == "coco+yolo" and both.roots == (tiny_dataset / "yolo", tmp_path / "yolo")
+    for split in ("train", "val"):
+        n = len(one.images[split])
+        assert both.images[split][n:] == [tmp_path / "yolo" / p.relative_to(tiny_dataset / "yolo")
+                                          for p in one.images[split]]  # fmt: skip
+        gt = both.coco_gt[split]
+        assert [im["id"] for im in gt["images"]] == list(range(1, 2 * n + 1))
+        assert sorted(a["id"] for a in gt["annotations"]) == list(range(1, len(gt["annotations"]) + 1))
+        assert len(gt["annotations"]) == 2 * len(one.coco_gt[split]["annotations"])
+    detections = []
+    for k in range(len(both.images["val"])):  # the ground truth's masks, as perfect detections, image by image
+        anns = [a for a in both.coco_gt["val"]["annotations"] if a["image_id"] == k + 1]
+        rles = [a["segmentation"] for a in anns]
+        boxes = np.array([a["bbox"] for a in anns], dtype=float).reshape(-1, 4)
+        boxes[:, 2:] += boxes[:, :2]
+        classes = np.array([both.obj_ids.index(a["category_id"]) for a in anns], dtype=np.int64)
+        detections.append(ImageDetections(boxes, np.ones(len(anns)), classes, rles))
+    assert coco_evaluate(both.coco_gt["val"], detections, both.obj_ids).box_map50 == pytest.approx(1.0)
+    assert TrainConfig(data=(str(tiny_dataset), "b"), out="o").as_dict()["data"] == [str(tiny_dataset), "b"]
+    with pytest.raises(DetectorDataError, match=r"classes .* differ from .*tiny_dataset.*same classes"):
+        combine_datasets([one, open_dataset(tmp_path / "yolo" / "data.yaml", obj_ids=[1, 3, 5])])
 
 
 def test_coco_evaluate_with_nothing_detected_is_zero(tiny_dataset):

@@ -18,7 +18,11 @@ DEFAULTS = {f.name: f.default for f in fields(TrainConfig)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, help="dataset folder (sygrid generate output, or a YOLO data.yaml)")
+    parser.add_argument(
+        "--data", required=True, action="append",
+        help="dataset folder (sygrid generate output, or a YOLO data.yaml); repeat it to train on several as one "
+        "(the same classes), e.g. plain and randomised renders",
+    )  # fmt: skip
     parser.add_argument("--out", required=True, help="output folder: last.pt, best.pt, detector.onnx, train_log.json")
     parser.add_argument("--epochs", type=int, default=DEFAULTS["epochs"], help="total epochs (%(default)s)")
     parser.add_argument(
@@ -104,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         raise TrainError(f"--augment: {err}") from err
     try:
         cfg = TrainConfig(
-            data=args.data,
+            data=args.data[0] if len(args.data) == 1 else tuple(args.data),
             out=args.out,
             epochs=args.epochs,
             imgsz=args.imgsz,

@@ -64,7 +64,8 @@ class TrainConfig:
     stride 4 even a perfect prediction's masks cannot reach the mask mAP the built-in parts need: docs/perception.md).
 
     Args:
-        data: dataset folder (``sygrid generate`` output, or a YOLO folder / ``data.yaml``).
+        data: dataset folder (``sygrid generate`` output, or a YOLO folder / ``data.yaml``), or several, trained
+            on as one (``data.combine_datasets``: same classes; e.g. plain and randomised renders mixed).
         out: output folder.
         epochs: total epochs (a resumed run goes on up to this many).
         imgsz: the model's input side in pixels (a multiple of 32): the runtime letterboxes a frame into it, and
@@ -101,7 +102,7 @@ class TrainConfig:
         progress: tqdm progress bars.
     """
 
-    data: str
+    data: str | tuple[str, ...]
     out: str
     epochs: int = 40
     imgsz: int = 640
@@ -136,6 +137,8 @@ class TrainConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
+        if not self.data_dirs:
+            raise ValueError("data: expected at least one dataset folder")
         if self.epochs < 1 or self.batch < 1 or self.threads < 1 or self.val_every < 1:
             raise ValueError("epochs, batch, threads and val_every must be >= 1")
         if self.imgsz < 32 or self.imgsz % 32:
@@ -157,6 +160,11 @@ class TrainConfig:
             )
 
     @property
+    def data_dirs(self) -> tuple[str, ...]:
+        """The dataset folders, one or several."""
+        return (self.data,) if isinstance(self.data, str) else tuple(self.data)
+
+    @property
     def crop_size(self) -> int:
         """The side of the training canvas: ``train_size``, at most ``imgsz``."""
         return min(self.train_size or self.imgsz, self.imgsz)
@@ -167,5 +175,6 @@ class TrainConfig:
 
     def as_dict(self) -> dict:
         d = asdict(self)
+        d["data"] = self.data if isinstance(self.data, str) else list(self.data)
         d["obj_ids"] = list(self.obj_ids) if self.obj_ids is not None else None
         return d

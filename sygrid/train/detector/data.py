@@ -106,7 +106,8 @@ class DetectionDataset:
 
     ``yolo_root``: the folder of ``data.yaml``. ``names``: class names by index. ``obj_ids``: BOP obj_id per class.
     ``images``: split -> sorted image paths. ``label_source``: ``"coco"`` or ``"yolo"``. ``coco_gt``: split -> the
-    COCO instances dict (images, annotations, categories = obj_ids) used as validation ground truth.
+    COCO instances dict (images, annotations, categories = obj_ids) used as validation ground truth. ``sources``:
+    the folders of a combined dataset (``combine_datasets``; empty for one folder, see ``roots``).
     """
 
     yolo_root: Path
@@ -116,6 +117,12 @@ class DetectionDataset:
     label_source: str
     labels: dict[str, list[InstanceLabels]] = field(repr=False)
     coco_gt: dict[str, dict] = field(repr=False)
+    sources: tuple[Path, ...] = ()
+
+    @property
+    def roots(self) -> tuple[Path, ...]:
+        """The ``data.yaml`` folders the dataset was read from (several for ``combine_datasets``' union)."""
+        return self.sources or (self.yolo_root,)
 
     @property
     def num_classes(self) -> int:
@@ -191,6 +198,63 @@ def open_dataset(
         source,
     )
     return DetectionDataset(yaml_path.parent, names, ids, images, source, all_labels, coco_gt)
+
+
+def open_datasets(data_dirs: Sequence[str | Path], **options) -> DetectionDataset:
+    """Opens each of ``data_dirs`` (``open_dataset`` with ``options``) and returns them as one dataset
+    (``combine_datasets``): one folder is returned as it is."""
+    if not data_dirs:
+        raise DetectorDataError("no dataset given (expected at least one --data folder)")
+    parts = [open_dataset(d, **options) for d in data_dirs]
+    return parts[0] if len(parts) == 1 else combine_datasets(parts)
+
+
+def combine_datasets(parts: Sequence[DetectionDataset]) -> DetectionDataset:
+    """Several datasets as one: each split's images and labels in the order given, the validation ground truth
+    renumbered (image ids follow the combined image order). Training on the union is how one recipe's items are
+    mixed with another's (plain renders with randomised ones, synthetic with labelled photos) without generating
+    them again. ``yolo_root`` is the first dataset's; ``label_source`` joins the parts' distinct sources with
+    ``+`` (each image's labels say which kind they are).
+
+    Raises:
+        DetectorDataError: the datasets' classes (names or obj_ids) or splits differ.
+    """
+    first = parts[0]
+    for other in parts[1:]:
+        if other.names != first.names or other.obj_ids != first.obj_ids:
+            raise DetectorDataError(
+                f"{other.yolo_root}: classes {other.names} (obj_ids {other.obj_ids}) differ from {first.yolo_root}'s "
+                f"{first.names} (obj_ids {first.obj_ids}); datasets trained together must have the same classes"
+            )
+        if other.images.keys() != first.images.keys():
+            raise DetectorDataError(f"{other.yolo_root}: splits {list(other.images)}, {first.yolo_root} has "
+                                    f"{list(first.images)}")  # fmt: skip
+    splits = list(first.images)
+    return DetectionDataset(
+        first.yolo_root,
+        first.names,
+        first.obj_ids,
+        {s: [p for d in parts for p in d.images[s]] for s in splits},
+        "+".join(dict.fromkeys(d.label_source for d in parts)),
+        {s: [lab for d in parts for lab in d.labels[s]] for s in splits},
+        {s: _merged_gt([d.coco_gt[s] for d in parts]) for s in splits},
+        tuple(root for d in parts for root in d.roots),
+    )
+
+
+def _merged_gt(gts: Sequence[dict]) -> dict:
+    """COCO ground truths of consecutive image lists as one: image ids offset by the images before, annotation ids
+    renumbered from 1."""
+    images, annotations, offset = [], [], 0
+    for gt in gts:
+        renumber = {im["id"]: offset + k + 1 for k, im in enumerate(gt["images"])}
+        images += [{**im, "id": renumber[im["id"]]} for im in gt["images"]]
+        annotations += [
+            {**a, "id": len(annotations) + j + 1, "image_id": renumber[a["image_id"]]}
+            for j, a in enumerate(gt["annotations"])
+        ]
+        offset += len(gt["images"])
+    return {"images": images, "annotations": annotations, "categories": gts[0]["categories"]}
 
 
 def _find_data_yaml(path: Path) -> Path:

@@ -40,7 +40,7 @@ from sygrid.train.detector.augment import (
     val_example,
 )
 from sygrid.train.detector.config import TrainConfig
-from sygrid.train.detector.data import DetectionDataset, open_dataset
+from sygrid.train.detector.data import DetectionDataset, open_datasets
 from sygrid.train.detector.evaluate import coco_evaluate, val_detections
 from sygrid.train.detector.export import ExportReport, export_onnx
 from sygrid.train.detector.loss import LOSS_NAMES, SegmentationLoss, Targets
@@ -168,8 +168,8 @@ class _Trainer:
             self.device = resolve_device(cfg.device)
         except ValueError as err:
             raise TrainError(f"--device: {err}") from err
-        self.dataset: DetectionDataset = open_dataset(
-            cfg.data, labels=cfg.labels, obj_ids=cfg.obj_ids, id_map=cfg.id_map,
+        self.dataset: DetectionDataset = open_datasets(
+            cfg.data_dirs, labels=cfg.labels, obj_ids=cfg.obj_ids, id_map=cfg.id_map,
             catalogue=load_catalogue(cfg.catalogue) if cfg.catalogue else None,
         )  # fmt: skip
         self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz,
@@ -436,6 +436,7 @@ class _Trainer:
                 "augment": asdict(self.cfg.augment_config),
                 "dataset": {
                     "root": str(self.dataset.yolo_root),
+                    "roots": [str(r) for r in self.dataset.roots],
                     "names": self.dataset.names,
                     "obj_ids": self.dataset.obj_ids,
                     "label_source": self.dataset.label_source,
