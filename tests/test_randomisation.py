@@ -276,8 +276,9 @@ def _builtin_material(name: str | None) -> str:
     return builtin_part(name or "").material
 
 
-def test_a_held_apart_family_is_never_drawn_in_training_and_is_in_testing():
-    train = load_recipe(ROOT / "launch" / "recipes" / "builtin_train_random.json")
+@pytest.mark.parametrize("recipe", ["builtin_train_random", "builtin_train_transfer"])
+def test_a_held_apart_family_is_never_drawn_in_training_and_is_in_testing(recipe):
+    train = load_recipe(ROOT / "launch" / "recipes" / f"{recipe}.json")
     test = load_recipe(ROOT / "launch" / "recipes" / "builtin_test_heldout.json")
     assert set(train.spec.randomisation.families.exclude) == HELD_APART
     train_seen, test_seen = _families_drawn(train, 300), _families_drawn(test, 100)
@@ -285,6 +286,20 @@ def test_a_held_apart_family_is_never_drawn_in_training_and_is_in_testing():
     assert test_seen >= HELD_APART
     shared = {"area_light", "point_light", "plastic", "worn_paint"}  # the families both recipes allow
     assert train_seen - shared and not test_seen & (train_seen - shared)
+
+
+def test_the_transfer_training_recipe_keeps_the_knobs_the_ablation_found_to_pay():
+    """``builtin_train_transfer.json`` is the randomised training recipe with the knobs the transfer ablation found to
+    cost within the training budget (camera effects, lighting, camera geometry) off: docs/bench/transfer.md."""
+    base = load_recipe(ROOT / "launch" / "recipes" / "builtin_train_random.json").to_json()
+    chosen = load_recipe(ROOT / "launch" / "recipes" / "builtin_train_transfer.json").to_json()
+    off = ("lighting", "camera", "geometry")
+    assert [k for k in KNOBS if chosen["randomisation"][k]["enabled"]] == ["surfaces", "parts", "distractors"]
+    for data in (base, chosen):
+        del data["name"]
+        for knob in off:
+            del data["randomisation"][knob]
+    assert chosen == base
 
 
 @pytest.mark.parametrize("knob", KNOBS)
