@@ -29,11 +29,15 @@ bench: setup
 
 # Retrain the shipped models (models/builtin) from scratch: the datasets, both networks, the model cards.
 # Hours on a 2-core CPU; every step resumes where it stopped when run again.
+MIXED_EPOCHS := 8
 models: setup
 	$(VENV)/bin/sygrid generate launch/recipes/builtin_train.json --out datasets/builtin_train --count 2000 --seed 0 --workers 2
 	$(VENV)/bin/sygrid generate launch/recipes/builtin_test.json --out datasets/builtin_test --count 200 --seed 1000 --workers 2
-	# the detector: TrainConfig's defaults are the shipped recipe (models/builtin/detector.card.md)
-	$(VENV)/bin/sygrid train detector --data datasets/builtin_train --out runs/detector --threads 2 --seed 0 --half-weights $(if $(wildcard runs/detector/last.pt),--resume)
+	$(VENV)/bin/sygrid generate launch/recipes/builtin_train_transfer.json --out datasets/builtin_train_transfer --count 2000 --seed 0 --workers 2
+	# the detector (models/builtin/detector.card.md): TrainConfig's defaults on the plain items, then fine-tuned on the
+	# plain and the randomised items together (the transfer recipe, docs/bench/transfer.md)
+	$(VENV)/bin/sygrid train detector --data datasets/builtin_train --out runs/detector_plain --threads 2 --seed 0 --half-weights $(if $(wildcard runs/detector_plain/last.pt),--resume)
+	$(VENV)/bin/sygrid train detector --data datasets/builtin_train --data datasets/builtin_train_transfer --init runs/detector_plain/best.pt --epochs $(MIXED_EPOCHS) --lr 0.002 --out runs/detector --threads 2 --seed 0 --half-weights $(if $(wildcard runs/detector/last.pt),--resume)
 	# the shipped pose model: 12 epochs, then resumed to 24 (see models/builtin/pose.card.md)
 	test -f runs/pose/last.pt || $(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 12 --threads 1 --seed 0
 	$(VENV)/bin/sygrid train pose --data datasets/builtin_train --out runs/pose --epochs 24 --threads 1 --seed 0 --resume
