@@ -22,6 +22,7 @@ from pycocotools import mask as mask_utils  # noqa: E402
 from sygrid.bench.training import earlier_curves, run_curve  # noqa: E402
 from sygrid.errors import ConfigError  # noqa: E402
 from sygrid.letterbox import Letterbox  # noqa: E402
+from sygrid.train.detector import cache as cache_module  # noqa: E402
 from sygrid.train.detector.assigner import TaskAlignedAssigner  # noqa: E402
 from sygrid.train.detector.augment import (  # noqa: E402
     example_rng,
@@ -37,10 +38,12 @@ from sygrid.train.detector.boxes import (  # noqa: E402
     dist_to_box,
     make_anchors,
 )
+from sygrid.train.detector.cache import InstanceCache, cache_bytes, plan_cache  # noqa: E402
 from sygrid.train.detector.config import MODEL_SIZES, AugmentConfig, TrainConfig  # noqa: E402
 from sygrid.train.detector.data import (  # noqa: E402
     DetectorDataError,
     combine_datasets,
+    load_instances,
     open_dataset,
     open_datasets,
     parse_data_yaml,
@@ -294,6 +297,49 @@ def test_examples_are_deterministic_and_consistent(tiny_dataset):
     assert example.image.shape == (96, 128, 3) and geometry.pad_top == 0 and example.masks.shape[1:] == (24, 32)
 
 
+def test_the_image_cache_gives_what_the_files_hold_and_the_same_examples(tiny_dataset, monkeypatch):
+    ds = open_dataset(tiny_dataset)
+    kept, passing = InstanceCache(ds, enabled=True), InstanceCache(ds, enabled=False)
+    n = len(ds.images["train"])
+    for _ in range(2):  # the first read fills the cache, the second comes from it
+        for i in range(n):
+            image, ids, classes = kept.load("train", i)
+            truth = load_instances(ds, "train", i)
+            assert ids.dtype == truth[1].dtype == np.int32
+            assert all(np.array_equal(a, b) for a, b in zip((image, ids, classes), truth, strict=True))
+    assert len(kept) == n and len(passing) == 0
+    image, ids, _ = kept.load("train", 0)
+    image[:] = 0  # a caller's change to what it got ...
+    ids[:] = 0
+    assert np.array_equal(kept.load("train", 0)[0], load_instances(ds, "train", 0)[0])  # ... is not the cache's
+    assert int(kept.load("train", 0)[1].max()) > 0
+    # The same examples, mosaics included, whichever way the images come.
+    cfg = AugmentConfig(mosaic=1.0)
+    for i in range(n):
+        a = train_example(ds, i, 96, cfg, example_rng(5, 2, i), imgsz=128)
+        b = train_example(ds, i, 96, cfg, example_rng(5, 2, i), imgsz=128, load=kept.load)
+        assert np.array_equal(a.image, b.image) and np.array_equal(a.masks, b.masks)
+    (a, _), (b, _) = val_example(ds, 0, 128, 32), val_example(ds, 0, 128, 32, load=kept.load)
+    assert np.array_equal(a.image, b.image) and np.array_equal(a.masks, b.masks)
+
+    # What it would take: image (3 bytes) and id map (1 byte, under 256 instances) per pixel of every image.
+    pixels = sum(im["height"] * im["width"] for s in ("train", "val") for im in ds.coco_gt[s]["images"])
+    assert cache_bytes(ds) == 4 * pixels
+    assert plan_cache(ds, "ram").enabled and not plan_cache(ds, "none").enabled
+
+    class Memory:
+        def __init__(self, available: int) -> None:
+            self.available = available
+
+    monkeypatch.setattr(cache_module.psutil, "virtual_memory", lambda: Memory(8 * pixels))
+    assert plan_cache(ds, "auto").enabled  # 4 x pixels fits in half of 8 x pixels
+    monkeypatch.setattr(cache_module.psutil, "virtual_memory", lambda: Memory(8 * pixels - 1))
+    plan = plan_cache(ds, "auto")
+    assert not plan.enabled and plan.bytes_needed == 4 * pixels and plan.bytes_available == 8 * pixels - 1
+    with pytest.raises(ValueError, match="cache: expected one of"):
+        TrainConfig(data=str(tiny_dataset), out="x", cache="disk")
+
+
 def test_coco_evaluate_of_the_ground_truth_is_perfect(tiny_dataset):
     ds = open_dataset(tiny_dataset)
     gt = ds.coco_gt["val"]
@@ -392,6 +438,7 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     assert [e["epoch"] for e in log["epochs"]] == [1] and log["epochs"][0]["iterations"] == 2
     assert set(log["epochs"][0]["loss"]) == {"box", "mask", "cls", "dfl", "total"}
     assert 0.0 <= log["epochs"][0]["val"]["box_map50"] <= 1.0
+    assert log["cache"]["mode"] == "auto" and log["cache"]["bytes_needed"] > 0
 
     # The ONNX file: ultralytics layout and metadata, onnxruntime agrees with torch (checked by the exporter).
     session = ort.InferenceSession(str(result.export.path), providers=["CPUExecutionProvider"])
@@ -442,6 +489,7 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     assert [p["images_seen"] for p in curve["points"]] == [4, 8]
     assert 0.0 < curve["points"][0]["hours"] < curve["points"][1]["hours"]
     assert curve["width"] == "p" and curve["train_images"] == log["dataset"]["train_images"]
+    assert curve["cache"] is log["cache"]["enabled"] and curve["seconds_per_iter_median"] > 0
 
     # A different network cannot resume from this checkpoint.
     with pytest.raises(TrainError, match="differs from this run"):

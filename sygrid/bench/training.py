@@ -3,11 +3,13 @@
 ``sygrid bench training RUN [RUN ...]`` reads each run folder's ``train_log.json`` (written after every epoch by
 ``sygrid.train.detector.trainer``, so a run still in progress can be charted) and writes
 ``bench/results/<name>.{json,png}``: per run its configuration summary, per validated epoch the box mAP50 and mask
-mAP50-95 on the run's own val split, the images seen so far (iterations x batch) and the cumulative training
-hours (training and validation seconds). Nothing is trained here: the figures are the runs' own logs, so the chart
-shows where more compute stops paying (a curve that is still rising when the run stops did not converge).
-``--earlier RESULT.json`` charts the runs of an earlier result of this benchmark beside them (``earlier_curves``):
-a run whose folder is gone (another machine's, a session's) stays comparable, from the figures it was charted with.
+mAP50-95 on the run's own val split, the images seen so far (iterations x batch) and the cumulative training hours
+(training and validation seconds), and per run the median training seconds per iteration over its epochs (after the
+first, which fills the image cache where the run keeps one) with whether it cached. Nothing is trained here: the
+figures are the runs' own logs, so the chart shows where more compute stops paying (a curve that is still rising
+when the run stops did not converge). ``--earlier RESULT.json`` charts the runs of an earlier result of this
+benchmark beside them (``earlier_curves``): a run whose folder is gone (another machine's, a session's) stays
+comparable, from the figures it was charted with.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import argparse
 from pathlib import Path
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -42,6 +45,7 @@ def run_curve(run_dir: Path) -> dict:
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: not a detector training log (missing field {exc})") from None
     points, images, seconds = [], 0, 0.0
+    per_iter = [float(r["train_seconds"]) / int(r["iterations"]) for r in epochs if int(r.get("iterations", 0)) > 0]
     for record in epochs:
         images += int(record["iterations"]) * batch
         seconds += float(record["train_seconds"]) + float(record.get("val_seconds", 0.0))
@@ -65,6 +69,8 @@ def run_curve(run_dir: Path) -> dict:
         "val_images": dataset.get("val_images"),
         "augment": log.get("augment"),
         "best_epoch": log.get("best_epoch"),
+        "cache": (log.get("cache") or {}).get("enabled"),
+        "seconds_per_iter_median": float(np.median(per_iter[1:] or per_iter)) if per_iter else None,
         "points": points,
     }
 
@@ -118,6 +124,8 @@ def format_results(curves: list[dict]) -> str:
             if last
             else "no validated epoch yet"
         )
+        if c.get("seconds_per_iter_median") is not None:
+            tail += f"; {c['seconds_per_iter_median']:.3f} s per iteration (median), image cache {c.get('cache')}"
         lines.append(f"{_label(c)}: {tail}")
     return "\n".join(lines)
 

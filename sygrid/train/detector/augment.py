@@ -19,7 +19,9 @@ whatever order or process it is built in, and a resumed run sees the same data a
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import cv2
 import numpy as np
@@ -31,6 +33,9 @@ from sygrid.train.detector.config import AugmentConfig
 from sygrid.train.detector.data import DetectionDataset, load_instances
 
 MASK_STRIDE = 4  # default prototype resolution: 1/4 of the network input (ModelConfig.proto_stride)
+
+# (split, index) -> image, instance-id map, classes, as ``load_instances`` returns them (``cache.InstanceCache.load``)
+Loader = Callable[[str, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 # --------------------------------------------------------------------------------------------------- geometry
@@ -184,6 +189,7 @@ def train_example(
     mosaic: bool = True,
     imgsz: int | None = None,
     mask_stride: int = MASK_STRIDE,
+    load: Loader | None = None,
 ) -> Example:
     """Training example ``index`` of the train split on a ``size`` x ``size`` canvas (a multiple of 32), augmented by
     ``cfg`` with ``rng``; a mosaic of four images with probability ``cfg.mosaic`` (when ``mosaic``).
@@ -191,15 +197,17 @@ def train_example(
     ``imgsz``: the input side the model will run at (default ``size``). Images are scaled as the runtime letterbox
     into ``imgsz`` scales them (times the random zoom), so a canvas smaller than ``imgsz`` is a crop at the
     runtime's object scale: with ``cfg.focus``, centred on the labelled parts rather than the empty floor.
-    ``mask_stride``: the mask targets' stride (the model's ``proto_stride``).
+    ``mask_stride``: the mask targets' stride (the model's ``proto_stride``). ``load``: where images come from
+    (default: ``load_instances`` from the files).
     """
     imgsz = imgsz or size
+    load = load or partial(load_instances, dataset)
     n = len(dataset.images["train"])
     if mosaic and cfg.mosaic > 0 and rng.random() < cfg.mosaic:
         picks = [index, *(int(i) for i in rng.integers(0, n, size=3))]
-        image, ids, classes = _mosaic(dataset, picks, size, imgsz, cfg, rng)
+        image, ids, classes = _mosaic(load, picks, size, imgsz, cfg, rng)
     else:
-        src, src_ids, classes = load_instances(dataset, "train", index)
+        src, src_ids, classes = load("train", index)
         r = imgsz / max(src.shape[:2])
         fx, fy = _focus_point(src_ids, cfg, rng)
         A = _random_geometry(rng, cfg, size, (fx * r, fy * r)) @ np.diag([r, r, 1.0])
@@ -210,7 +218,7 @@ def train_example(
 
 
 def _mosaic(
-    dataset: DetectionDataset, picks: list[int], size: int, imgsz: int, cfg: AugmentConfig, rng: np.random.Generator
+    load: Loader, picks: list[int], size: int, imgsz: int, cfg: AugmentConfig, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Four images around a random junction of a 2S x 2S canvas, each cropped to its quadrant with its focus point
     in the middle of the quadrant's part of the central S x S window; then the random geometry from the canvas to
@@ -229,7 +237,7 @@ def _mosaic(
     all_classes = []
     lo, hi = 0.5 * size, 1.5 * size  # the central window of the canvas
     for q, idx in enumerate(picks):
-        src, src_ids, classes = load_instances(dataset, "train", idx)
+        src, src_ids, classes = load("train", idx)
         r = imgsz / max(src.shape[:2])
         fx, fy = _focus_point(src_ids, cfg, rng)
         tx = (lo + xc) / 2 if q in (0, 2) else (xc + hi) / 2
@@ -245,10 +253,16 @@ def _mosaic(
 
 
 def val_example(
-    dataset: DetectionDataset, index: int, size: int, stride: int, mask_stride: int = MASK_STRIDE
+    dataset: DetectionDataset,
+    index: int,
+    size: int,
+    stride: int,
+    mask_stride: int = MASK_STRIDE,
+    load: Loader | None = None,
 ) -> tuple[Example, Letterbox]:
-    """Validation example ``index``: letterboxed as the runtime does for a dynamic-input model (no augmentation)."""
-    src, src_ids, classes = load_instances(dataset, "val", index)
+    """Validation example ``index``: letterboxed as the runtime does for a dynamic-input model (no augmentation);
+    ``load`` as in ``train_example``."""
+    src, src_ids, classes = (load or partial(load_instances, dataset))("val", index)
     geometry = letterbox_geometry(src.shape[:2], size, stride)
     image = letterbox(src, geometry)
     ids = letterbox(src_ids, geometry, cv2.INTER_NEAREST)

@@ -11,7 +11,7 @@ import json
 from dataclasses import fields
 from pathlib import Path
 
-from sygrid.train.detector.config import MODEL_SIZES, PROTO_STRIDES, TrainConfig
+from sygrid.train.detector.config import CACHE_MODES, MODEL_SIZES, PROTO_STRIDES, TrainConfig
 from sygrid.train.device_choice import DEVICE_CHOICES
 
 DEFAULTS = {f.name: f.default for f in fields(TrainConfig)}
@@ -91,6 +91,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--augment", default=None, help='JSON object of augmentation overrides, e.g. \'{"mosaic": 0.0, "degrees": 0}\''
     )
     parser.add_argument(
+        "--cache", default=DEFAULTS["cache"], choices=CACHE_MODES,
+        help="keep decoded images in memory after the first epoch: ram, none, or auto (when they fit in half the "
+        "available memory) (%(default)s)",
+    )  # fmt: skip
+    parser.add_argument(
         "--half-weights", action="store_true", help="store the ONNX weights as float16 (half the file size)"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars (one log line per epoch)")
@@ -129,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
             resume=args.resume,
             init=args.init,
             half_weights=args.half_weights,
+            cache=args.cache,
             progress=not args.no_progress,
             lr=args.lr,
         )

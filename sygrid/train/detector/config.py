@@ -9,6 +9,7 @@ from sygrid.train.device_choice import DEVICE_CHOICES
 
 MODEL_SIZES = ("f", "p", "n", "s")  # the keys of model.SIZES (checked equal in the tests)
 PROTO_STRIDES = (2, 4)  # model.PROTO_STRIDES
+CACHE_MODES = ("auto", "ram", "none")  # cache.plan_cache
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,8 @@ class TrainConfig:
             dataset's (``data.catalogue_class_ids``); recorded in the log for ``sygrid models pack``.
         val_every: validate every this many epochs (and always after the last).
         channels_last: NHWC tensors (oneDNN's preferred CPU layout).
+        cache: keep the decoded images in memory after their first read: ``"ram"``, ``"none"``, or ``"auto"`` (when
+            they fit in half the available memory; ``cache.plan_cache``). The data are the same either way.
         augment: overrides of ``AugmentConfig`` fields.
         resume: continue from ``out/last.pt``.
         init: a checkpoint of this trainer (``best.pt`` or ``last.pt``) whose EMA weights start the run instead of
@@ -129,6 +132,7 @@ class TrainConfig:
     catalogue: str | None = None
     val_every: int = 1
     channels_last: bool = True
+    cache: str = "auto"
     augment: dict = field(default_factory=dict)
     resume: bool = False
     init: str | None = None
@@ -153,6 +157,8 @@ class TrainConfig:
             raise ValueError(f"proto_stride: expected one of {PROTO_STRIDES}, got {self.proto_stride}")
         if self.device not in DEVICE_CHOICES:
             raise ValueError(f"device: expected one of {DEVICE_CHOICES}, got {self.device!r}")
+        if self.cache not in CACHE_MODES:
+            raise ValueError(f"cache: expected one of {CACHE_MODES}, got {self.cache!r}")
         unknown = set(self.augment) - {f.name for f in fields(AugmentConfig)}
         if unknown:
             raise ValueError(

@@ -39,6 +39,7 @@ from sygrid.train.detector.augment import (
     train_example,
     val_example,
 )
+from sygrid.train.detector.cache import InstanceCache, plan_cache
 from sygrid.train.detector.config import TrainConfig
 from sygrid.train.detector.data import DetectionDataset, open_datasets
 from sygrid.train.detector.evaluate import coco_evaluate, val_detections
@@ -172,6 +173,8 @@ class _Trainer:
             cfg.data_dirs, labels=cfg.labels, obj_ids=cfg.obj_ids, id_map=cfg.id_map,
             catalogue=load_catalogue(cfg.catalogue) if cfg.catalogue else None,
         )  # fmt: skip
+        self.cache_plan = plan_cache(self.dataset, cfg.cache)
+        self.instances = InstanceCache(self.dataset, self.cache_plan.enabled)
         self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz,
                                      p2=cfg.p2, proto_stride=cfg.proto_stride)  # fmt: skip
         torch.manual_seed(cfg.seed)
@@ -284,6 +287,7 @@ class _Trainer:
                     mosaic,
                     imgsz=cfg.imgsz,
                     mask_stride=self.model_cfg.proto_stride,
+                    load=self.instances.load,
                 )
                 for i in indices
             ]
@@ -357,7 +361,7 @@ class _Trainer:
         detections = []
         for start in range(0, n, self.cfg.batch):
             items = [
-                val_example(self.dataset, i, self.cfg.imgsz, stride, self.model_cfg.proto_stride)
+                val_example(self.dataset, i, self.cfg.imgsz, stride, self.model_cfg.proto_stride, self.instances.load)
                 for i in range(start, min(start + self.cfg.batch, n))
             ]
             by_shape: dict[tuple, list[int]] = {}
@@ -443,6 +447,7 @@ class _Trainer:
                     "train_images": len(self.dataset.images["train"]),
                     "val_images": len(self.dataset.images["val"]),
                 },
+                "cache": self.cache_plan.as_dict(),
                 "model": {**self.model_cfg.as_dict(), "parameters": count_parameters(self.model)},
                 "iters_per_epoch": self.iters_per_epoch,
                 "epochs": _json_safe(self.history),
