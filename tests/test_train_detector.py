@@ -439,6 +439,8 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     assert set(log["epochs"][0]["loss"]) == {"box", "mask", "cls", "dfl", "total"}
     assert 0.0 <= log["epochs"][0]["val"]["box_map50"] <= 1.0
     assert log["cache"]["mode"] == "auto" and log["cache"]["bytes_needed"] > 0
+    data = log["epochs"][0]
+    assert data["data_build_seconds"] > 0 and 0 <= data["data_wait_seconds"] <= data["train_seconds"]
 
     # The ONNX file: ultralytics layout and metadata, onnxruntime agrees with torch (checked by the exporter).
     session = ort.InferenceSession(str(result.export.path), providers=["CPUExecutionProvider"])

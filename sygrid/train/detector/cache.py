@@ -1,15 +1,16 @@
 """Decoded training images kept in memory, so that only the first epoch reads and decodes them.
 
 An example is built from one image (or four, for a mosaic) and its instance-id map: the PNG decode and the masks'
-RLE decode (``data.load_instances``) are most of the data thread's work, and on a 2-core machine that thread takes
-its time from the network's. Kept decoded, an image costs ``h x w x 3`` bytes and its id map ``h x w`` bytes (2 with
-more than 255 instances), about 1.2 MB for a 640 x 480 frame. The cache fills as the first epoch reads each image
-(nothing is read ahead) and returns copies of exactly what ``load_instances`` returns, so a run is the same with or
-without it, resumed or not.
+RLE decode (``data.load_instances``) are most of the data thread's work: on a 2-core CPU it takes its time from the
+network's, and on a GPU, whose step is short, it would set the pace. Kept decoded, an image costs ``h x w x 3``
+bytes and its id map ``h x w`` bytes (2 with more than 255 instances), about 1.2 MB for a 640 x 480 frame. The cache
+fills as the first epoch reads each image (nothing is read ahead) and returns copies of exactly what
+``load_instances`` returns, so a run is the same with or without it, resumed or not.
 
 ``mode``: ``"ram"`` keeps every image; ``"none"`` keeps none; ``"auto"`` keeps them when all of them fit in
-``AUTO_FRACTION`` of the memory available when the run starts (``psutil``), the rule ultralytics'
-``cache="ram"`` follows.
+``AUTO_FRACTION`` of the memory available when the run starts (``psutil``; the rule of ultralytics'
+``cache="ram"``). The train log's ``data_build_seconds`` and ``data_wait_seconds`` per epoch say what building the
+batches took and how much of it the network waited for.
 """
 
 from __future__ import annotations

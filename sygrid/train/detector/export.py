@@ -34,7 +34,10 @@ from sygrid.train.detector.model import YoloSeg
 
 OPSET = 17
 CHECK_ATOL = 1e-4  # scores, coefficients, prototypes
-CHECK_BOX_ATOL_PX = 1e-3  # boxes are in pixels (hundreds): float32 rounding alone reaches a few 1e-5
+# Boxes are in pixels (hundreds): torch's oneDNN and onnxruntime's MLAS kernels sum in different orders, and through
+# the network's depth their float32 results part by about 1e-5 relative: a few 1e-3 px on a 640 px input (seen: 3.7e-3
+# on an AVX2-only CPU); a hundredth of a pixel is still far below anything a detection is judged by.
+CHECK_BOX_ATOL_PX = 1e-2
 HALF_CHECK_ATOL = 1e-2  # float16 weights (relative rounding 5e-4 per weight)
 HALF_CHECK_BOX_ATOL_PX = 0.5
 

@@ -174,6 +174,7 @@ class _Trainer:
             catalogue=load_catalogue(cfg.catalogue) if cfg.catalogue else None,
         )  # fmt: skip
         self.cache_plan = plan_cache(self.dataset, cfg.cache)
+        self._data_seconds = {"build": 0.0, "wait": 0.0}  # this epoch's (see _train_epoch)
         self.instances = InstanceCache(self.dataset, self.cache_plan.enabled)
         self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz,
                                      p2=cfg.p2, proto_stride=cfg.proto_stride)  # fmt: skip
@@ -277,6 +278,7 @@ class _Trainer:
         chunks = [order[k * cfg.batch : (k + 1) * cfg.batch] for k in range(self.iters_per_epoch)]
 
         def build(indices: np.ndarray) -> tuple[torch.Tensor, Targets]:
+            start = time.perf_counter()
             examples = [
                 train_example(
                     self.dataset,
@@ -291,14 +293,18 @@ class _Trainer:
                 )
                 for i in indices
             ]
-            return collate(examples, cfg.channels_last)
+            batch = collate(examples, cfg.channels_last)
+            self._data_seconds["build"] += time.perf_counter() - start
+            return batch
 
         # One batch is prepared in a thread while the network trains on the previous one (OpenCV and numpy
         # release the GIL for the heavy parts).
         with ThreadPoolExecutor(max_workers=1) as pool:
             pending = pool.submit(build, chunks[0]) if chunks else None
             for k in range(len(chunks)):
+                start = time.perf_counter()
                 batch = pending.result()
+                self._data_seconds["wait"] += time.perf_counter() - start
                 pending = pool.submit(build, chunks[k + 1]) if k + 1 < len(chunks) else None
                 yield batch
 
@@ -315,6 +321,7 @@ class _Trainer:
             dynamic_ncols=True,
         )
         start = time.perf_counter()
+        self._data_seconds = {"build": 0.0, "wait": 0.0}
         lr = self.cfg.lr
         n = 0
         for images, targets in bar:
@@ -348,6 +355,9 @@ class _Trainer:
             "iterations": n,
             "train_seconds": seconds,
             "seconds_per_iter": seconds / max(n, 1),
+            # the data thread's time building the batches, and the part of it the network waited for
+            "data_build_seconds": self._data_seconds["build"],
+            "data_wait_seconds": self._data_seconds["wait"],
             "lr": lr,
             "loss": losses,
         }
