@@ -492,6 +492,7 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
     assert 0.0 < curve["points"][0]["hours"] < curve["points"][1]["hours"]
     assert curve["width"] == "p" and curve["train_images"] == log["dataset"]["train_images"]
     assert curve["cache"] is log["cache"]["enabled"] and curve["seconds_per_iter_median"] > 0
+    assert [p["epoch"] for p in curve["speed"]] == [1, 2] and all(p["data_build"] > 0 for p in curve["speed"])
 
     # A different network cannot resume from this checkpoint.
     with pytest.raises(TrainError, match="differs from this run"):

@@ -5,11 +5,12 @@
 ``bench/results/<name>.{json,png}``: per run its configuration summary, per validated epoch the box mAP50 and mask
 mAP50-95 on the run's own val split, the images seen so far (iterations x batch) and the cumulative training hours
 (training and validation seconds), and per run the median training seconds per iteration over its epochs (after the
-first, which fills the image cache where the run keeps one) with whether it cached. Nothing is trained here: the
-figures are the runs' own logs, so the chart shows where more compute stops paying (a curve that is still rising
-when the run stops did not converge). ``--earlier RESULT.json`` charts the runs of an earlier result of this
-benchmark beside them (``earlier_curves``): a run whose folder is gone (another machine's, a session's) stays
-comparable, from the figures it was charted with.
+first, which fills the image cache where the run keeps one) with whether it cached, charted per epoch beside the
+data thread's seconds per batch built and waited for. Nothing is trained here: the figures are the runs' own logs,
+so the chart shows where more compute stops paying (a curve that is still rising when the run stops did not
+converge). ``--earlier RESULT.json`` charts the runs of an earlier result of this benchmark beside them
+(``earlier_curves``): a run whose folder is gone (another machine's, a session's) stays comparable, from the figures
+it was charted with.
 """
 
 from __future__ import annotations
@@ -72,7 +73,17 @@ def run_curve(run_dir: Path) -> dict:
         "cache": (log.get("cache") or {}).get("enabled"),
         "seconds_per_iter_median": float(np.median(per_iter[1:] or per_iter)) if per_iter else None,
         "points": points,
+        "speed": [_speed(record) for record in epochs if int(record.get("iterations", 0)) > 0],
     }
+
+
+def _speed(record: dict) -> dict:
+    """One epoch's seconds per iteration: the whole iteration, the data thread's building of a batch and the part of
+    it the network waited for (None where the log predates those figures)."""
+    n = int(record["iterations"])
+    per = {k: (float(record[k]) / n if k in record else None) for k in ("data_build_seconds", "data_wait_seconds")}
+    return {"epoch": int(record["epoch"]), "iteration": float(record["train_seconds"]) / n,
+            "data_build": per["data_build_seconds"], "data_wait": per["data_wait_seconds"]}  # fmt: skip
 
 
 def earlier_curves(path: Path) -> list[dict]:
@@ -86,20 +97,29 @@ def earlier_curves(path: Path) -> list[dict]:
     return [{**r, "earlier": str(path)} for r in runs]
 
 
+#: The speed figures charted per epoch (keys of ``_speed``), with their panel titles.
+SPEEDS = {"iteration": "an iteration", "data_build": "building its batch (data thread)", "data_wait": "data waited for"}
+
+
 def chart(curves: list[dict]):
-    """Val accuracy against epochs, images seen and hours, one line per run."""
-    fig, axes = plt.subplots(len(METRICS), 3, figsize=(14, 7), sharey="row", squeeze=False)
+    """Val accuracy against epochs, images seen and hours, one line per run; below, seconds per iteration by epoch."""
+    fig, axes = plt.subplots(len(METRICS) + 1, 3, figsize=(14, 10), sharey="row", squeeze=False)
     for curve in curves:
-        label = _label(curve)
+        label, style = _label(curve), "--" if curve.get("earlier") else "-"
         for row, (key, name) in enumerate(METRICS.items()):
             for col, x_key in enumerate(("epoch", "images_seen", "hours")):
                 xs = [p[x_key] for p in curve["points"] if p[key] is not None]
                 ys = [p[key] for p in curve["points"] if p[key] is not None]
-                style = "--" if curve.get("earlier") else "-"
                 axes[row, col].plot(xs, ys, style, marker=".", label=label)
                 axes[row, 0].set_ylabel(name)
+        for col, (key, title) in enumerate(SPEEDS.items()):
+            speed = [p for p in curve.get("speed", []) if p[key] is not None]
+            axes[-1, col].plot([p["epoch"] for p in speed], [p[key] for p in speed], style, marker=".", label=label)
+            axes[-1, col].set_title(f"seconds per iteration: {title}", fontsize=9)
+            axes[-1, col].set_xlabel("epoch")
+    axes[-1, 0].set_ylabel("seconds (this machine)")
     for col, x_name in enumerate(("epoch", "training images seen", "training hours (this machine)")):
-        axes[-1, col].set_xlabel(x_name)
+        axes[-2, col].set_xlabel(x_name)
     for ax in axes.flat:
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8)
