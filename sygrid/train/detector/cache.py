@@ -8,9 +8,9 @@ fills as the first epoch reads each image (nothing is read ahead) and returns co
 ``load_instances`` returns, so a run is the same with or without it, resumed or not.
 
 ``mode``: ``"ram"`` keeps every image; ``"none"`` keeps none; ``"auto"`` keeps them when all of them fit in
-``AUTO_FRACTION`` of the memory available when the run starts (``psutil``; the rule of ultralytics'
-``cache="ram"``). The train log's ``data_build_seconds`` and ``data_wait_seconds`` per epoch say what building the
-batches took and how much of it the network waited for.
+``AUTO_FRACTION`` of the memory available when the run starts (``psutil``; ultralytics' ``cache="ram"`` checks the
+available memory likewise, with its own margin). The train log's ``data_build_seconds`` and ``data_wait_seconds``
+per epoch say what building the batches took and how much of it the network waited for.
 """
 
 from __future__ import annotations
