@@ -46,7 +46,8 @@ def run_curve(run_dir: Path) -> dict:
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: not a detector training log (missing field {exc})") from None
     points, images, seconds = [], 0, 0.0
-    per_iter = [float(r["train_seconds"]) / int(r["iterations"]) for r in epochs if int(r.get("iterations", 0)) > 0]
+    speed = [_speed(record) for record in epochs if int(record.get("iterations", 0)) > 0]
+    per_iter = [p["iteration"] for p in speed]
     for record in epochs:
         images += int(record["iterations"]) * batch
         seconds += float(record["train_seconds"]) + float(record.get("val_seconds", 0.0))
@@ -73,7 +74,7 @@ def run_curve(run_dir: Path) -> dict:
         "cache": (log.get("cache") or {}).get("enabled"),
         "seconds_per_iter_median": float(np.median(per_iter[1:] or per_iter)) if per_iter else None,
         "points": points,
-        "speed": [_speed(record) for record in epochs if int(record.get("iterations", 0)) > 0],
+        "speed": speed,
     }
 
 

@@ -174,7 +174,6 @@ class _Trainer:
             catalogue=load_catalogue(cfg.catalogue) if cfg.catalogue else None,
         )  # fmt: skip
         self.cache_plan = plan_cache(self.dataset, cfg.cache)
-        self._data_seconds = {"build": 0.0, "wait": 0.0}  # this epoch's (see _train_epoch)
         self.instances = InstanceCache(self.dataset, self.cache_plan.enabled)
         self.model_cfg = ModelConfig(self.dataset.num_classes, cfg.size, prior_image_size=cfg.imgsz,
                                      p2=cfg.p2, proto_stride=cfg.proto_stride)  # fmt: skip
@@ -271,7 +270,9 @@ class _Trainer:
         return _save({**self._common(), "ema": self.ema.model.state_dict(), "metrics": metrics}, self.out / "best.pt")
 
     # ------------------------------------------------------------------------------------------------ data
-    def _train_batches(self, epoch: int) -> Iterator[tuple[torch.Tensor, Targets]]:
+    def _train_batches(self, epoch: int, seconds: dict[str, float]) -> Iterator[tuple[torch.Tensor, Targets]]:
+        """The epoch's batches; adds the data thread's time building them to ``seconds["build"]`` and the time spent
+        waiting for them to ``seconds["wait"]``."""
         cfg, aug = self.cfg, self.cfg.augment_config
         order = epoch_order(len(self.dataset.images["train"]), cfg.seed, epoch)
         mosaic = epoch < cfg.epochs - self.close_mosaic
@@ -294,7 +295,7 @@ class _Trainer:
                 for i in indices
             ]
             batch = collate(examples, cfg.channels_last)
-            self._data_seconds["build"] += time.perf_counter() - start
+            seconds["build"] += time.perf_counter() - start
             return batch
 
         # One batch is prepared in a thread while the network trains on the previous one (OpenCV and numpy
@@ -304,7 +305,7 @@ class _Trainer:
             for k in range(len(chunks)):
                 start = time.perf_counter()
                 batch = pending.result()
-                self._data_seconds["wait"] += time.perf_counter() - start
+                seconds["wait"] += time.perf_counter() - start
                 pending = pool.submit(build, chunks[k + 1]) if k + 1 < len(chunks) else None
                 yield batch
 
@@ -312,8 +313,9 @@ class _Trainer:
     def _train_epoch(self, epoch: int) -> dict:
         self.model.train()
         sums = dict.fromkeys(LOSS_NAMES, 0.0)
+        data = {"build": 0.0, "wait": 0.0}  # the data thread's seconds this epoch
         bar = tqdm(
-            self._train_batches(epoch),
+            self._train_batches(epoch, data),
             total=self.iters_per_epoch,
             desc=f"epoch {epoch + 1}/{self.cfg.epochs}",
             disable=not self.cfg.progress,
@@ -321,7 +323,6 @@ class _Trainer:
             dynamic_ncols=True,
         )
         start = time.perf_counter()
-        self._data_seconds = {"build": 0.0, "wait": 0.0}
         lr = self.cfg.lr
         n = 0
         for images, targets in bar:
@@ -356,8 +357,8 @@ class _Trainer:
             "train_seconds": seconds,
             "seconds_per_iter": seconds / max(n, 1),
             # the data thread's time building the batches, and the part of it the network waited for
-            "data_build_seconds": self._data_seconds["build"],
-            "data_wait_seconds": self._data_seconds["wait"],
+            "data_build_seconds": data["build"],
+            "data_wait_seconds": data["wait"],
             "lr": lr,
             "loss": losses,
         }
