@@ -509,6 +509,50 @@ def test_smoke_training_exports_onnx_and_resumes(tiny_dataset, tmp_path):
         _Trainer(TrainConfig(**{**tuned_cfg, "size": "f"}, epochs=1, progress=False))
 
 
+@pytest.mark.slow  # three short training runs
+def test_a_run_interrupted_inside_an_epoch_resumes_to_the_weights_of_an_uninterrupted_one(
+    tiny_dataset, tmp_path, monkeypatch
+):
+    common = {"data": str(tiny_dataset), "imgsz": 64, "batch": 2, "size": "f", "seed": 5, "threads": 1,
+              "epochs": 2, "val_every": 2, "progress": False, "export": False}  # fmt: skip
+    whole = train(TrainConfig(**common, out=str(tmp_path / "whole"), checkpoint_minutes=None))
+    assert [e["iterations"] for e in whole.history] == [3, 3]
+
+    # Killed right after the mid-epoch checkpoint written after the 2nd iteration of epoch 2 (one every iteration).
+    class KilledError(Exception):
+        pass
+
+    save_last = _Trainer._save_last
+
+    def save_then_die(self, partial_epoch=None):
+        path = save_last(self, partial_epoch)
+        if partial_epoch is not None and self.epoch == 1 and partial_epoch["iterations"] == 2:
+            raise KilledError
+        return path
+
+    out = tmp_path / "cut"
+    monkeypatch.setattr(_Trainer, "_save_last", save_then_die)
+    with pytest.raises(KilledError):
+        train(TrainConfig(**common, out=str(out), checkpoint_minutes=1e-9))
+    monkeypatch.undo()
+    ckpt = torch.load(out / "last.pt", weights_only=True)
+    assert ckpt["epoch"] == 1 and ckpt["iteration"] == 5 and ckpt["partial_epoch"]["iterations"] == 2
+
+    # Another batch size cannot finish that epoch; the same run can, and ends where the uninterrupted one did.
+    with pytest.raises(TrainError, match=r"stopped inside epoch 2 of batches of 2.*keep the same --batch"):
+        _Trainer(TrainConfig(**{**common, "batch": 3}, out=str(out), resume=True))
+    resumed = train(TrainConfig(**common, out=str(out), resume=True))
+    final, reference = (torch.load(r.last, weights_only=True) for r in (resumed, whole))
+    assert final["iteration"] == reference["iteration"] == 6 and final["partial_epoch"] is None
+    for key in ("model", "ema"):
+        assert all(torch.equal(v, reference[key][k]) for k, v in final[key].items()), key
+    for mine, theirs in zip(resumed.history, whole.history, strict=True):
+        assert mine["iterations"] == theirs["iterations"]
+        assert mine["loss"] == pytest.approx(theirs["loss"], rel=1e-6)
+    for key in ("box_map50", "mask_map50_95"):
+        assert resumed.history[1]["val"][key] == pytest.approx(whole.history[1]["val"][key])
+
+
 def test_learning_curve_of_a_folder_without_a_log_is_a_clear_error(tmp_path):
     with pytest.raises(ConfigError, match="no training log"):
         run_curve(tmp_path)

@@ -58,6 +58,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=DEFAULTS["seed"], help="initialisation, data order, augmentation")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     parser.add_argument(
+        "--checkpoint-minutes", type=float, default=DEFAULTS["checkpoint_minutes"],
+        help="write OUT/last.pt inside an epoch every this many minutes too, so that --resume loses at most that "
+        "much (%(default)s)",
+    )  # fmt: skip
+    parser.add_argument(
         "--init", default=None, help="start from this checkpoint's weights (fine-tuning; same --width and classes)"
     )
     parser.add_argument(
@@ -132,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
             val_every=args.val_every,
             augment=augment,
             resume=args.resume,
+            checkpoint_minutes=args.checkpoint_minutes,
             init=args.init,
             half_weights=args.half_weights,
             cache=args.cache,

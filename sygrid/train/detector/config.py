@@ -102,6 +102,8 @@ class TrainConfig:
             optimiser, schedule and EMA start afresh. A resumed run continues from its own ``last.pt`` instead.
         export: write ``detector.onnx`` from ``best.pt`` at the end.
         half_weights: store the ONNX weights as float16 (half the file; computed in float32, see ``export``).
+        checkpoint_minutes: also write ``last.pt`` inside an epoch once this many minutes of training have passed
+            since the last write, so that an interruption loses at most that much (None: at epoch ends only).
         progress: tqdm progress bars.
     """
 
@@ -138,6 +140,7 @@ class TrainConfig:
     init: str | None = None
     export: bool = True
     half_weights: bool = False
+    checkpoint_minutes: float | None = 10.0
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -157,6 +160,8 @@ class TrainConfig:
             raise ValueError(f"proto_stride: expected one of {PROTO_STRIDES}, got {self.proto_stride}")
         if self.device not in DEVICE_CHOICES:
             raise ValueError(f"device: expected one of {DEVICE_CHOICES}, got {self.device!r}")
+        if self.checkpoint_minutes is not None and not self.checkpoint_minutes > 0:
+            raise ValueError(f"checkpoint_minutes must be > 0 or None, got {self.checkpoint_minutes}")
         if self.cache not in CACHE_MODES:
             raise ValueError(f"cache: expected one of {CACHE_MODES}, got {self.cache!r}")
         unknown = set(self.augment) - {f.name for f in fields(AugmentConfig)}

@@ -2,13 +2,15 @@
 (COCO mAP on the val split), checkpoints to resume from, and the ONNX export of the best weights.
 
 Files under ``OUT``: ``last.pt`` (everything needed to resume: model, EMA, optimiser, epoch, history, torch RNG;
-written atomically after every epoch), ``best.pt`` (the EMA weights with the best validation mask mAP50-95, for
+written atomically after every epoch, and inside an epoch every ``TrainConfig.checkpoint_minutes`` with how far the
+epoch got), ``best.pt`` (the EMA weights with the best validation mask mAP50-95, for
 export and evaluation), ``detector.onnx`` and ``train_log.json`` (configuration, per-epoch losses, metrics and
 seconds, the export check).
 
 Determinism: the weights are initialised from ``seed``; the order of an epoch and every augmentation come from
 ``(seed, epoch, index)`` (``sygrid.train.detector.augment``), so a run resumed from ``last.pt`` sees the data an
-uninterrupted run would (no numpy generator state needs saving).
+uninterrupted run would (no numpy generator state needs saving); one resumed inside an epoch skips the batches it
+had trained on and goes on with the same weights, optimiser state and loss sums.
 """
 
 from __future__ import annotations
@@ -195,6 +197,7 @@ class _Trainer:
         self.history: list[dict] = []
         self.best_fitness = -math.inf
         self.best_epoch = None
+        self.partial_epoch: dict | None = None  # how far an interrupted epoch got (a mid-epoch last.pt)
         if cfg.resume:
             self._resume()
         elif cfg.init:
@@ -215,7 +218,20 @@ class _Trainer:
         self.history = list(ckpt["history"])
         self.best_fitness = float(ckpt["best_fitness"])
         self.best_epoch = ckpt["best_epoch"]
-        log.info("resumed from %s after epoch %d (%d iterations)", path, self.epoch, self.iteration)
+        self.partial_epoch = ckpt.get("partial_epoch")
+        if self.partial_epoch is None:
+            log.info("resumed from %s after epoch %d (%d iterations)", path, self.epoch, self.iteration)
+            return
+        done, batch, per_epoch = (self.partial_epoch[k] for k in ("iterations", "batch", "iters_per_epoch"))
+        if (batch, per_epoch) != (self.cfg.batch, self.iters_per_epoch):
+            raise TrainError(
+                f"{path} (--resume): the checkpoint stopped inside epoch {self.epoch + 1} of batches of {batch}, "
+                f"{per_epoch} per epoch; this run has batches of {self.cfg.batch}, {self.iters_per_epoch} per epoch "
+                "(keep the same --batch and --max-iters to finish that epoch)"
+            )
+        log.info(
+            "resumed from %s inside epoch %d, after %d of its %d iterations", path, self.epoch + 1, done, per_epoch
+        )
 
     def _init_from(self, path: Path) -> None:
         ckpt = load_checkpoint(path)
@@ -248,7 +264,8 @@ class _Trainer:
             "epoch": self.epoch,
         }
 
-    def _save_last(self) -> Path:
+    def _save_last(self, partial_epoch: dict | None = None) -> Path:
+        """``last.pt``; ``partial_epoch``: how far the epoch after ``self.epoch`` got, when written inside it."""
         return _save(
             {
                 **self._common(),
@@ -262,6 +279,7 @@ class _Trainer:
                 "best_fitness": self.best_fitness,
                 "best_epoch": self.best_epoch,
                 "torch_rng": torch.get_rng_state(),
+                "partial_epoch": partial_epoch,
             },
             self.out / "last.pt",
         )
@@ -270,13 +288,15 @@ class _Trainer:
         return _save({**self._common(), "ema": self.ema.model.state_dict(), "metrics": metrics}, self.out / "best.pt")
 
     # ------------------------------------------------------------------------------------------------ data
-    def _train_batches(self, epoch: int, seconds: dict[str, float]) -> Iterator[tuple[torch.Tensor, Targets]]:
-        """The epoch's batches; adds the data thread's time building them to ``seconds["build"]`` and the time spent
-        waiting for them to ``seconds["wait"]``."""
+    def _train_batches(
+        self, epoch: int, seconds: dict[str, float], first: int = 0
+    ) -> Iterator[tuple[torch.Tensor, Targets]]:
+        """The epoch's batches from its ``first``; adds the data thread's time building them to ``seconds["build"]``
+        and the time spent waiting for them to ``seconds["wait"]``."""
         cfg, aug = self.cfg, self.cfg.augment_config
         order = epoch_order(len(self.dataset.images["train"]), cfg.seed, epoch)
         mosaic = epoch < cfg.epochs - self.close_mosaic
-        chunks = [order[k * cfg.batch : (k + 1) * cfg.batch] for k in range(self.iters_per_epoch)]
+        chunks = [order[k * cfg.batch : (k + 1) * cfg.batch] for k in range(first, self.iters_per_epoch)]
 
         def build(indices: np.ndarray) -> tuple[torch.Tensor, Targets]:
             start = time.perf_counter()
@@ -312,19 +332,26 @@ class _Trainer:
     # ------------------------------------------------------------------------------------------- training
     def _train_epoch(self, epoch: int) -> dict:
         self.model.train()
-        sums = dict.fromkeys(LOSS_NAMES, 0.0)
-        data = {"build": 0.0, "wait": 0.0}  # the data thread's seconds this epoch
+        # An epoch an interrupted run had begun goes on from its checkpoint's sums; a fresh one starts at zero.
+        partial = self.partial_epoch or {
+            "iterations": 0, "loss_sums": dict.fromkeys(LOSS_NAMES, 0.0), "train_seconds": 0.0,
+            "data_seconds": {"build": 0.0, "wait": 0.0},
+        }  # fmt: skip
+        self.partial_epoch = None
+        n = int(partial["iterations"])
+        sums = dict(partial["loss_sums"])
+        data = dict(partial["data_seconds"])  # the data thread's seconds this epoch
         bar = tqdm(
-            self._train_batches(epoch, data),
+            self._train_batches(epoch, data, first=n),
             total=self.iters_per_epoch,
+            initial=n,
             desc=f"epoch {epoch + 1}/{self.cfg.epochs}",
             disable=not self.cfg.progress,
             leave=True,
             dynamic_ncols=True,
         )
-        start = time.perf_counter()
+        start = last_write = time.perf_counter()
         lr = self.cfg.lr
-        n = 0
         for images, targets in bar:
             lr = learning_rate(self.cfg, self.iteration, self.iters_per_epoch)
             for group in self.optimizer.param_groups:
@@ -349,7 +376,14 @@ class _Trainer:
             for k in LOSS_NAMES:
                 sums[k] += terms[k]
             bar.set_postfix({k: f"{sums[k] / n:.3f}" for k in LOSS_NAMES} | {"lr": f"{lr:.2e}"}, refresh=False)
-        seconds = time.perf_counter() - start
+            if n < self.iters_per_epoch and self._checkpoint_due(last_write):
+                self._save_last({
+                    "iterations": n, "loss_sums": sums, "data_seconds": data,
+                    "train_seconds": partial["train_seconds"] + time.perf_counter() - start,
+                    "batch": self.cfg.batch, "iters_per_epoch": self.iters_per_epoch,
+                })  # fmt: skip
+                last_write = time.perf_counter()
+        seconds = partial["train_seconds"] + time.perf_counter() - start
         losses = {k: sums[k] / max(n, 1) for k in LOSS_NAMES}
         losses["total"] = sum(losses.values())
         return {
@@ -362,6 +396,10 @@ class _Trainer:
             "lr": lr,
             "loss": losses,
         }
+
+    def _checkpoint_due(self, last_write: float) -> bool:
+        minutes = self.cfg.checkpoint_minutes
+        return minutes is not None and time.perf_counter() - last_write >= 60.0 * minutes
 
     @torch.no_grad()
     def validate(self, model: YoloSeg) -> DetectionMetrics:
