@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
 
 from sygrid.errors import SygridError
@@ -22,7 +23,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "models": ("launch.models", "pack trained runs into a model folder; choose its pose strategy per part"),
     "eval": ("launch.eval", "evaluate the perception models on a generated dataset (mAP, ADD(-S), errors)"),
     "pick": ("launch.pick", "run the pick cycle on a cell file (simulated or hardware) and write its report"),
-    "calibrate": ("launch.calibrate", "calibrate a cell's gripper (empty open/close) and write its calibration file"),
+    "calibrate": (
+        "launch.calibrate",
+        "calibrate a cell's gripper (empty open/close) or its camera's pose (hand-eye, ChArUco on the flange)",
+    ),
     "show": ("launch.show", "draw the labels of a few dataset items over their images (PNG)"),
     "convert": ("launch.convert", "convert SyGRID label pickles or YOLO-seg folders to BOP, COCO and YOLO"),
 }
@@ -56,9 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     except SygridError as exc:
         print(f"sygrid {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # 130 for SIGINT, 143 for SIGTERM (launch.pick_stops.Interrupted)
         print(f"sygrid {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return 128 + getattr(exc, "signum", signal.SIGINT)
 
 
 if __name__ == "__main__":

@@ -61,6 +61,19 @@ def reachable(T_base_flange: np.ndarray) -> bool:
     return ik_nearest(T_base_flange, Q_PRESENT) is not None
 
 
+def presenting_joints(
+    T_base_camera: np.ndarray, T_flange_board: np.ndarray, board: CharucoBoard = BOARD, distance_m: float = 0.4
+) -> np.ndarray:
+    """Joints (near ``Q_PRESENT``) that hold the board ``distance_m`` in front of the camera on its optical axis,
+    facing it: where an operator jogs the arm before ``sygrid calibrate hand-eye`` (in the default cell, at 0.4 m the
+    wrist stays well above the bin's walls, at 0.5 m it meets them). ValueError when unreachable."""
+    T_camera_board = make_T(t=np.array([0.0, 0.0, distance_m]) - board.center_board)
+    q = ik_nearest(T_base_camera @ T_camera_board @ invert(T_flange_board), Q_PRESENT)
+    if q is None:
+        raise ValueError(f"the board {distance_m} m in front of the camera is out of the arm's reach")
+    return q
+
+
 class PlacedArm:
     """A ``robot.calibration.FlangeRobot`` over a ``CellWorld``: the IK solution nearest ``Q_PRESENT``, set directly."""
 

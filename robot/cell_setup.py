@@ -14,7 +14,8 @@ Sections (see ``launch/cells/sim.toml`` and ``launch/cells/ur5e_oak.toml``)::
                   sygrid.sensor preset the exact frames go through ("ideal", the default: exact; "oak-d", "d435", ...)
     [calibration] source = "sim_handeye" (sim: the ChArUco hand-eye calibration run in the simulated cell,
                   launch.sim_calibration) | "sim" (sim: the camera's true pose) | "file", file = "calib.json"
-                  (robot.calibration)
+                  (robot.calibration's file, written by ``sygrid calibrate hand-eye``); board (CharucoBoard's
+                  fields, type = "charuco"), T_flange_board_guess (4x4): the board on the flange, for that command
     [perception]  kind = "models" | "oracle" (sim only, ground truth), models_dir, refine, max_refined,
                   conf_threshold, detector_input_size, detector_scale, detector_tile_px, detect_in_bin,
                   ignore_floor, floor_margin_m, min_fitness, mask_erosion_px (refinement settings)
@@ -54,6 +55,7 @@ if TYPE_CHECKING:
     from perception.camera import Camera
     from perception.oak import OakConfig
     from perception.realsense import RealSenseConfig
+    from robot.charuco import CharucoBoard
     from robot.grasp_config import PlannerConfig
     from robot.gripper_calibration import GripperCalibration
 
@@ -99,11 +101,6 @@ class CameraSection(_Strict):
     sensor: str = "ideal"
 
 
-class CalibrationSection(_Strict):
-    source: Literal["sim_handeye", "sim", "file"]
-    file: str | None = None
-
-
 class PerceptionSection(_Strict):
     kind: Literal["models", "oracle"] = "models"
     models_dir: str = "models/builtin"
@@ -127,6 +124,15 @@ Matrix4 = tuple[
     tuple[float, float, float, float],
     tuple[float, float, float, float],
 ]
+
+
+class CalibrationSection(_Strict):
+    source: Literal["sim_handeye", "sim", "file"]
+    file: str | None = None
+    # `sygrid calibrate hand-eye`: the ChArUco board on the flange (robot.charuco.CharucoBoard's JSON fields; default
+    # the 7 x 5 board of 30 mm squares) and where it sits on the flange, to a few cm and degrees
+    board: dict[str, Any] | None = None
+    T_flange_board_guess: Matrix4 | None = None
 
 
 class BinSection(_Strict):
@@ -332,6 +338,34 @@ class CellSetup:
             f"{self.path}: no gripper calibration at {self.gripper_calibration_path}: run `{command}` with nothing "
             "between the fingers before a hardware run"
         )
+
+    def hand_eye_board(self) -> CharucoBoard:
+        """The ChArUco board of ``[calibration] board`` (``CharucoBoard()``'s fields where it leaves them out); errors
+        name the file and field."""
+        from robot.charuco import CharucoBoard
+
+        board = self.data.calibration.board
+        if board is None:
+            return CharucoBoard()
+        # fields left out take the default board's
+        return CharucoBoard.from_json({**CharucoBoard().to_json(), **board}, f"{self.path}: [calibration] board")
+
+    def flange_board_guess(self) -> np.ndarray:
+        """``[calibration] T_flange_board_guess`` as a rigid 4x4; ConfigError naming the field when it is missing or
+        not rigid."""
+        from sygrid.transforms import is_rigid
+
+        where = f"{self.path}: [calibration] T_flange_board_guess"
+        T = self.data.calibration.T_flange_board_guess
+        if T is None:
+            raise ConfigError(
+                f"{where} is not set: where the ChArUco board sits on the flange (a 4x4 pose of the board frame, its "
+                "outer top-left corner, in the flange frame; a few cm and degrees are enough)"
+            )
+        T = np.array(T, dtype=float)
+        if not is_rigid(T):
+            raise ConfigError(f"{where}: expected a rigid 4x4 transform, got {T.tolist()}")
+        return T
 
     def resolve(self, value: str | None) -> Path | None:
         """A path from the file, relative to the file's folder."""
