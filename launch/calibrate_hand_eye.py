@@ -8,11 +8,13 @@ few centimetres and degrees) and the arm is jogged so that the board faces the c
 1. a first frame: the board's pose in it, with the flange pose and the mount guess, gives the camera pose guess (no
    other input needed);
 2. ``n_poses`` flange poses are drawn around it that show the whole board from varied angles
-   (``robot.calibration.generate_pose_set``), each with an IK solution on the start pose's branch and the TCP inside
-   the workspace box along the joint move from the start pose (``URRobot`` checks every move again);
+   (``robot.calibration.generate_pose_set``), each with an IK solution on the start pose's branch, the TCP inside
+   the workspace box and the gripper and wrist clear of the bin's walls along the joint move from the start pose
+   (``JointMoves``; ``URRobot`` checks every move again);
 3. the arm visits them by joint moves at ``speed_rad_s``, and at each, once still, the board is detected; the
-   pairs are solved (``robot.hand_eye``), the result written (``robot.calibration.save_calibration``), and the arm
-   goes back to the start pose. An error, SIGINT or SIGTERM stops the arm where it is (``URRobot.close``).
+   pairs are solved (``robot.hand_eye``), the result written (``robot.calibration.save_calibration``; a calibration
+   the file held is kept beside it, ``NAME.previous.json``, and how far the camera moved since is printed), and the
+   arm goes back to the start pose. An error, SIGINT or SIGTERM stops the arm where it is (``URRobot.close``).
 
 On a simulated cell the emulator is started (empty bin) with the board on a plate on the flange
 (``launch.sim_calibration.board_plate_on_flange``, whose mount is known), the arm is first moved to hold the board
@@ -25,20 +27,22 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import shutil
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from robot.calibration import calibrate, generate_pose_set, save_calibration
+from launch.sim_calibration import pose_error
+from robot.calibration import calibrate, generate_pose_set, load_calibration, save_calibration
 from robot.cell_setup import CellSetup
 from robot.charuco import BoardDetector, CharucoBoard
 from robot.grasp_collision import CollisionChecker
 from robot.hand_eye import CalibrationError, HandEyeCalibration
 from robot.ur import URRobot
 from robot.ur_errors import MotionRefusedError
-from sygrid.errors import ConfigError
+from sygrid.errors import ConfigError, SygridError
 from sygrid.transforms import invert
 
 log = logging.getLogger(__name__)
@@ -55,6 +59,8 @@ class HandEyeRun:
     path: Path
     error_mm: float | None = None
     error_deg: float | None = None
+    backup: Path | None = None  # the calibration ``path`` held before, kept
+    change: tuple[float, float] | None = None  # how far this result lies from that one (mm, degrees)
 
 
 class JointMoves:
@@ -155,7 +161,9 @@ def run_hand_eye(
                 ControllerProcess(setup.data.sim.host, backend="mujoco", backend_kwargs={"config": cell},
                                   start_timeout_s=120.0, unlock_delay_s=setup.data.sim.unlock_delay_s)
             )  # fmt: skip
-            camera = EmulatorCamera(process, sensor=sensor_preset(setup.data.camera.sensor), rng=sensor_rng(seed, 7))
+            sensor = sensor_preset(setup.data.camera.sensor)
+            # nothing here is time-critical: a loaded machine may take long for the first frame
+            camera = EmulatorCamera(process, timeout_s=60.0, sensor=sensor, rng=sensor_rng(seed, 7))
             robot = stack.enter_context(URRobot(setup.robot))
             robot.move_j(presenting_joints(T_true, T_flange_board, board), speed_rad_s)  # jogged there
         else:
@@ -174,13 +182,25 @@ def run_hand_eye(
         # an error or a stop signal leaves through the ExitStack: URRobot.close stops a motion in flight
         calibration = calibrate(arm, camera.capture, board, poses)
         robot.move_j(q_start, speed_rad_s)  # back where the operator left it
+    backup, change = keep_previous(out, calibration)
     path = save_calibration(out, calibration)
-    if T_true is None:
-        return HandEyeRun(calibration, path)
-    from launch.sim_calibration import pose_error
+    error = (None, None) if T_true is None else pose_error(calibration.T_base_camera, T_true)
+    return HandEyeRun(calibration, path, *error, backup=backup, change=change)
 
-    error_mm, error_deg = pose_error(calibration.T_base_camera, T_true)
-    return HandEyeRun(calibration, path, error_mm, error_deg)
+
+def keep_previous(out: Path, calibration: HandEyeCalibration) -> tuple[Path | None, tuple[float, float] | None]:
+    """Before ``out`` is replaced: a copy of it beside it (``NAME.previous.json``) and how far the new camera pose
+    lies from the one it held (mm, degrees; None when it does not load). (None, None) when there is no ``out``."""
+    if not out.is_file():
+        return None, None
+    backup = out.with_name(f"{out.stem}.previous{out.suffix}")
+    shutil.copy2(out, backup)
+    try:
+        previous = load_calibration(out)
+    except SygridError as err:
+        log.warning("%s: the previous calibration does not load (%s); kept as %s", out, err, backup)
+        return backup, None
+    return backup, pose_error(calibration.T_base_camera, previous.T_base_camera)
 
 
 def write_board(board: CharucoBoard, out: Path, dpi: int = 300) -> tuple[Path, tuple[float, float]]:
@@ -218,5 +238,8 @@ def summary(run: HandEyeRun) -> str:
     ]
     if run.error_mm is not None:
         lines.append(f"against the simulated camera's true pose: {run.error_mm:.2f} mm, {run.error_deg:.3f} deg")
+    if run.backup is not None:
+        moved = "" if run.change is None else f": the camera moved {run.change[0]:.2f} mm, {run.change[1]:.3f} deg"
+        lines.append(f"the previous calibration is kept as {run.backup}{moved}")
     lines.append(f"wrote {run.path}")
     return "\n".join(lines)

@@ -4,6 +4,7 @@ emulator (127.0.0.92; no other test uses it), its file used by a cell, and the c
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from robot.calibration import load_calibration
 from robot.cell_setup import load_cell_setup
 from robot.charuco import CharucoBoard
 from sygrid.errors import ConfigError
+from sygrid.transforms import make_T
 
 ROOT = Path(__file__).resolve().parents[1]
 SIM_HOST = "127.0.0.92"
@@ -31,7 +33,7 @@ def _cell(tmp_path: Path, source: str, calibration: str, name: str) -> Path:
 @pytest.mark.slow  # the emulator in real time: 8 poses at 0.5 rad/s
 def test_the_simulated_cell_calibrates_its_camera_through_ur_rtde_and_a_cell_uses_the_file(tmp_path, capsys):
     pytest.importorskip("rtde_control")
-    from launch.calibrate_hand_eye import run_hand_eye
+    from launch.calibrate_hand_eye import keep_previous, run_hand_eye
     from launch.cli import main
     from launch.pick import camera_pose
     from launch.sim_calibration import true_T_base_camera
@@ -51,6 +53,15 @@ def test_the_simulated_cell_calibrates_its_camera_through_ur_rtde_and_a_cell_use
     np.testing.assert_array_equal(T, calibration.T_base_camera)
     assert info == {"source": "file", "file": str(tmp_path / "T_base_camera.json")}
     assert np.linalg.norm(T[:3, 3] - true_T_base_camera(CellConfig())[:3, 3]) < 1e-3
+    # A calibration the file held is kept beside it, with how far the new one moved the camera (unreadable: kept too).
+    out = tmp_path / "T_base_camera.json"
+    moved = replace(calibration, T_base_camera=calibration.T_base_camera @ make_T(t=(0.0, 0.002, 0.0)))
+    backup, change = keep_previous(out, moved)
+    assert backup == tmp_path / "T_base_camera.previous.json" and backup.read_bytes() == out.read_bytes()
+    assert change == pytest.approx((2.0, 0.0), abs=1e-3)  # arccos near 1 has ~1e-6 degrees of rounding
+    out.write_text("{not json")
+    assert keep_previous(out, moved) == (backup, None) and backup.read_text() == "{not json"
+    assert keep_previous(tmp_path / "none.json", moved) == (None, None)
     # Too few poses for a calibration is refused before anything starts.
     with pytest.raises(ConfigError, match=r"--poses >= 6"):
         run_hand_eye(load_cell_setup(cell), tmp_path / "x.json", 4, 0, 0.5)
