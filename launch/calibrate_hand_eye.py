@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from launch.sim_calibration import pose_error
+from perception.camera import Camera
 from robot.calibration import calibrate, generate_pose_set, load_calibration, save_calibration
 from robot.cell_setup import CellSetup
 from robot.charuco import BoardDetector, CharucoBoard
@@ -42,6 +43,7 @@ from robot.grasp_collision import CollisionChecker
 from robot.hand_eye import CalibrationError, HandEyeCalibration
 from robot.ur import URRobot
 from robot.ur_errors import MotionRefusedError
+from sygrid.camera import CameraIntrinsics
 from sygrid.errors import ConfigError, SygridError
 from sygrid.transforms import invert
 
@@ -121,7 +123,7 @@ class JointMoves:
 
 
 def camera_guess(
-    robot: URRobot, frame_rgb: np.ndarray, intrinsics: object, board: CharucoBoard, T_flange_board: np.ndarray
+    robot: URRobot, frame_rgb: np.ndarray, intrinsics: CameraIntrinsics, board: CharucoBoard, T_flange_board: np.ndarray
 ) -> np.ndarray:
     """``T_base_camera`` from one view of the board at the current flange pose and the mount guess; a
     CalibrationError saying what to do when the camera does not see the board."""
@@ -145,27 +147,7 @@ def run_hand_eye(
     with contextlib.ExitStack() as stack:
         T_true = None
         if setup.is_sim:
-            from launch.sim_calibration import board_plate_on_flange, presenting_joints, true_T_base_camera
-            from sim.cell_config import CellConfig
-            from sim.controller import ControllerProcess
-            from sim.emulator_camera import EmulatorCamera
-            from sygrid.sensor import sensor_preset, sensor_rng
-
-            if board != CharucoBoard():
-                raise ConfigError(f"{setup.path}: [calibration] board: the simulated cell's plate carries the default")
-            plate, T_flange_board = board_plate_on_flange(board)
-            cell = replace(CellConfig(), calibration_board=plate)
-            T_true = true_T_base_camera(cell)
-            print(f"starting the emulator on {setup.data.sim.host} (empty bin, the board on the flange) ...")
-            process = stack.enter_context(
-                ControllerProcess(setup.data.sim.host, backend="mujoco", backend_kwargs={"config": cell},
-                                  start_timeout_s=120.0, unlock_delay_s=setup.data.sim.unlock_delay_s)
-            )  # fmt: skip
-            sensor = sensor_preset(setup.data.camera.sensor)
-            # nothing here is time-critical: a loaded machine may take long for the first frame
-            camera = EmulatorCamera(process, timeout_s=60.0, sensor=sensor, rng=sensor_rng(seed, 7))
-            robot = stack.enter_context(URRobot(setup.robot))
-            robot.move_j(presenting_joints(T_true, T_flange_board, board), speed_rad_s)  # jogged there
+            camera, robot, T_flange_board, T_true = _open_sim_cell(stack, setup, board, seed, speed_rad_s)
         else:
             T_flange_board = setup.flange_board_guess()
             camera = stack.enter_context(setup.open_camera())
@@ -186,6 +168,35 @@ def run_hand_eye(
     path = save_calibration(out, calibration)
     error = (None, None) if T_true is None else pose_error(calibration.T_base_camera, T_true)
     return HandEyeRun(calibration, path, *error, backup=backup, change=change)
+
+
+def _open_sim_cell(
+    stack: contextlib.ExitStack, setup: CellSetup, board: CharucoBoard, seed: int, speed_rad_s: float
+) -> tuple[Camera, URRobot, np.ndarray, np.ndarray]:
+    """The emulator (empty bin, the board's plate on the flange), its camera and the robot, with the arm holding the
+    board in front of the camera; returns them with the board's mount and the camera's true pose."""
+    from launch.sim_calibration import board_plate_on_flange, presenting_joints, true_T_base_camera
+    from sim.cell_config import CellConfig
+    from sim.controller import ControllerProcess
+    from sim.emulator_camera import EmulatorCamera
+    from sygrid.sensor import sensor_preset, sensor_rng
+
+    if board != CharucoBoard():
+        raise ConfigError(f"{setup.path}: [calibration] board: the simulated cell's plate carries the default board")
+    plate, T_flange_board = board_plate_on_flange(board)
+    cell = replace(CellConfig(), calibration_board=plate)
+    T_true = true_T_base_camera(cell)
+    print(f"starting the emulator on {setup.data.sim.host} (empty bin, the board on the flange) ...")
+    process = stack.enter_context(
+        ControllerProcess(setup.data.sim.host, backend="mujoco", backend_kwargs={"config": cell},
+                          start_timeout_s=120.0, unlock_delay_s=setup.data.sim.unlock_delay_s)
+    )  # fmt: skip
+    # nothing here is time-critical: a loaded machine may take long for the first frame
+    sensor = sensor_preset(setup.data.camera.sensor)
+    camera = EmulatorCamera(process, timeout_s=60.0, sensor=sensor, rng=sensor_rng(seed, 7))
+    robot = stack.enter_context(URRobot(setup.robot))
+    robot.move_j(presenting_joints(T_true, T_flange_board, board), speed_rad_s)  # where an operator jogs it
+    return camera, robot, T_flange_board, T_true
 
 
 def keep_previous(out: Path, calibration: HandEyeCalibration) -> tuple[Path | None, tuple[float, float] | None]:
