@@ -99,8 +99,7 @@ class JointMoves:
         if q is None:
             return None
         try:
-            self.robot.check_pose(T_base_tcp)
-            self.robot.check_joint_path(self.q_seed, q)
+            self.robot.check_joint_path(self.q_seed, q)  # the path and where it ends
         except MotionRefusedError:  # outside the workspace box or the joint limits: not a pose to draw
             return None
         return q if self.clear(self.q_seed, q) else None

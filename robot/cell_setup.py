@@ -344,11 +344,8 @@ class CellSetup:
         name the file and field."""
         from robot.charuco import CharucoBoard
 
-        board = self.data.calibration.board
-        if board is None:
-            return CharucoBoard()
-        # fields left out take the default board's
-        return CharucoBoard.from_json({**CharucoBoard().to_json(), **board}, f"{self.path}: [calibration] board")
+        fields = {**CharucoBoard().to_json(), **(self.data.calibration.board or {})}  # left out: the default's
+        return CharucoBoard.from_json(fields, f"{self.path}: [calibration] board")
 
     def flange_board_guess(self) -> np.ndarray:
         """``[calibration] T_flange_board_guess`` as a rigid 4x4; ConfigError naming the field when it is missing or
