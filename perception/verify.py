@@ -13,17 +13,17 @@ pixel with a depth measurement is one of:
 ``fit`` is the inlier fraction of the rendered pixels that are not occluded (does the model's visible surface lie
 where depth says a surface is), ``coverage`` the fraction of the mask's depth pixels that rendered inliers explain
 (does the model account for what was segmented: a smaller part's model fitted into a larger part's mask covers only
-some of it); mask pixels the model leaves open whose depth lies behind the model's surface next to them are
-background seen past the part (through its hole, around its edge) and do not count. ``iou`` is the silhouette IoU
-of the unoccluded rendering and the segmenter's mask as it was before the depth clean-up (the observation's
-``silhouette``, less its background seen past the part as above; the model's own holes count neither way, as a
-segmenter may fill them, and so do the model's pixels outside the mask where the depth shows its surface clear of
-the support, which an under-segmenting detector missed): where depth cannot speak (no data on specular metal, a
-thin part whose top quantises to the floor's depth, a fragment of a buried part), the outline still does. With
-footprints (the verdict), a pixel the model's outline crosses counts neither way either. The pose's confidence is
-``sqrt(fit * coverage * iou)`` in [0, 1] (the depth's agreement ``sqrt(fit * coverage)`` times the outline's
-``sqrt(iou)``); it is accepted when the confidence reaches ``min_confidence`` (or the part's own threshold,
-``part_min_confidence``).
+some of it; 1 where the mask holds no depth pixel to explain); mask pixels the model leaves open whose depth lies
+behind the model's surface next to them are background seen past the part (through its hole, around its edge) and do
+not count. ``iou`` is the silhouette IoU of the unoccluded rendering and the segmenter's mask as it was before the
+depth clean-up (the observation's ``silhouette``, less its background seen past the part as above; the model's own
+holes count neither way, as a segmenter may fill them, and so do the model's pixels outside the mask where the depth
+shows its surface clear of the support, which an under-segmenting detector missed): where depth cannot speak (no
+data on specular metal, a thin part whose top quantises to the floor's depth, a fragment of a buried part), the
+outline still does. With footprints (the verdict), a pixel the model's outline crosses counts neither way either.
+The pose's confidence is ``sqrt(fit * coverage * iou)`` in [0, 1] (the depth's agreement ``sqrt(fit * coverage)``
+times the outline's ``sqrt(iou)``); it is accepted when the confidence reaches ``min_confidence`` (or the part's own
+threshold, ``part_min_confidence``).
 
 The verdict (``verify(..., footprint=True)``) compares each pixel's observed depth with the range of the model's
 depth over the pixel's footprint (its centre and four corners, ray-cast where the model has a silhouette or a depth
@@ -363,7 +363,9 @@ class PoseVerifier:
         background = in_mask & past
         n_mask = int((in_mask & valid & ~background & ~(within & ~hit)).sum())
         fit = n_inlier / (n_inlier + n_violation) if n_inlier + n_violation else 0.0
-        coverage = int((inlier & in_mask).sum()) / n_mask if n_mask else 0.0
+        # no depth in the mask to explain (a dropout over the whole part): coverage cannot speak either way, and
+        # the fit and the outline decide
+        coverage = int((inlier & in_mask).sum()) / n_mask if n_mask else 1.0
         seen, silhouette = hit & ~occluded, r.in_silhouette & ~past
         counted = ~mask_holes(hit)  # the model's own holes: a segmenter may fill them
         if r.height is not None:  # the model's surface where depth shows it, clear of the support: the mask missed it

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -136,6 +137,23 @@ def test_where_depth_cannot_tell_the_outline_does():
     assert slid.depth_confidence > 0.95 and slid.iou < 0.4
     assert not slid.accepted and slid.confidence < 0.7
     assert slid.confidence == pytest.approx(np.sqrt(slid.fit * slid.coverage * slid.iou))
+
+
+def test_a_mask_without_depth_is_judged_by_the_fit_around_it_and_the_outline():
+    """A washer whose top returns no depth over all the segmenter drew (a stereo dropout; the mask a pixel tight):
+    no mask pixel is left for the model to explain, so coverage cannot speak (1); the depth around the mask, where
+    the model's rim renders, and the outline decide. The true pose is accepted, the pose slid off the silhouette is
+    refused."""
+    T = on_floor(WASHER, 0.0, 0.0, 0.0)
+    scene = render([(WASHER, T)])
+    mask = cv2.erode(scene.masks[0].astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    obs = Observation.of_detection(np.where(mask, 0.0, scene.depth), detection(WASHER, mask), CAMERA)
+    verifier = PoseVerifier()
+    true = verifier.verify(T, WASHER, obs, footprint=True)
+    assert true.mask_pixels == 0 and true.coverage == 1.0
+    assert true.accepted and true.confidence == pytest.approx(np.sqrt(true.fit * true.iou)) and true.fit == 1.0
+    slid = verifier.verify(T @ make_T(t=[0.0, 0.3 * WASHER.diameter_m, 0.0]), WASHER, obs, footprint=True)
+    assert not slid.accepted and slid.confidence < true.confidence - 0.2, slid
 
 
 def test_the_outline_is_the_segmenters_mask_before_the_clean_up(scene):
