@@ -32,7 +32,7 @@ from sim.cell_config import BoardPlate, CellConfig
 from sygrid.fileio import cache_dir_for
 from sygrid.robots.kinematics import ik_nearest
 from sygrid.sensor import SensorModel, sensor_rng
-from sygrid.transforms import invert, make_T, rotation_about, rotation_angle_deg
+from sygrid.transforms import invert, make_T, pose_difference, rotation_about
 
 log = logging.getLogger(__name__)
 
@@ -131,8 +131,9 @@ def true_T_base_camera(config: CellConfig) -> np.ndarray:
 
 
 def pose_error(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """(translation error mm, rotation error deg)."""
-    return 1000 * float(np.linalg.norm(T[:3, 3] - T_true[:3, 3])), rotation_angle_deg(T[:3, :3], T_true[:3, :3])
+    """(translation error mm, rotation error deg): ``sygrid.transforms.pose_difference`` in a calibration's units."""
+    metres, radians = pose_difference(T, T_true)
+    return 1000.0 * metres, math.degrees(radians)
 
 
 def calibrate_sim_cell(

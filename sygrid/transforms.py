@@ -44,10 +44,23 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return Rotation.random(random_state=rng).as_matrix()
 
 
+def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle of the relative rotation between two 3x3 rotations, radians in [0, pi]: from both the trace and the
+    antisymmetric part (atan2), so that it stays exact for small angles, where the trace's arccos loses half its
+    digits (a controller's convergence test compares angles of 1e-9 rad)."""
+    R = R_a.T @ R_b
+    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.arctan2(s / 2.0, (np.trace(R) - 1.0) / 2.0))
+
+
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle of the relative rotation between two 3x3 rotations, in degrees."""
-    cos = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return float(np.degrees(rotation_angle_rad(R_a, R_b)))
+
+
+def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """(distance between the origins [m], angle of the relative rotation [rad]) of two 4x4 poses."""
+    return float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3])), rotation_angle_rad(T_a[:3, :3], T_b[:3, :3])
 
 
 def is_rigid(T: np.ndarray, atol: float = 1e-6) -> bool:

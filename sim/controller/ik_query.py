@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from sygrid.robots.kinematics import forward_kinematics, ik_nearest
+from sygrid.transforms import pose_difference
 
 DEFAULT_MAX_POSITION_ERROR_M = 1e-10  # URScript defaults (also ur_rtde's)
 DEFAULT_MAX_ORIENTATION_ERROR_RAD = 1e-10
@@ -21,12 +22,6 @@ _TRACK_ITERATIONS = 6
 _TRACK_TOLERANCE = 1e-12  # m and rad, per component
 _TRACK_MAX_STEP_RAD = 0.2  # a bigger Newton step means the Jacobian is near singular: use the analytic solver
 _TOLERANCE_FLOOR = 1e-9  # below this, float noise in FK decides; treat as met
-
-
-def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
-    """(position error [m], orientation error [rad]) between two poses."""
-    dp = float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
-    return dp, float(np.linalg.norm(_rotation_error(T_b[:3, :3] @ T_a[:3, :3].T)))
 
 
 def _rotation_error(R: np.ndarray) -> np.ndarray:
@@ -40,7 +35,7 @@ def _rotation_error(R: np.ndarray) -> np.ndarray:
 
 
 def _within(T: np.ndarray, T_target: np.ndarray, max_pos: float, max_ori: float) -> bool:
-    dp, dr = pose_error(T, T_target)
+    dp, dr = pose_difference(T, T_target)
     return dp <= max(max_pos, _TOLERANCE_FLOOR) and dr <= max(max_ori, _TOLERANCE_FLOOR)
 
 
