@@ -206,6 +206,20 @@ def test_yolo_labels_rasterise_back_to_the_masks(tmp_path):
     _no_tmp(tmp_path)
 
 
+@pytest.mark.parametrize(("splits", "val"), [(("train",), "train"), (("train", "test"), "train"), (("test",), "test")])
+def test_yolo_data_yaml_names_a_val_split_that_exists_and_never_trains_on_another(tmp_path, splits, val):
+    """ultralytics needs train and val: val is the val split, else the train split, else (a test set alone) the
+    test split, so that `yolo val` evaluates it; train always names images/train, which a test set does not have."""
+    _, rgb, _ = _item()
+    writer = YoloWriter(tmp_path, _models(), split=splits[0])
+    for k, split in enumerate(splits):
+        writer.write(_item(image_id=k)[0], rgb, split=split)
+    writer.finish()
+    yaml = (tmp_path / "data.yaml").read_text()
+    assert yaml.startswith(f"train: images/train\nval: images/{val}\n")
+    assert ("test: images/test\n" in yaml) == ("test" in splits)
+
+
 # ---------------------------------------------------------------------------------------------------------- COCO
 @pytest.mark.filterwarnings("ignore:__array__ implementation:DeprecationWarning")  # inside pycocotools, numpy 2
 def test_coco_loads_in_pycocotools_and_decodes_exactly(tmp_path):

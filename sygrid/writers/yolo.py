@@ -75,8 +75,10 @@ class YoloWriter:
         self.files_written = 0  # images and labels; a count, not a list: a million-item run must not grow memory
 
     def _write_yaml(self) -> Path:
-        present = {s for s in ("train", "val", "test") if (self.root / "images" / s).is_dir()}
-        splits = {"train": "images/train", "val": "images/val" if "val" in present else "images/train"}
+        present = [s for s in ("val", "train", "test") if (self.root / "images" / s).is_dir()]
+        # ultralytics needs both keys; val names the first split there is (a test set alone: its test split, so
+        # that `yolo val` evaluates it), and train is never pointed at another split's images
+        splits = {"train": "images/train", "val": f"images/{present[0] if present else 'train'}"}
         if "test" in present:
             splits["test"] = "images/test"
         text = data_yaml(self.names, splits)
@@ -122,7 +124,8 @@ class YoloWriter:
         return [self.root / "images" / split / f"{name}.png", self.root / "labels" / split / f"{name}.txt"]
 
     def finish(self) -> list[Path]:
-        """Rewrites ``data.yaml`` (``val`` points at ``images/val`` once it exists); returns it."""
+        """Rewrites ``data.yaml`` (``val`` points at ``images/val`` once it exists, else at the train or the test
+        split); returns it."""
         path = self._write_yaml()
         log.info("YOLO dataset: %d image and label files written under %s", self.files_written, self.root)
         return [path]
