@@ -450,16 +450,18 @@ class StrategyRunner:
         T, v = c.T, c.verification
         for fraction in cfg.polish_steps:
             step = fraction * float(model.diameter_m)
-            moved = True
+            moved, undo = True, None
             while moved:
                 moved = False
-                for axis in (T[:3, :3] @ E).T:
+                for k, axis in enumerate((T[:3, :3] @ E).T):
                     for sign in (1.0, -1.0):
+                        if (k, sign) == undo:  # back to where the last slide came from: known to be worse
+                            continue
                         T_try = T.copy()
                         T_try[:3, 3] += sign * step * axis
                         v_try = self.verifier.verify(T_try, model, obs)
                         if v_try.confidence > v.confidence + 1e-3:
-                            T, v, moved = T_try, v_try, True
+                            T, v, moved, undo = T_try, v_try, True, (k, -sign)
         if T is c.T:
             return c
         refined = self._icp(T, f"{c.source}+polish", scene, model, obs)

@@ -176,16 +176,18 @@ def planar_search(
     v = start if start is not None else verifier.verify(T, model, obs)
     for fraction, degrees in steps:
         moves = _planar_moves(n, (e1, e2), fraction * float(model.diameter_m), np.radians(degrees))
-        first = 0
+        first, undo = 0, None
         improved = True
         while improved:
             improved = False
             for k in range(len(moves)):
                 i = (first + k) % len(moves)
+                if i == undo:  # back to where the last move came from: known to be worse
+                    continue
                 T_try = _moved(T, moves[i])
                 v_try = verifier.verify(T_try, model, obs)
                 if v_try.confidence > v.confidence + 1e-3:
-                    T, v, first, improved = T_try, v_try, i, True
+                    T, v, first, undo, improved = T_try, v_try, i, i ^ 1, True
                     break
     return T, v
 
@@ -194,7 +196,8 @@ def _planar_moves(
     n: np.ndarray, axes: tuple[np.ndarray, np.ndarray], shift_m: float, turn_rad: float
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The six moves of the planar search as (shift [m], rotation) pairs: slides by ``shift_m`` along each in-plane
-    axis both ways, turns by ``turn_rad`` about the normal ``n`` both ways (``_moved`` applies one)."""
+    axis both ways, turns by ``turn_rad`` about the normal ``n`` both ways (``_moved`` applies one); move ``i ^ 1``
+    undoes move ``i``."""
     slides = [(sign * shift_m * e, np.eye(3)) for e in axes for sign in (1.0, -1.0)]
     return slides + [(np.zeros(3), rotation_about(n, sign * turn_rad)) for sign in (1.0, -1.0)]
 
