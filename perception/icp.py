@@ -46,9 +46,9 @@ class IcpConfig:
     model_points: int = 2000
     grid_cells: int = 64
     distance_fractions: tuple[float, ...] = (0.2, 0.08, 0.04)
-    max_iterations: int = 10
+    max_iterations: int = 6
     max_scene_points: int = 300
-    converged_fraction: float = 1e-3
+    converged_fraction: float = 5e-3
     occlusion: bool = True
 
     def __post_init__(self) -> None:

@@ -3,6 +3,8 @@ levelled back onto the floor, a washer the depth cannot see placed from its mask
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -138,7 +140,8 @@ def test_a_noisy_fit_is_tried_at_rest_before_escaping_from_it(monkeypatch):
         pose = _noisy_runner(rest_first_gate=gate).estimate("depth+icp", det, noisy, CAMERA, NUT, None, FLOOR)
         poses[gate] = (pose, len(runs))
     (first, n_first), (late, n_late) = poses[0.85], poses[2.0]
-    assert first.details["hypothesis"] == "axes_0+icp+rest" and n_first == 3  # the ranked starts only
+    # a ranked start refined and levelled, no turn, slide or polish: the ranked starts' ICP runs only
+    assert re.fullmatch(r"axes_\d+\+icp\+rest", first.details["hypothesis"]) and n_first == 3
     assert "polish" in late.details["hypothesis"] and n_late > 10
     for pose in (first, late):
         assert pose.verified and pose_errors(pose.T_camera_object, T_true, NUT).correct()
