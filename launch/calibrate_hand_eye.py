@@ -34,9 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from launch.sim_calibration import pose_error
 from perception.camera import Camera
-from robot.calibration import calibrate, generate_pose_set, load_calibration, save_calibration
+from robot.calibration import calibrate, generate_pose_set, load_calibration, pose_error, save_calibration
 from robot.cell_setup import CellSetup
 from robot.charuco import BoardDetector, CharucoBoard
 from robot.grasp_collision import CollisionChecker

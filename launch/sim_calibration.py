@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from robot.calibration import calibrate, generate_pose_set, load_calibration, save_calibration
+from robot.calibration import calibrate, generate_pose_set, load_calibration, pose_error, save_calibration
 from robot.charuco import CharucoBoard
 from robot.hand_eye import HandEyeCalibration
 from robot.ur_config import WorkspaceBox
@@ -32,7 +32,7 @@ from sim.cell_config import BoardPlate, CellConfig
 from sygrid.fileio import cache_dir_for
 from sygrid.robots.kinematics import ik_nearest
 from sygrid.sensor import SensorModel, sensor_rng
-from sygrid.transforms import invert, make_T, pose_difference, rotation_about
+from sygrid.transforms import invert, make_T, rotation_about
 
 log = logging.getLogger(__name__)
 
@@ -128,12 +128,6 @@ class SimCalibration:
 def true_T_base_camera(config: CellConfig) -> np.ndarray:
     """The overhead camera's pose in the robot base frame, as the cell is built."""
     return invert(config.T_world_base) @ config.T_world_camera
-
-
-def pose_error(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """(translation error mm, rotation error deg): ``sygrid.transforms.pose_difference`` in a calibration's units."""
-    metres, radians = pose_difference(T, T_true)
-    return 1000.0 * metres, math.degrees(radians)
 
 
 def calibrate_sim_cell(

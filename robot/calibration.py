@@ -37,7 +37,7 @@ from robot.ur_config import WorkspaceBox
 from sygrid.camera import CameraIntrinsics, project_points
 from sygrid.errors import ConfigError
 from sygrid.fileio import read_json, write_json_atomic
-from sygrid.transforms import invert, is_rigid, make_T, rotation_angle_deg, transform_points
+from sygrid.transforms import invert, is_rigid, make_T, pose_difference, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -154,8 +154,8 @@ def _order_for_short_moves(poses: list[np.ndarray]) -> list[np.ndarray]:
         last = poses[order[-1]]
 
         def cost(i: int, last: np.ndarray = last) -> float:
-            dp = float(np.linalg.norm(poses[i][:3, 3] - last[:3, 3]))
-            return dp + 0.3 * math.radians(rotation_angle_deg(poses[i][:3, :3], last[:3, :3]))
+            metres, radians = pose_difference(poses[i], last)
+            return metres + 0.3 * radians
 
         nxt = min(remaining, key=cost)
         order.append(nxt)
@@ -243,6 +243,13 @@ def calibrate(
 
 
 # ---------------------------------------------------------------------------------------------- file
+
+
+def pose_error(T: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
+    """(translation error mm, rotation error deg) of ``T`` against ``T_ref``: ``sygrid.transforms.pose_difference``
+    in a calibration's units."""
+    metres, radians = pose_difference(T, T_ref)
+    return 1000.0 * metres, math.degrees(radians)
 
 
 def save_calibration(path: str | Path, calibration: HandEyeCalibration) -> Path:

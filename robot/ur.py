@@ -84,7 +84,7 @@ from robot.ur_errors import MotionRefusedError, RobotError, UnreachableError
 from robot.ur_force import ContactResult, contact_move, force_mode
 from robot.ur_motion import MotionResult, MotionWatch
 from sygrid.robots.kinematics import T_to_pose, forward_kinematics, ik_nearest
-from sygrid.transforms import invert, is_rigid, rotation_angle_deg
+from sygrid.transforms import invert, is_rigid, pose_difference
 
 __all__ = ["DIGITAL_IO_KINDS", "URRobot"]
 
@@ -253,8 +253,7 @@ class URRobot:
         with self._link.lock:
             self._ensure_ready()
             T_now = self.T_base_tcp()
-            distance = float(np.linalg.norm(T[:3, 3] - T_now[:3, 3]))
-            angle = math.radians(rotation_angle_deg(T_now[:3, :3], T[:3, :3]))
+            distance, angle = pose_difference(T_now, T)
             duration = max(trapezoid_duration_s(distance, v, a), trapezoid_duration_s(angle, v, a))
             pose = T_to_pose(T).tolist()
             self._motion.send("move_l", T, duration, lambda: self._link.rtde_c.moveL(pose, v, a, True))

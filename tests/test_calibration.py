@@ -19,7 +19,6 @@ from launch.sim_calibration import (
     PlacedArm,
     board_plate_on_flange,
     calibrate_sim_cell,
-    pose_error,
     reachable,
 )
 from robot.calibration import (
@@ -27,6 +26,7 @@ from robot.calibration import (
     collect_samples,
     generate_pose_set,
     load_calibration,
+    pose_error,
     save_calibration,
 )
 from robot.charuco import BoardObservation, CharucoBoard, detect_board
