@@ -81,9 +81,10 @@ class StrategyConfig:
     rest_max_tilt_deg: the fit at rest replaces the free fit only when levelling it turned it by at most this ...
     rest_slack: ... and its verification confidence is at least the free fit's minus this.
     rest_steps: the in-plane search's steps: (fraction of the diameter, degrees), coarse to fine.
-    rest_settled_deg, rest_settled_m: a fit that levelling turns and moves no more than this is left as it is.
-    rest_confident: a free fit whose (ranking) depth agreement (``depth_confidence``) reaches this is left as it is
-        (above 1: never).
+    rest_settled_deg, rest_settled_m: an accepted fit that levelling turns and moves no more than this is left as it
+        is.
+    rest_confident: an accepted free fit whose (ranking) depth agreement (``depth_confidence``) reaches this is left
+        as it is (above 1: never).
     rest_first_gate: a best ICP fit short of ``good_confidence`` is tried at rest before the escapes when levelling
         it brings its depth agreement to this (``StrategyRunner._search``; above 1: never).
     """
@@ -390,10 +391,13 @@ class StrategyRunner:
         T, tilt = rest_on_support(best.T, model, obs.support)
         if tilt > cfg.rest_max_tilt_deg:
             return best
-        if tilt <= cfg.rest_settled_deg and np.linalg.norm(T[:3, 3] - best.T[:3, 3]) <= cfg.rest_settled_m:
-            return best  # already at rest: nothing to gain, and the search is the dearer part
-        if best.verification.depth_confidence >= cfg.rest_confident:
-            return best  # the depth confirms the free fit: a part leaning on a neighbour, or exact depth
+        # an accepted fit already at rest (nothing to gain, and the search is the dearer part) or confirmed by the
+        # depth (a part leaning on a neighbour, or exact depth) is left as it is; one the outline refuses is still
+        # searched in the plane: a flat part's depth agrees wherever it lies on the floor, and only its outline
+        # says where
+        settled = tilt <= cfg.rest_settled_deg and np.linalg.norm(T[:3, 3] - best.T[:3, 3]) <= cfg.rest_settled_m
+        if best.verification.accepted and (settled or best.verification.depth_confidence >= cfg.rest_confident):
+            return best
         levelled = self.verifier.verify(T, model, obs)
         if levelled.depth_confidence < gate:
             return None

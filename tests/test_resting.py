@@ -104,6 +104,28 @@ def test_a_fit_already_at_rest_is_left_as_it_is():
     assert not pose.details["hypothesis"].endswith("+rest") and err.te_m < 5e-4 and err.re_deg < 1.0, err
 
 
+def test_a_level_fit_the_outline_refuses_is_still_searched_in_the_plane():
+    """A washer flat on the floor, in depth noise the verification allows for (its thickness within it): its depth
+    agrees wherever it lies on the floor, so a fit slid across the floor is level and on it (nothing for the
+    levelling to do), and only the outline refuses it. The in-plane search still runs and slides it home."""
+    T_true = on_floor(WASHER, 0.0, 0.0, 0.0)
+    seen = render([(WASHER, T_true)])
+    crop = Observation.of_detection(seen.depth, detection(WASHER, seen.masks[0]), CAMERA)
+    obs = crop.with_mask(crop.mask, FLOOR)
+    slid = T_true.copy()
+    slid[:3, 3] += 0.15 * WASHER.diameter_m * _perpendicular(NORMAL)
+    runner = _noisy_runner()
+    v = runner.verifier.verify(slid, WASHER, obs)
+    assert v.fit > 0.95 and v.iou < 0.8 and not v.accepted, v
+    rested = runner._rested(pose_strategies._Candidate(slid, "slid", v), WASHER, obs)
+    assert rested.source == "slid+rest" and rested.verification.accepted, rested.verification
+    assert pose_errors(rested.T, T_true, WASHER).te_m < 5e-4
+    accepted = runner._rested(
+        pose_strategies._Candidate(T_true, "true", runner.verifier.verify(T_true, WASHER, obs)), WASHER, obs
+    )
+    assert accepted.source == "true"  # an accepted fit at rest is left as it is
+
+
 def test_a_fit_to_noisy_depth_is_levelled_onto_the_floor():
     T_true = on_floor(NUT, 0.0, 0.0, 20.0)
     seen = render([(NUT, T_true)])
