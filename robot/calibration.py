@@ -242,14 +242,14 @@ def calibrate(
     return solve_hand_eye(samples, board, intrinsics, refine=refine, skipped=skipped)
 
 
-# ---------------------------------------------------------------------------------------------- file
-
-
 def pose_error(T: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
     """(translation error mm, rotation error deg) of ``T`` against ``T_ref``: ``sygrid.transforms.pose_difference``
     in a calibration's units."""
     metres, radians = pose_difference(T, T_ref)
     return 1000.0 * metres, math.degrees(radians)
+
+
+# ---------------------------------------------------------------------------------------------- file
 
 
 def save_calibration(path: str | Path, calibration: HandEyeCalibration) -> Path:
