@@ -13,7 +13,9 @@ stock ur_rtde client) runs until it stops. Per variant it reports:
 - failures by cause, nudges by outcome (and the robot time of a nudge cycle), stop reasons, and which parts were
   left in the bin with the planner's reason;
 - per attempt outcome, how many attempts were planned on a wrong estimate (``launch.cell_attempts``: each
-  estimate against the simulator's pose of the part at its plan).
+  estimate against the simulator's pose of the part at its plan);
+- the poses the verification refused in each bin's last frame against the simulator's: how many were right, and
+  the weakest of the verification's terms (depth fit, coverage, outline IoU) of those.
 
 Targets (the realistic cell's, issue "a real cell, safely"): success >= 97 %, parts cleared >= 90 %, median cycle
 <= 8 s simulated, perception + planning <= 300 ms wall; a saved result keeps the targets it was run against.
@@ -37,7 +39,15 @@ from typing import Any
 
 import numpy as np
 
-from launch.cell_attempts import TruthAtPlan, attempt_pose_error, format_attempt_errors, summarize_attempt_errors
+from launch.cell_attempts import (
+    TruthAtPlan,
+    attempt_pose_error,
+    format_attempt_errors,
+    format_refused,
+    refused_pose_figures,
+    summarize_attempt_errors,
+    summarize_refused,
+)
 from launch.cell_variants import QUICK_VARIANTS, VARIANTS, Variant, cell_for_bin
 from robot.cell_setup import CellSetup, load_cell_setup
 from robot.pick_report import Outcome
@@ -255,6 +265,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         dropped = process.state().backend_dropped_targets
     cell = CellConfig()
     models = {i: builtin_part(k) for i, k in obj_kind.items()}
+    T_world_camera = cell.T_world_base @ picker.T_base_camera  # where the picker took the camera to be
 
     def pose_error(a: Any) -> dict[str, float] | None:
         if a.T_base_obj is None or a.obj_id not in models:
@@ -333,6 +344,10 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "left_by_kind": dict(left),
         "left_why": dict(left_why),
         "false_detections_last_plan": false_detections,
+        # the last frame's refused poses against the simulator: right estimates the verification refused, and why
+        "refused_last_frame": refused_pose_figures(
+            T_world_camera, refused, T_end, [builtin_part(k).obj_id for k in kinds], models
+        ),
         "cycle_s": report.sim_cycle_times_s(),
         "nudge_cycle_s": [c.sim_cycle_s for c in cycles if c.nudge is not None and c.sim_cycle_s is not None],
         "perceive_plan_ms": [1e3 * (c.stage_wall_s["perceive"] + c.stage_wall_s["plan"]) for c in cycles if c.n_poses],
@@ -411,6 +426,7 @@ def summarize(bins: list[dict[str, Any]]) -> dict[str, Any]:
         "stop_reasons": dict(stops),
         "left_by_cause": dict(left_why.most_common()),
         "false_detections_last_plan": sum(b.get("false_detections_last_plan", 0) for b in bins),
+        "refused_last_frames": summarize_refused([r for b in bins for r in b.get("refused_last_frame", [])]),
         "attempts_by_estimate": summarize_attempt_errors([a for b in bins for a in b.get("attempt_pose_errors", [])]),
         "cleared_by_kind": {
             k: f"{by_kind_total[k] - by_kind_left[k]}/{by_kind_total[k]}" for k in sorted(by_kind_total)
@@ -450,6 +466,8 @@ def format_results(results: dict[str, Any]) -> str:
         lines.append(f"{name}: left in the bin {r['left_by_cause'] or 'nothing'}")
         if r.get("attempts_by_estimate"):
             lines.append(format_attempt_errors(name, r["attempts_by_estimate"]))
+        if r.get("refused_last_frames", {}).get("n"):
+            lines.append(format_refused(name, r["refused_last_frames"]))
         thrown = r.get("thrown_parts", [])
         lines.append(
             f"{name}: parts thrown by the physics: {len(thrown)}"

@@ -13,7 +13,7 @@ the cell runs.
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -59,14 +59,79 @@ def attempt_pose_error(
     if not same_kind:
         return None
     T_est = np.asarray(T_world_base, dtype=float) @ np.asarray(T_base_obj, dtype=float)
-    T_true = min(same_kind, key=lambda T: float(np.linalg.norm(T[:3, 3] - T_est[:3, 3])))
-    e = pose_errors(T_est, T_true, model)
+    T_true, e = _nearest_error(T_est, same_kind, model)
     return {
         "add_d": round(e.add_m / e.diameter_m, 4),
         "re_deg": round(e.re_deg, 2),
         "te_mm": round(1e3 * e.te_m, 2),
         "dz_mm": round(1e3 * float(T_est[2, 3] - T_true[2, 3]), 2),
     }
+
+
+def _nearest_error(T_world_est: np.ndarray, same_kind: list[np.ndarray], model: ObjectModel) -> tuple[np.ndarray, Any]:
+    """The true pose nearest the estimate (by position) among ``same_kind`` (non-empty), and the estimate's errors
+    against it (``sygrid.metrics.pose_errors``)."""
+    T_true = min(same_kind, key=lambda T: float(np.linalg.norm(T[:3, 3] - T_world_est[:3, 3])))
+    return T_true, pose_errors(T_world_est, T_true, model)
+
+
+def refused_pose_figures(
+    T_world_camera: np.ndarray,
+    refused: list[Any],
+    T_world_obj: np.ndarray,
+    obj_ids: list[int],
+    models: dict[int, ObjectModel],
+) -> list[dict[str, Any]]:
+    """The poses the verification refused in a frame, each with the verification's figures and whether the estimate
+    was right (ADD(-S) < 0.1 d against the nearest true part of its kind in ``T_world_obj``, in the order of
+    ``obj_ids``): a right estimate refused is the verification's loss, and ``weakest`` names its lowest term (the
+    depth's ``fit``, its ``coverage`` of the mask, or the outline's ``iou``, ``perception.verify``). ``refused``:
+    poses with ``obj_id``, ``T_camera_object`` and the verification's figures in ``details["verify"]``; a pose of a
+    kind not in ``models`` or not among the parts (a false detection), or without figures, is left out."""
+    out = []
+    for pose in refused:
+        figures = pose.details.get("verify") if isinstance(pose.details, dict) else None
+        same_kind = [T for T, i in zip(T_world_obj, obj_ids, strict=True) if i == pose.obj_id]
+        if pose.obj_id not in models or not same_kind or not isinstance(figures, dict):
+            continue
+        T_est = np.asarray(T_world_camera, dtype=float) @ np.asarray(pose.T_camera_object, dtype=float)
+        _, e = _nearest_error(T_est, same_kind, models[pose.obj_id])
+        terms = {k: float(figures[k]) for k in ("fit", "coverage", "iou")}
+        out.append({
+            "part": models[pose.obj_id].name,
+            "right": e.correct(),
+            "te_mm": round(1e3 * e.te_m, 2),
+            "confidence": round(float(figures["confidence"]), 3),
+            **{k: round(v, 3) for k, v in terms.items()},
+            "weakest": min(terms, key=terms.__getitem__),
+        })  # fmt: skip
+    return out
+
+
+def summarize_refused(refused: list[dict[str, Any]]) -> dict[str, Any]:
+    """Over ``refused_pose_figures`` records: how many, how many right, the weakest term's counts among the right
+    ones, their median terms, and right / refused per part."""
+    right = [r for r in refused if r["right"]]
+    by_part: dict[str, list[int]] = defaultdict(lambda: [0, 0])
+    for r in refused:
+        by_part[r["part"]][0] += r["right"]
+        by_part[r["part"]][1] += 1
+    return {
+        "n": len(refused),
+        "n_right": len(right),
+        "right_weakest": dict(Counter(r["weakest"] for r in right).most_common()),
+        **{f"right_median_{k}": median([r[k] for r in right]) for k in ("fit", "coverage", "iou")},
+        "right_by_part": {part: f"{n_right}/{n}" for part, (n_right, n) in sorted(by_part.items())},
+    }
+
+
+def format_refused(name: str, s: dict[str, Any]) -> str:
+    return (
+        f"{name}: poses refused in the bins' last frames: {s['n']}, right {s['n_right']} "
+        f"(by part {s['right_by_part']}); "
+        f"the right ones' weakest term {s['right_weakest'] or '-'}, medians fit {s['right_median_fit']:.2f}, "
+        f"coverage {s['right_median_coverage']:.2f}, iou {s['right_median_iou']:.2f}"
+    )
 
 
 def summarize_attempt_errors(attempts: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:

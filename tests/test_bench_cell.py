@@ -211,11 +211,53 @@ def test_each_attempt_is_judged_against_the_true_pose_of_the_nearest_part_of_its
     assert "gripper_empty 1/1 wrong" in format_attempt_errors("v", summary)
 
 
+def test_refused_poses_are_judged_against_the_simulator_and_name_their_weakest_term():
+    """A right estimate the verification refused for its outline, a wrong one, and poses left out: a kind not in the
+    bin (a false detection) and a pose without the verification's figures."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from launch.cell_attempts import format_refused, refused_pose_figures, summarize_refused
+    from sygrid.objects import builtin_part
+    from sygrid.transforms import make_T
+
+    bracket, nut, gear = builtin_part("l_bracket"), builtin_part("hex_nut"), builtin_part("spur_gear")
+    T_world_camera = make_T(t=(0.0, 0.0, 0.9))
+    T_world_obj = np.stack([make_T(t=(0.1, 0.0, 0.0)), make_T(t=(-0.1, 0.0, 0.0))])
+    ids = [bracket.obj_id, nut.obj_id]
+
+    def refused(obj_id: int, t: tuple, **figures: float) -> SimpleNamespace:
+        details = {"verify": {"confidence": 0.7, "fit": 0.97, "coverage": 1.0, "iou": 0.5, **figures}}
+        return SimpleNamespace(obj_id=obj_id, T_camera_object=make_T(t=t), details=details)
+
+    poses = [
+        refused(bracket.obj_id, (0.1005, 0.0, -0.9)),  # 0.5 mm off the bracket, its outline refused
+        refused(nut.obj_id, (-0.05, 0.0, -0.9), iou=0.9, fit=0.4),  # 50 mm off the nut: wrong
+        refused(gear.obj_id, (0.1, 0.0, -0.9)),  # no gear in the bin
+        SimpleNamespace(obj_id=nut.obj_id, T_camera_object=make_T(t=(-0.1, 0.0, -0.9)), details={}),
+    ]
+    models = {m.obj_id: m for m in (bracket, nut)}
+    figures = refused_pose_figures(T_world_camera, poses, T_world_obj, ids, models)
+    assert [(f["part"], f["right"], f["weakest"]) for f in figures] == [
+        ("l_bracket", True, "iou"),
+        ("hex_nut", False, "fit"),
+    ]
+    assert figures[0]["te_mm"] == pytest.approx(0.5, abs=1e-6) and figures[0]["confidence"] == 0.7
+    summary = summarize_refused(figures)
+    assert summary["n"] == 2 and summary["n_right"] == 1 and summary["right_weakest"] == {"iou": 1}
+    assert summary["right_median_iou"] == pytest.approx(0.5)
+    assert summary["right_by_part"] == {"hex_nut": "0/1", "l_bracket": "1/1"}
+    assert "right 1" in format_refused("v", summary)
+
+
 def test_a_bin_whose_run_raises_is_counted_as_an_error_and_the_bench_goes_on(monkeypatch):
     """``run_bin`` with the cell faked: the picker's run raises after recording its report (``last_report``, as
     ``robot.picker`` does); the bin comes back with stop reason ``error`` and the part left in the bin."""
     import contextlib
     from types import SimpleNamespace
+
+    import numpy as np
 
     import launch.bench_cell as bench_cell
     import launch.pick
@@ -233,6 +275,7 @@ def test_a_bin_whose_run_raises_is_counted_as_an_error_and_the_bench_goes_on(mon
 
     class Picker:
         planner = SimpleNamespace(plan=lambda *a, **k: None)
+        T_base_camera = np.eye(4)
         last_report = RunReport([], StopReason.ERROR, "GripperError: the fingers did not stop")
 
         def run(self, max_cycles):
@@ -258,7 +301,9 @@ def test_a_bin_whose_run_raises_is_counted_as_an_error_and_the_bench_goes_on(mon
         on_cycle = None
 
         def run(self, max_cycles):
-            refused = [SimpleNamespace(obj_id=1), SimpleNamespace(obj_id=7)]  # hex_nut; flange: not in this bin
+            refused = [  # hex_nut; flange: not in this bin
+                SimpleNamespace(obj_id=i, T_camera_object=np.eye(4), details={}) for i in (1, 7)
+            ]
             self.on_cycle(None, None, SimpleNamespace(poses=[], refused=refused), [])
             return RunReport([], StopReason.PARTS_UNSEEN, "the verification refused every pose")
 
@@ -269,6 +314,7 @@ def test_a_bin_whose_run_raises_is_counted_as_an_error_and_the_bench_goes_on(mon
     monkeypatch.setattr(launch.pick, "open_cell", refusing_cell)
     result = bench_cell.run_bin(base, VARIANTS["oracle"], 0, None, 3)
     assert result["left_why"] == {"seen, pose refused": 1}
+    assert result["refused_last_frame"] == []  # the nut's pose came without the verification's figures
 
 
 def test_a_result_is_reported_against_the_targets_it_was_run_with():
