@@ -25,7 +25,9 @@ be the catalogue's by name and obj_id.
 folder's pose network, which keeps its manifest entry (method, per-part strategies), its verification settings and
 its card (training lines and the strategy table), and the stages after it (refinement, verification, depth tare);
 only the card's held-out evaluation is measured again. It may be
-the ``--out`` folder itself.
+the ``--out`` folder itself. ``--detector`` may name a model folder the same way: its detector network is packed
+with its card's training lines (what was trained, how, from what), and the held-out evaluation is measured again on
+``--test-data`` (a detector trained once serving another camera's folder, e.g. the simulated cell's).
 """
 
 from __future__ import annotations
@@ -47,7 +49,10 @@ COCO_CONF = 0.001  # the detection benchmarks' convention for mAP (the pipeline 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
     pack = sub.add_parser("pack", help="model folder + model cards from a detector run and a pose run")
-    pack.add_argument("--detector", type=Path, required=True, help="'sygrid train detector' output folder")
+    pack.add_argument(
+        "--detector", type=Path, required=True,
+        help="'sygrid train detector' output folder, or a model folder whose detector network (and card) to keep",
+    )  # fmt: skip
     pack.add_argument(
         "--pose", type=Path, required=True,
         help="'sygrid train pose' output folder, or a model folder whose pose network (and its choices) to keep",
@@ -97,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def pack(args: argparse.Namespace) -> int:
-    det_log = _train_log(args.detector, "detector.onnx")
+    kept_detector = _kept_detector(args.detector)
+    det_log = _train_log(args.detector, "detector.onnx") if kept_detector is None else kept_detector["log"]
     kept = _kept_pose(args.pose)
     pose_log = _train_log(args.pose, "pose.onnx") if kept is None else {"obj_ids": kept["obj_ids"]}
     args.out.mkdir(parents=True, exist_ok=True)
@@ -126,7 +132,12 @@ def pack(args: argparse.Namespace) -> int:
         if math.isfinite(min_px):
             manifest["detector"]["min_part_px"] = min_px
             write_json_atomic(args.out / "manifest.json", manifest)
-    (args.out / "detector.card.md").write_text(detector_card(det_log, args, evals))
+    if kept_detector is None:
+        (args.out / "detector.card.md").write_text(detector_card(det_log, args, evals))
+    else:
+        section = _detection_section(evals["detector"], evals["direct"]) if evals else None
+        card = kept_detector_card(kept_detector["card"], args.detector, section)
+        write_bytes_atomic(args.out / "detector.card.md", card.encode())
     if kept is None:
         (args.out / "pose.card.md").write_text(pose_card(pose_log, args, evals))
     else:
@@ -224,6 +235,38 @@ def _kept_pose(folder: Path) -> dict | None:
     manifest = read_json(folder / "manifest.json", "model folder manifest")
     obj_ids = sorted(manifest_models(folder, load_manifest(folder)))
     return {"manifest": manifest, "card": (folder / "pose.card.md").read_text(), "obj_ids": obj_ids}
+
+
+def _kept_detector(folder: Path) -> dict | None:
+    """For ``--detector`` naming a model folder: its detector card and, as a training log would give them, the
+    network's classes (names and obj_ids, read from the network) and the folder's catalogue copy; None for a
+    training run's folder."""
+    if not (folder / "manifest.json").is_file():
+        return None
+    from perception.detector import YoloSegDetector
+
+    for name in ("detector.onnx", "detector.card.md"):
+        if not (folder / name).is_file():
+            raise ConfigError(f"{folder}: --detector names a model folder without {name}")
+    detector = YoloSegDetector(folder / "detector.onnx", num_threads=1)
+    manifest = read_json(folder / "manifest.json", "model folder manifest")
+    catalogue = str(folder / manifest["catalogue"]) if manifest.get("catalogue") else None
+    log = {
+        "dataset": {"names": list(detector.class_names), "obj_ids": [int(i) for i in detector.class_obj_ids]},
+        "config": {"catalogue": catalogue},
+    }
+    return {"log": log, "card": (folder / "detector.card.md").read_text()}
+
+
+def kept_detector_card(card: str, source: Path, evaluation: list[str] | None) -> str:
+    """A kept detector card: its lines before the held-out evaluation (the network, its data and training), a line
+    naming the folder it was kept from, and ``evaluation`` (None: none; the source's own evaluations, of another
+    test set, are left out)."""
+    head = card.split(HELD_OUT_HEADING, 1)[0].rstrip("\n")
+    lines = [head, f"- packed from the model folder `{source}` (its card has the network's other evaluations)"]
+    if evaluation is not None:
+        lines += ["", *evaluation]
+    return "\n".join(lines).rstrip("\n") + "\n"
 
 
 def kept_pose_card(card: str, evaluation: list[str] | None) -> str:

@@ -112,6 +112,28 @@ def test_pack_keeps_a_model_folders_pose_network_and_its_choices(
     assert (folder / "eval_strategies.json").is_file() and not (folder / "eval_refined.json").exists()
 
 
+def test_pack_keeps_a_model_folders_detector_for_another_folder(model_dir: Path, tiny_dataset: Path, tmp_path: Path):
+    """--detector names a model folder: its network and its card's training lines go into the new folder beside
+    another pose network, and the held-out evaluation is measured on the new test data; a folder without the
+    detector's card is refused by name."""
+    source = tmp_path / "source"
+    shutil.copytree(model_dir, source)
+    card = (source / "detector.card.md").read_text()
+    (source / "detector.card.md").write_text(card.replace("| obj_id |", "| obj_id (old) |") + "\n## Transfer\n\nx\n")
+    out = tmp_path / "cell"
+    _pack(source, model_dir, out, tiny_dataset)
+    assert (out / "detector.onnx").read_bytes() == (source / "detector.onnx").read_bytes()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["objects"] == MANIFEST["objects"] and manifest["detector"]["conf_threshold"] == 0.01
+    new_card = (out / "detector.card.md").read_text()
+    assert "--imgsz 128 --batch 2 --width p" in new_card and f"packed from the model folder `{source}`" in new_card
+    assert "| obj_id (old) |" not in new_card and "| obj_id |" in new_card and "## Transfer" not in new_card
+    assert new_card.count("## Held-out test set: ") == 1
+    (source / "detector.card.md").unlink()
+    with pytest.raises(ConfigError, match=r"without detector\.card\.md"):
+        _pack(source, model_dir, tmp_path / "other", tiny_dataset)
+
+
 def test_pipeline_turns_a_frame_into_poses(model_dir: Path, tiny_dataset: Path):
     pipeline = PerceptionPipeline.from_folder(model_dir)
     assert sorted(pipeline.models) == [1, 3, 4] and pipeline.refiner is not None
