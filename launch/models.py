@@ -258,12 +258,19 @@ def _kept_detector(folder: Path) -> dict | None:
     return {"log": log, "card": (folder / "detector.card.md").read_text()}
 
 
+_PACKED_FROM = "- packed from the model folder "
+
+
 def kept_detector_card(card: str, source: Path, evaluation: list[str] | None) -> str:
     """A kept detector card: its lines before the held-out evaluation (the network, its data and training), a line
-    naming the folder it was kept from, and ``evaluation`` (None: none; the source's own evaluations, of another
-    test set, are left out)."""
-    head = card.split(HELD_OUT_HEADING, 1)[0].rstrip("\n")
-    lines = [head, f"- packed from the model folder `{source}` (its card has the network's other evaluations)"]
+    naming the folder it was kept from (one: a card packed again names only its latest source), and ``evaluation``
+    (None: none; the source's own evaluations, of another test set, are left out)."""
+    head = [
+        line
+        for line in card.split(HELD_OUT_HEADING, 1)[0].rstrip("\n").split("\n")
+        if not line.startswith(_PACKED_FROM)
+    ]
+    lines = [*head, f"{_PACKED_FROM}`{source}` (its card has the network's other evaluations)"]
     if evaluation is not None:
         lines += ["", *evaluation]
     return "\n".join(lines).rstrip("\n") + "\n"

@@ -129,6 +129,8 @@ def test_pack_keeps_a_model_folders_detector_for_another_folder(model_dir: Path,
     assert "--imgsz 128 --batch 2 --width p" in new_card and f"packed from the model folder `{source}`" in new_card
     assert "| obj_id (old) |" not in new_card and "| obj_id |" in new_card and "## Transfer" not in new_card
     assert new_card.count("## Held-out test set: ") == 1
+    _pack(out, out, out, tiny_dataset)  # packed again from itself: one line names where the network came from
+    assert (out / "detector.card.md").read_text().count("packed from the model folder") == 1
     (source / "detector.card.md").unlink()
     with pytest.raises(ConfigError, match=r"without detector\.card\.md"):
         _pack(source, model_dir, tmp_path / "other", tiny_dataset)
