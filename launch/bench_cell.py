@@ -345,9 +345,7 @@ def run_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | None, ma
         "left_why": dict(left_why),
         "false_detections_last_plan": false_detections,
         # the last frame's refused poses against the simulator: right estimates the verification refused, and why
-        "refused_last_frame": refused_pose_figures(
-            T_world_camera, refused, T_end, [builtin_part(k).obj_id for k in kinds], models
-        ),
+        "refused_last_frame": refused_pose_figures(T_world_camera, refused, T_end, truth.obj_ids, models),
         "cycle_s": report.sim_cycle_times_s(),
         "nudge_cycle_s": [c.sim_cycle_s for c in cycles if c.nudge is not None and c.sim_cycle_s is not None],
         "perceive_plan_ms": [1e3 * (c.stage_wall_s["perceive"] + c.stage_wall_s["plan"]) for c in cycles if c.n_poses],

@@ -90,9 +90,9 @@ def refused_pose_figures(
     kind not in ``models`` or not among the parts (a false detection), or without figures, is left out."""
     out = []
     for pose in refused:
-        figures = pose.details.get("verify") if isinstance(pose.details, dict) else None
+        figures = pose.details.get("verify")
         same_kind = [T for T, i in zip(T_world_obj, obj_ids, strict=True) if i == pose.obj_id]
-        if pose.obj_id not in models or not same_kind or not isinstance(figures, dict):
+        if pose.obj_id not in models or not same_kind or not figures:
             continue
         T_est = np.asarray(T_world_camera, dtype=float) @ np.asarray(pose.T_camera_object, dtype=float)
         _, e = _nearest_error(T_est, same_kind, models[pose.obj_id])
