@@ -20,7 +20,7 @@ def _bin(seed: int, n_left: int, picked: int, tried: int, cycles: list[float], s
         "failures": {"gripper_empty": tried - picked} if tried > picked else {}, "stop_reason": stop,
         "parts_by_kind": {"hex_nut": 6, "pipe": 4}, "left_by_kind": {"hex_nut": n_left},
         "left_why": left_why, "cycle_s": cycles, "perceive_plan_ms": [100.0 * (k + 1) for k in range(len(cycles))],
-        "perceive_ms": [50.0], "plan_ms": [20.0],
+        "perceive_ms": [50.0], "plan_ms": [20.0], "sim_paced_s": 0.25 * seed, "sim_dropped_targets": 0,
     }  # fmt: skip
 
 
@@ -37,6 +37,10 @@ def test_summary_counts_parts_picks_cycles_and_causes():
     assert s["stop_reasons"] == {"nothing_safe": 1, "bin_empty": 1}
     assert s["cleared_by_kind"] == {"hex_nut": "10/12", "pipe": "8/8"}
     assert s["left_by_cause"] == {"hex_nut: collision_bin": 2}
+    assert s["sim_paced_s"] == pytest.approx(0.25) and s["sim_dropped_targets"] == 0
+    assert "physics behind the clock: arm held 0.2 s, 0 targets dropped" in format_results(
+        {"targets": TARGETS, "seeds": [0, 1], "seeds_done": [0, 1], "variants": {"m": {"description": "", **s}}}
+    )
     empty = summarize([_bin(2, 10, 0, 0, [], "nothing_safe", {})])
     assert math.isnan(empty["pick_success_rate"]) and math.isnan(empty["cycle_median_s"])
 
@@ -270,7 +274,7 @@ def test_a_bin_whose_run_raises_is_counted_as_an_error_and_the_bench_goes_on(mon
     T[2, 3] += 0.01  # one part, in the bin
     process = SimpleNamespace(
         part_names=lambda: ["p0_hex_nut"], part_poses=lambda: T[None].copy(), thrown_parts=lambda: {},
-        state=lambda: SimpleNamespace(backend_dropped_targets=0),
+        state=lambda: SimpleNamespace(backend_dropped_targets=0, tick=SimpleNamespace(paced_ticks=0)),
     )  # fmt: skip
 
     class Picker:

@@ -8,9 +8,11 @@ timeout. The module uses 127.0.0.21 (and 127.0.0.22 for the second cell) so othe
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +23,7 @@ rtde_io = pytest.importorskip("rtde_io")
 rtde_receive = pytest.importorskip("rtde_receive")
 
 from sim.controller import ControllerProcess  # noqa: E402
+from sim.controller.process import EMULATOR_NICENESS, raise_priority  # noqa: E402
 from sim.controller.rtde_probe import RtdeProbe  # noqa: E402
 from sygrid.robots.kinematics import T_to_pose, pose_to_T  # noqa: E402
 
@@ -478,3 +481,35 @@ def test_stream_and_query_round_trip_work(cell, record_property):
     for key, value in figures.items():
         record_property(key, value)
     assert timing["packages"] > 50
+
+
+def _task_niceness(pid: int) -> list[int]:
+    """The niceness of each thread of a process (field 19 of /proc/PID/task/TID/stat)."""
+    values = []
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        fields = stat.read_text().rsplit(")", 1)[1].split()  # after "pid (comm)": field 3 onwards
+        values.append(int(fields[19 - 3]))
+    return values
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="Linux /proc")
+def test_the_emulator_runs_every_thread_ahead_of_the_program_it_serves(cell):
+    """The emulator's process raises the priority of all its threads, so the tick, the physics stepper and
+    the protocol servers all run ahead of the client program's perception where the process may (root here in CI);
+    else every thread stays at the program's niceness."""
+    expected = EMULATOR_NICENESS if os.geteuid() == 0 else os.getpriority(os.PRIO_PROCESS, 0)
+    niceness = _task_niceness(cell.emulator.pid)
+    assert len(niceness) >= 4  # the main thread, the tick, the servers' threads
+    assert set(niceness) == {expected}
+
+
+def test_a_refused_priority_leaves_the_niceness_and_says_why(monkeypatch, caplog):
+    def refuse(*args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "setpriority", refuse)
+    now = os.getpriority(os.PRIO_PROCESS, 0)
+    with caplog.at_level("WARNING"):
+        assert raise_priority(now - 1) is False
+    assert f"runs at niceness {now}, not {now - 1}" in caplog.text and "Operation not permitted" in caplog.text
+    assert raise_priority(now) is True  # already there: nothing to ask for

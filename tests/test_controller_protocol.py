@@ -17,12 +17,14 @@ import pytest
 from sim.controller import EmulatedController, KinematicBackend
 from sim.controller import rtde_wire as wire
 from sim.controller.backend import StallingBackend
+from sim.controller.controller import MAX_LAG_TICKS
 from sim.controller.rtde_probe import RtdeProbe
 from sim.controller.snapshot import TICK_S
+from sim.controller.stepper import CHUNK_TARGETS
 from sygrid.robots import ur5e
 from sygrid.robots.kinematics import T_to_pose, forward_kinematics
 
-HOST, HOST_SLOW = "127.0.0.23", "127.0.0.25"
+HOST, HOST_SLOW, HOST_SLOWER = "127.0.0.23", "127.0.0.25", "127.0.0.26"
 pytestmark = pytest.mark.timeout(30)
 
 RTDE_CONTROL_UPPER = (
@@ -181,6 +183,27 @@ def test_stream_sends_every_tick_while_the_backend_stalls():
     held = [a["actual_q"] == b["actual_q"] and a["target_q"] != b["target_q"] for a, b in itertools.pairwise(states)]
     assert longest_run(held) >= 10  # ticks went on through a stall (a stall is 50 ticks long)
     assert ctl._runner.max_advance_s >= 0.1
+
+
+def test_a_backend_slower_than_real_time_slows_the_arm_and_never_drops_its_targets():
+    """Every backend call takes longer than the simulated time it covers: the tick holds the motion while the backend
+    trails by more than ``MAX_LAG_TICKS`` (counted in ``paced_ticks``), so the reported arm keeps within a few ticks
+    of motion of the controller's target and arrives, where it once fell 0.5 s behind and jumped (dropped targets)."""
+    backend = StallingBackend(stall_s=0.03, every=1)  # at most 10 targets (20 ms) per 30 ms call
+    with EmulatedController(backend, host=HOST_SLOWER) as ctl, RtdeProbe(HOST_SLOWER) as probe:
+        probe.negotiate()
+        probe.setup_outputs(["actual_q", "target_q"], 500.0)
+        assert probe.start()
+        goal = ur5e.HOME_Q + 0.5
+        with ctl._lock:
+            ctl.arm.movej(goal, 0.25, 1.0)  # 2.25 s at the clock's pace
+        states = [probe.next_state() for _ in range(1000)]  # 2 s of packages
+        assert wait_until(lambda: np.allclose(ctl.state().actual_q, goal, atol=1e-6), 10.0)
+        status = ctl.state()
+    trail = [np.max(np.abs(np.subtract(s["target_q"], s["actual_q"]))) for s in states]
+    bound = (MAX_LAG_TICKS + CHUNK_TARGETS + 5) * TICK_S * 0.25  # ticks of motion at the joint speed, rad
+    assert max(trail) <= bound
+    assert status.backend_dropped_targets == 0 and status.tick.paced_ticks > 100
 
 
 def test_a_client_that_stops_reading_costs_the_tick_nothing(controller):

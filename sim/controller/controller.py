@@ -49,8 +49,12 @@ PROTECTIVE_STOP_FORCE_N = 150.0  # UR5e default force limit of the "normal" safe
 #: is filtered, and one physics step's contact impulse (a finger tapping a part) is not a force the arm exerts.
 TCP_FORCE_WINDOW_TICKS = 5
 PROGRAM_STOP_DECEL_RAD_S2 = 10.0  # how fast a stopped program brings the arm to rest
-#: Force-sensitive motion (force mode, a move until contact) advances only while the backend trails by at most this
-#: many ticks, so a simulation slower than the clock cannot run on past a contact it has not reported yet.
+#: Motion advances only while the backend trails by at most this many ticks: a simulation slower than the clock then
+#: runs slower (the client sees a slower arm) instead of falling behind, where the arm it reports would trail the
+#: controller's and jump when targets are dropped.
+MAX_LAG_TICKS = 20
+#: Force-sensitive motion (force mode, a move until contact) keeps closer, so that it cannot run on past a contact
+#: the backend has not reported yet.
 FORCE_MAX_LAG_TICKS = 3
 _RESYNC_AFTER_S = 0.05  # a tick later than this resets the deadline grid instead of bursting to catch up
 CONTROLLER_VERSION = (5, 15, 0, 106767)
@@ -343,9 +347,13 @@ class EmulatedController:
         k = self._tick_index
         self._tick_index += 1
         with self._lock:
-            # Force-sensitive motion waits (no new target) while the backend trails: simulated time then runs slower
-            # than the clock instead of running on past a contact that is not measured yet.
-            paced = self.arm.force_sensitive and self._runner.lag_targets > FORCE_MAX_LAG_TICKS
+            # Motion waits (no new target) while the backend trails: simulated time then runs slower than the clock
+            # instead of the simulated arm falling behind the controller's (force-sensitive motion: past a contact
+            # that is not measured yet)
+            max_lag = FORCE_MAX_LAG_TICKS if self.arm.force_sensitive else MAX_LAG_TICKS
+            paced = self._runner.lag_targets > max_lag
+            if paced:
+                self.stats.paced_ticks += 1
             if not paced:
                 failure = self.arm.step(TICK_S, self.io.speed_slider, self.tcp_wrench())
                 if failure:

@@ -28,6 +28,7 @@ import sys
 import threading
 import time
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,12 +43,49 @@ log = logging.getLogger(__name__)
 SWITCH_INTERVAL_S = 0.0002
 
 
+# The emulator stands in for a controller with a computer of its own: where it shares a small machine with the
+# perception of the program it serves, its real-time physics must come first (a late step is lost real time, a late
+# frame only a slower cycle). The niceness it asks for, where the process is allowed to (root, CAP_SYS_NICE or an
+# RLIMIT_NICE that permits it).
+EMULATOR_NICENESS = -10
+
+
 def tune_emulator_process() -> None:
-    """Settings for a process that the emulator owns: short GIL slices, and a single-threaded software renderer
+    """Settings for a process that the emulator owns: short GIL slices, a single-threaded software renderer
     (Mesa llvmpipe) for the sim camera, whose worker threads otherwise take both cores of a small machine from the
-    500 Hz tick (``sygrid bench sim`` measures the stream's gaps)."""
+    500 Hz tick (``sygrid bench sim`` measures the stream's gaps), and a higher priority (``EMULATOR_NICENESS``) than
+    the program it serves."""
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     os.environ.setdefault("LP_NUM_THREADS", "1")  # read by Mesa when the first GL context is made
+    raise_priority(EMULATOR_NICENESS)
+
+
+def raise_priority(niceness: int) -> bool:
+    """Sets the niceness of every thread of this process to ``niceness`` where it is lower than the calling thread's
+    and the process may lower it; else leaves it and logs why at WARNING (the emulator then shares the cores evenly,
+    and on a small machine its physics can fall behind real time: ``backend_dropped_targets`` counts the loss).
+    Threads started later take their creator's niceness. True if set."""
+    now = os.getpriority(os.PRIO_PROCESS, 0)
+    if now <= niceness:
+        return True
+    # Linux keeps a niceness per thread, and imports start threads (a BLAS pool) before this runs: each one is set
+    tasks = Path("/proc/self/task")
+    tids = [int(t.name) for t in tasks.iterdir()] if tasks.is_dir() else [0]
+    try:
+        for tid in tids:
+            os.setpriority(os.PRIO_PROCESS, tid, niceness)
+    except OSError as exc:  # PermissionError without the privilege
+        log.warning("the emulator runs at niceness %d, not %d (%s): its physics may fall behind real time where "
+                    "it shares few cores with perception", now, niceness, exc.strerror)  # fmt: skip
+        return False
+    return True
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, niceness)
+    except OSError as exc:  # PermissionError without the privilege
+        log.warning("the emulator runs at niceness %d, not %d (%s): its physics may fall behind real time where "
+                    "it shares few cores with perception", now, niceness, exc.strerror)  # fmt: skip
+        return False
+    return True
 
 
 _HOOKS = (

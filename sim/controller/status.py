@@ -16,6 +16,7 @@ class TickStats:
     last_tick_s: float = 0.0
     last_step_s: float = 0.0
     resyncs: int = 0  # ticks so late that the deadline grid was reset
+    paced_ticks: int = 0  # ticks that held the motion for a trailing backend: simulated time behind the clock
 
     def record(self, started_s: float, duration_s: float, deadline_s: float) -> None:
         self.ticks += 1

@@ -2,9 +2,12 @@
 can block (MuJoCo shares its lock with the camera renderer), so a slow step never delays the 500 Hz stream.
 
 Threaded mode: the tick queues one ``(q, qd)`` target per 2 ms and reads the latest sample without waiting. The
-stepper thread replays every queued target in order (each for one controller period of physics), so simulated time
-stays tied to the commanded trajectory and catches up after a stall. When it falls more than ``max_lag_s`` behind,
-the oldest targets are dropped (logged) to bound the lag. Gripper commands go into the same queue and run between
+stepper thread replays every queued target in order (each for one controller period of physics, ``CHUNK_TARGETS`` per
+backend call), so simulated time stays tied to the commanded trajectory. The controller withholds new targets while
+the stepper trails (``lag_targets``; ``sim.controller.controller``'s pacing), so on a machine too slow for real time
+the simulation runs slower than the clock instead of falling behind it. Should it still fall more than
+``max_lag_s`` behind (a tick that does not pace), the oldest targets are dropped (logged) to bound the lag: the arm
+then jumps. Gripper commands go into the same queue and run between
 the targets they came between: a gripper closed after the arm arrived (by the controller's clock) closes after the
 simulated arm arrived too, however far the simulation trails.
 """
@@ -24,6 +27,9 @@ from sim.controller.backend import ArmBackend, ArmSample
 log = logging.getLogger(__name__)
 
 CONTROLLER_PERIOD_S = 0.002
+#: Targets the stepper simulates per backend call: the sample the tick reads is at most this many periods old when
+#: the stepper keeps up, and a trailing stepper catches up in chunks instead of one long call.
+CHUNK_TARGETS = 10
 
 
 class BackendRunner:
@@ -37,7 +43,8 @@ class BackendRunner:
         self._lock = threading.Lock()  # guards the queues and, inline, the backend itself
         # targets (q, qd) and ops (callables), in the order they were handed over
         self._queue: collections.deque[tuple[np.ndarray, np.ndarray] | Callable[[], None]] = collections.deque()
-        self._n_targets = 0
+        self._n_targets = 0  # handed over and not yet simulated, the stepper's current chunk included
+        self._in_flight = 0  # targets of the chunk the stepper is simulating
         self._ops: list[Callable[[], None]] = []  # inline mode: run before the next step
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -66,7 +73,8 @@ class BackendRunner:
 
     @property
     def lag_targets(self) -> int:
-        """Targets queued but not yet simulated (each one is 2 ms of simulated time)."""
+        """Targets handed over and not yet simulated, the chunk being simulated included (each one 2 ms of simulated
+        time): how far the simulated arm trails the controller."""
         return self._n_targets
 
     def push_target(self, q: np.ndarray, qd: np.ndarray) -> ArmSample:
@@ -127,28 +135,38 @@ class BackendRunner:
         self.advance_calls += 1
         return sample
 
+    def _take(self) -> tuple[list[tuple[np.ndarray, np.ndarray]], Callable[[], None] | None]:
+        """The next piece of work off the queue: up to ``CHUNK_TARGETS`` targets (stopping at an op), or the op at its
+        head. Targets taken still count in ``lag_targets`` until they are simulated."""
+        targets: list[tuple[np.ndarray, np.ndarray]] = []
+        with self._lock:
+            while self._queue and len(targets) < CHUNK_TARGETS:
+                if not isinstance(self._queue[0], tuple):
+                    if targets:
+                        break
+                    return targets, self._queue.popleft()  # type: ignore[return-value]
+                targets.append(self._queue.popleft())  # type: ignore[arg-type]
+            self._in_flight = len(targets)
+        return targets, None
+
     def _run(self) -> None:
         while not self._stop.is_set():
             self._wake.wait(0.05)
             self._wake.clear()
-            with self._lock:
-                queue = list(self._queue)
-                self._queue.clear()
-                self._n_targets = 0
-            try:
-                targets: list[tuple[np.ndarray, np.ndarray]] = []
-                for item in queue:
-                    if isinstance(item, tuple):
-                        targets.append(item)
-                        continue
-                    if targets:  # the targets before the op are simulated first
+            while not self._stop.is_set():
+                targets, op = self._take()
+                if not targets and op is None:
+                    break
+                try:
+                    if op is not None:
+                        op()
+                        self._latest = self.backend.sample()
+                    else:
                         self._latest = self._timed_advance(targets)
-                        targets = []
-                    item()
-                if targets:
-                    self._latest = self._timed_advance(targets)
-                elif queue:
-                    self._latest = self.backend.sample()
-            except Exception:
-                log.exception("backend step failed; the arm state is frozen at the last good sample")
-                time.sleep(0.1)
+                except Exception:
+                    log.exception("backend step failed; the arm state is frozen at the last good sample")
+                    time.sleep(0.1)
+                finally:
+                    with self._lock:
+                        self._n_targets -= self._in_flight
+                        self._in_flight = 0
