@@ -51,20 +51,17 @@ models: setup
 	$(VENV)/bin/sygrid models choose-pose --models models/builtin --data datasets/builtin_cal --data datasets/builtin_cal_noisy --strategies $(POSE_CANDIDATES) --threads 1
 	$(VENV)/bin/sygrid models pack --detector runs/detector --pose models/builtin --out models/builtin --test-data datasets/builtin_test --scale 1.25 --conf-threshold 0.2
 
-# The simulated cell's models (models/sim_cell): the shipped detector fine-tuned on views of the cell's camera
-# (0.82-0.98 m above the bin, at the cell's 800 px input size) and the shipped pose network. Needs `make models`'
-# detector run (runs/detector); about an hour on a 2-core CPU.
+# The simulated cell's models (models/sim_cell): the shipped detector and pose network (models/builtin's), with the
+# pose strategies and the verification threshold chosen on views of the cell's camera (0.82-0.98 m above the bin),
+# noise-free and through the OAK-D model, other views than the test set's; packed again so that the cards measure
+# them. About half an hour on a 2-core CPU.
 models-sim-cell: setup
-	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_train.json --out datasets/sim_cell_train --count 500 --seed 0 --workers 2
 	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_test.json --out datasets/sim_cell_test --count 100 --seed 1000 --workers 2
-	$(VENV)/bin/sygrid train detector --data datasets/sim_cell_train --out runs/sim_cell_detector --init runs/detector/best.pt --imgsz 800 --epochs 12 --lr 0.002 --threads 2 --seed 0 $(if $(wildcard runs/sim_cell_detector/last.pt),--resume)
-	$(VENV)/bin/sygrid models pack --detector runs/sim_cell_detector --pose runs/pose --out models/sim_cell --test-data datasets/sim_cell_test
-	# the pose strategies and the verification threshold, chosen on other views of the cell camera than the test set's
-	# (noise-free and through the OAK-D model); packed again so that the cards measure them
+	$(VENV)/bin/sygrid models pack --detector models/builtin --pose models/builtin --out models/sim_cell --test-data datasets/sim_cell_test
 	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_test.json --out datasets/sim_cell_val --count 40 --seed 2000 --workers 2
 	$(VENV)/bin/sygrid generate launch/recipes/sim_cell_test_noisy.json --out datasets/sim_cell_val_noisy --count 40 --seed 2000 --workers 2
 	$(VENV)/bin/sygrid models choose-pose --models models/sim_cell --data datasets/sim_cell_val --data datasets/sim_cell_val_noisy --strategies $(POSE_CANDIDATES) --threads 1
-	$(VENV)/bin/sygrid models pack --detector runs/sim_cell_detector --pose models/sim_cell --out models/sim_cell --test-data datasets/sim_cell_test
+	$(VENV)/bin/sygrid models pack --detector models/builtin --pose models/sim_cell --out models/sim_cell --test-data datasets/sim_cell_test
 
 # The transfer matrix (docs/bench/transfer.md): the shipped detector on the test sources of the transfer issue,
 # the same-recipe test set, the rasteriser's, the randomised recipe's and the held-apart families'.

@@ -754,7 +754,7 @@ def test_cell_files_load_and_bad_fields_name_the_file(tmp_path):
     assert setup.is_sim and setup.robot.host == "127.0.0.50" and setup.data.perception.kind == "models"
     perception = setup.data.perception
     assert perception.min_fitness is None  # RefineConfig's (see the README: 0.8 picked fewer)
-    # the cell-tuned detector on the whole mask (see the README: the peeled nut masks were refused)
+    # the cell's models on the whole mask (docs/decisions.md: the peeled nut masks were refused)
     assert perception.models_dir.endswith("models/sim_cell") and perception.detector_input_size == 960
     assert perception.mask_erosion_px == 0
     hw = load_cell_setup("launch/cells/ur5e_oak.toml")
