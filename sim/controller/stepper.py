@@ -5,11 +5,10 @@ Threaded mode: the tick queues one ``(q, qd)`` target per 2 ms and reads the lat
 stepper thread replays every queued target in order (each for one controller period of physics, ``CHUNK_TARGETS`` per
 backend call), so simulated time stays tied to the commanded trajectory. The controller withholds new targets while
 the stepper trails (``lag_targets``; ``sim.controller.controller``'s pacing), so on a machine too slow for real time
-the simulation runs slower than the clock instead of falling behind it. Should it still fall more than
-``max_lag_s`` behind (a tick that does not pace), the oldest targets are dropped (logged) to bound the lag: the arm
-then jumps. Gripper commands go into the same queue and run between
-the targets they came between: a gripper closed after the arm arrived (by the controller's clock) closes after the
-simulated arm arrived too, however far the simulation trails.
+the simulation runs slower than the clock instead of falling behind it. Past ``max_lag_s`` (a caller that pushes
+without pacing) the oldest targets are dropped (logged) as a last bound: the arm then jumps. Gripper commands go into
+the same queue and run between the targets they came between: a gripper closed after the arm arrived (by the
+controller's clock) closes after the simulated arm arrived too, however far the simulation trails.
 """
 
 from __future__ import annotations
