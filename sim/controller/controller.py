@@ -354,7 +354,7 @@ class EmulatedController:
             paced = self._runner.lag_targets > max_lag
             if paced:
                 self.stats.paced_ticks += 1
-            if not paced:
+            else:
                 failure = self.arm.step(TICK_S, self.io.speed_slider, self.tcp_wrench())
                 if failure:
                     log.error("motion stopped: %s", failure)

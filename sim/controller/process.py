@@ -63,7 +63,7 @@ def tune_emulator_process() -> None:
 def raise_priority(niceness: int) -> bool:
     """Sets the niceness of every thread of this process to ``niceness`` where it is lower than the calling thread's
     and the process may lower it; else leaves it and logs why at WARNING (the emulator then shares the cores evenly,
-    and on a small machine its physics can fall behind real time: ``backend_dropped_targets`` counts the loss).
+    and on a small machine its physics trails real time more often: ``TickStats.paced_ticks`` counts the held ticks).
     Threads started later take their creator's niceness. True if set."""
     now = os.getpriority(os.PRIO_PROCESS, 0)
     if now <= niceness:
@@ -75,15 +75,9 @@ def raise_priority(niceness: int) -> bool:
         for tid in tids:
             os.setpriority(os.PRIO_PROCESS, tid, niceness)
     except OSError as exc:  # PermissionError without the privilege
-        log.warning("the emulator runs at niceness %d, not %d (%s): its physics may fall behind real time where "
-                    "it shares few cores with perception", now, niceness, exc.strerror)  # fmt: skip
-        return False
-    return True
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, niceness)
-    except OSError as exc:  # PermissionError without the privilege
-        log.warning("the emulator runs at niceness %d, not %d (%s): its physics may fall behind real time where "
-                    "it shares few cores with perception", now, niceness, exc.strerror)  # fmt: skip
+        log.warning("the emulator runs at niceness %d, not %d (%s): where it shares few cores with perception "
+                    "its physics may trail real time, and the arm then moves slower",
+                    now, niceness, exc.strerror)  # fmt: skip
         return False
     return True
 
