@@ -29,6 +29,7 @@ class Variant:
     ignore_floor: bool | None = None
     min_fitness: float | None = None
     mask_erosion_px: int | None = None
+    max_refined: int | None = None  # parts posed per look (nearest first; more when none of them is safe)
     calibration: str | None = None  # another [calibration] source than the cell file's ("sim": the true pose)
     sensor: str | None = None  # another [camera] sensor than the cell file's (a sygrid.sensor preset)
     robot_host: str | None = None  # where the robot and gripper clients connect (a delaying proxy); None: the bin's
@@ -73,6 +74,13 @@ VARIANTS: dict[str, Variant] = {
         "the cell file's models and hand-eye calibration; frames through the OAK-D stereo model, its stereo pair at "
         "1280x800 (800P: half the per-pixel depth noise of 400P, nearest depth 0.70 m)",
         sensor="oak-d-800p",
+    ),
+    "models_oak_d_refine2": Variant(
+        "models",
+        "as models_oak_d (realistic sensing), 2 parts posed per look, not the cell file's 4 (the next ones where "
+        "neither is safe)",
+        sensor="oak-d",
+        max_refined=2,
     ),
     "models_no_sheet": Variant(
         "models",
@@ -147,6 +155,7 @@ def cell_for_bin(base: CellSetup, variant: Variant, seed: int, scene: Path | Non
         "ignore_floor": variant.ignore_floor,
         "min_fitness": variant.min_fitness,
         "mask_erosion_px": variant.mask_erosion_px,
+        "max_refined": variant.max_refined,
     }
     perception = d.perception.model_copy(
         update={"kind": variant.perception, **{k: v for k, v in overrides.items() if v is not None}}

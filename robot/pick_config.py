@@ -51,7 +51,8 @@ class PickerConfig:
     (something above the floor, ``PlannerLike.pile_area_m2``) holds parts the detector does not find or whose
     estimates land outside it: the run stops with "parts_unseen", not "bin_empty". 1 cm2 is a third of a nut's top
     seen from above. relooks: frames taken again in a cycle where the camera sees parts but the verification
-    refused every pose (stereo noise and masks change from frame to frame); then the run stops with "parts_unseen".
+    refused every pose (stereo noise and masks change from frame to frame; then the run stops with
+    "parts_unseen"), or refused some and nothing else is safe to pick or to nudge (then "nothing_safe").
     nudge_contact: how a nudge touches its part. "force_limited": straight down from ``nudge_approach_m`` above the
     planned press until the controller detects the contact (``move_until_contact`` at ``nudge_contact_speed_m_s``,
     at most ``nudge_overtravel_m`` past the planned press), then the drag in force mode pressing with

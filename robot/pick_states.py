@@ -39,7 +39,7 @@ TRANSITIONS: dict[CycleState, tuple[CycleState, ...]] = {
     _S.DECIDE: (_S.NEXT_GRASP, _S.NUDGE, _S.CHECK_EMPTY),
     _S.CHECK_EMPTY: (_S.DONE,),
     _S.GIVE_UP: (_S.DONE,),
-    _S.NUDGE: (_S.RETREAT, _S.DONE),
+    _S.NUDGE: (_S.RETREAT, _S.DONE, _S.CAPTURE),
     _S.NEXT_GRASP: (_S.APPROACH,),
     _S.APPROACH: (_S.GRASP, _S.ATTEMPT_END),
     _S.GRASP: (_S.VERIFY, _S.ATTEMPT_END),

@@ -6,6 +6,7 @@ the next state, and checks every step against ``TRANSITIONS``::
     PLAN -> REFINE -> PLAN | DECIDE            nothing safe: have more parts refined (else the missed ones rescued,
                                                ``_rescue``), plan again
     DECIDE -> NUDGE -> RETREAT | DONE          nothing safe: nudge a part clear of a wall or a neighbour, or stop
+    NUDGE -> CAPTURE                           nothing safe or to nudge, poses refused: look again (``relooks``)
     PERCEIVE | DECIDE -> CHECK_EMPTY -> DONE   no part estimated in the bin (none rescued either): "bin_empty" or
                                                "parts_unseen"
     PERCEIVE | REFINE -> GIVE_UP -> DONE       every part seen is where attempts failed too often
@@ -417,8 +418,7 @@ class Picker:
         nudge and the limits allow one (``end`` "nudged", then back to the observe pose); else "nothing_safe"."""
         record, poses = c.record, c.poses
         if self.nudger is None or not self.memory.may_nudge():
-            record.end = CycleEnd.NOTHING_SAFE
-            return _S.DONE
+            return self._nothing_safe(c)
 
         def nudged_enough(index: int) -> bool:
             return self.memory.nudged_enough(poses[index])
@@ -426,8 +426,7 @@ class Picker:
         with c.timer(Stage.PLAN):
             nudge = self.nudger.plan(poses, self.T_base_camera, c.plan, self.robot.q(), self.q_observe, nudged_enough)
         if nudge is None:
-            record.end = CycleEnd.NOTHING_SAFE
-            return _S.DONE
+            return self._nothing_safe(c)
         record.end = CycleEnd.NUDGED
         record.nudge = {
             "part_index": nudge.part_index, "obj_id": nudge.obj_id, "cause": nudge.cause,
@@ -441,6 +440,18 @@ class Picker:
             f"({record.nudge['outcome']}); {record.plan_summary}"
         )
         return _S.RETREAT
+
+    def _nothing_safe(self, c: _Cycle) -> CycleState:
+        """Nothing safe to pick, nothing to nudge: where this look refused poses, look again (``relooks``: a new
+        frame's stereo noise and masks may confirm them, and one of them be safe), else "nothing_safe"."""
+        refused = len(getattr(c.result, "refused", None) or ())
+        if refused and c.looks < self.config.relooks:
+            c.looks += 1
+            log.info("cycle %d: nothing safe, %d pose(s) refused; looking again (%d of %d)", c.record.index, refused,
+                     c.looks, self.config.relooks)  # fmt: skip
+            return _S.CAPTURE
+        c.record.end = CycleEnd.NOTHING_SAFE
+        return _S.DONE
 
     def _next_grasp(self, c: _Cycle) -> CycleState:
         grasp = c.grasp = c.candidates.pop(0)

@@ -169,6 +169,9 @@ def test_a_variant_changes_only_its_own_settings_of_the_cell_file():
     realistic = cell_for_bin(base, VARIANTS["models_oak_d"], 7, None, HOST).data
     assert plain.camera.sensor == base.data.camera.sensor == "ideal" and realistic.camera.sensor == "oak-d"
     assert realistic.calibration == plain.calibration and realistic.perception == plain.perception
+    fewer = cell_for_bin(base, VARIANTS["models_oak_d_refine2"], 7, None, HOST).data
+    assert base.data.perception.max_refined == 4 and fewer.perception.max_refined == 2
+    assert fewer.perception.model_copy(update={"max_refined": 4}) == plain.perception and fewer.camera.sensor == "oak-d"
     tuned = cell_for_bin(base, VARIANTS["models_sim_cell_erosion0"], 7, None, HOST).data.perception
     assert tuned.mask_erosion_px == 0 and tuned.detector_input_size == 960 and tuned.models_dir.endswith("sim_cell")
     # variants that name their models keep measuring the same thing whatever the cell file runs

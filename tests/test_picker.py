@@ -301,6 +301,42 @@ def test_nothing_safe_among_the_refined_parts_refines_the_skipped_ones_and_plans
     assert make_picker(empty, RefinedOnly())[0].run().stop_reason == "nothing_safe"
 
 
+def test_nothing_safe_with_refused_poses_looks_again_before_it_stops():
+    """Nothing safe to pick (the part at x < 0 lies at a wall) and a pose refused: a new frame may confirm it."""
+
+    class HalfRefusingBin(FakeBin):
+        """Refuses the poses of its parts at x > 0 for the first ``refusals`` frames."""
+
+        def __init__(self, parts, refusals):
+            super().__init__(parts)
+            self.refusals, self.frames = refusals, 0
+
+        def run(self, frame):
+            result = super().run(frame)
+            self.frames += 1
+            refused = self.frames <= self.refusals
+            result.refused = [p for p in result.poses if refused and p.T_camera_object[0, 3] > 0]
+            result.poses = [p for p in result.poses if not any(p is r for r in result.refused)]
+            return result
+
+    class WallPlanner(FakePlanner):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+            grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3])
+                      for i, p in enumerate(poses) if p.T_camera_object[0, 3] >= 0]  # fmt: skip
+            return FakePlan(grasps, "nothing safe: part 0: collision_bin", n_in_bin=len(poses))
+
+    bin_ = HalfRefusingBin([-0.1, 0.1], refusals=1)
+    report = make_picker(bin_, WallPlanner())[0].run()
+    assert report.cycles[0].end == "picked" and report.n_picked == 1 and bin_.parts == [-0.1]
+    assert bin_.frames == 3 and report.stop_reason == "nothing_safe"  # the second cycle refuses nothing
+    bin_ = HalfRefusingBin([-0.1, 0.1], refusals=100)
+    report = make_picker(bin_, WallPlanner())[0].run()
+    assert bin_.frames == 3 and report.n_picked == 0 and report.stop_reason == "nothing_safe"
+    bin_ = HalfRefusingBin([-0.1, 0.1], refusals=1)
+    assert make_picker(bin_, WallPlanner(), config=PickerConfig(relooks=0))[0].run().stop_reason == "nothing_safe"
+    assert bin_.frames == 1
+
+
 def test_parts_the_detector_misses_are_rescued_once_a_cycle_when_the_look_would_leave_them():
     """A look that poses nothing, or nothing safe, asks the perception for the parts on the depth no pose explains
     (``rescue``) before it ends the run; once a cycle, and not while something is safe to pick."""
