@@ -75,6 +75,13 @@ VARIANTS: dict[str, Variant] = {
         "1280x800 (800P: half the per-pixel depth noise of 400P, nearest depth 0.70 m)",
         sensor="oak-d-800p",
     ),
+    "models_oak_d_look_at_start": Variant(
+        "models",
+        "as models_oak_d (realistic sensing), every frame taken at the start of its cycle (no look taken at the "
+        "place pose and perceived while the arm lets go)",
+        sensor="oak-d",
+        picker={"look_while_placing": False},
+    ),
     "models_oak_d_refine2": Variant(
         "models",
         "as models_oak_d (realistic sensing), 2 parts posed per look, not the cell file's 4 (the next ones where "

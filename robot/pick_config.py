@@ -53,6 +53,9 @@ class PickerConfig:
     seen from above. relooks: frames taken again in a cycle where the camera sees parts but the verification
     refused every pose (stereo noise and masks change from frame to frame; then the run stops with
     "parts_unseen"), or refused some and nothing else is safe to pick or to nudge (then "nothing_safe").
+    look_while_placing: the next cycle's first frame is taken at the place pose with the part still held (the
+    observe pose: the camera's view of the bin is clear) and perceived while the arm lets go, so that the cycle
+    waits only for what is left of it; False: every frame is taken at the start of its cycle.
     nudge_contact: how a nudge touches its part. "force_limited": straight down from ``nudge_approach_m`` above the
     planned press until the controller detects the contact (``move_until_contact`` at ``nudge_contact_speed_m_s``,
     at most ``nudge_overtravel_m`` past the planned press), then the drag in force mode pressing with
@@ -96,6 +99,7 @@ class PickerConfig:
     max_nudges_per_part: int = 2
     min_unseen_area_m2: float = 1e-4
     relooks: int = 2
+    look_while_placing: bool = True
     min_held_width_m: float = 0.00025
     nudge_contact: str = "force_limited"
     nudge_press_force_n: float = 25.0
@@ -114,7 +118,7 @@ class PickerConfig:
         ):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ConfigError(f"PickerConfig.{name} must be an integer >= 1, got {getattr(self, name)!r}")
-        for name in ("hold_any_width", "final_approach_contact_detection"):
+        for name in ("hold_any_width", "final_approach_contact_detection", "look_while_placing"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"PickerConfig.{name} must be true or false, got {getattr(self, name)!r}")
         for name in ("max_nudges", "relooks"):

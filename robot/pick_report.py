@@ -133,6 +133,9 @@ class CycleRecord:
     n_excluded: int = 0  # parts left out of planning after repeated failures at their location
     n_rescued: int = 0  # parts posed on depth that no detection explained (``PerceptionLike.rescue``)
     perception_ms: dict[str, float] = field(default_factory=dict)
+    # the first look was taken at the previous cycle's place pose and perceived while the arm let go
+    # (``PickerConfig.look_while_placing``): ``stage_wall_s`` "perceive" is then only the wait for it
+    looked_ahead: bool = False
     plan_summary: str = ""
     attempts: list[Attempt] = field(default_factory=list)
     nudge: dict | None = None  # the nudge of a "nudged" cycle: part, cause, tilt, distance, outcome, detail

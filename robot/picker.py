@@ -14,6 +14,11 @@ the next state, and checks every step against ``TRANSITIONS``::
     ATTEMPT_END -> DONE | NEXT_GRASP | RETREAT picked | motion refused: the next candidate | look again
     RETREAT -> DONE                            back at the observe pose
 
+A look ahead (``PickerConfig.look_while_placing``): at the place pose, with the part still held, the next cycle's
+first frame is taken (the place pose is the observe pose: the camera's view of the bin is clear) and perceived in a
+worker thread while the arm lets go; the next CAPTURE takes that frame and PERCEIVE waits for what is left of its
+perception. Only a successful place takes one; a failed attempt drops it, and the run waits for it before returning.
+
 Every part is injected (``Picker(robot, gripper, camera, perception, planner, ...)``) through the protocols of
 ``robot.pick_protocols``, so the same cycle drives the simulated cell (the emulator through ur_rtde) and the real one
 (a UR5e, an OAK camera), and unit tests can swap any part for a fake. Records and outcomes are ``robot.pick_report``,
@@ -36,7 +41,9 @@ ends "interrupted", with the step it was in and its attempt in progress.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -97,6 +104,7 @@ class _Cycle:
     excluded: list[Any] = field(default_factory=list)  # given up
     plan: PlanLike | None = None
     empty_reason: str = ""  # what the camera saw, for CHECK_EMPTY
+    pending: Future | None = None  # the perception of ``frame`` running in the look-ahead worker
     looks: int = 0  # frames taken again after every pose was refused
     refused_only: bool = False  # for CHECK_EMPTY: the camera saw parts, the verification refused every pose
     rescued: bool = False  # every model was tried on the depth no pose explains (once a cycle)
@@ -152,6 +160,8 @@ class Picker:
         self.arm = Arm(self.robot, self.fingers, self.config, self.q_observe)
         self.memory = PartMemory(self.config, self.T_base_camera)
         self.n_placed = 0  # parts let go in the tray by this picker: the next one goes to the next place slot
+        self._ahead: tuple[Frame, Future] | None = None  # the next cycle's look, taken at the place pose
+        self._worker: ThreadPoolExecutor | None = None  # perceives the look ahead while the arm lets go
         self.last_report: RunReport | None = None  # the last run's, also when it raised
         self._steps: dict[CycleState, Callable[[_Cycle], CycleState]] = {
             _S.CAPTURE: self._capture, _S.PERCEIVE: self._perceive, _S.PLAN: self._plan, _S.REFINE: self._refine,
@@ -169,7 +179,7 @@ class Picker:
         limit = max_cycles or self.config.max_cycles
         cycles: list[CycleRecord] = []
         self.last_report = None
-        with ArmStopper(self.stop_switch, lambda: self.robot.target.stop()) as stopper:
+        with ArmStopper(self.stop_switch, lambda: self.robot.target.stop()) as stopper, self._look_ahead_worker():
             try:
                 return self._run_cycles(cycles, limit)
             except StopRequestedError as exc:
@@ -182,6 +192,24 @@ class Picker:
                 reason = StopReason.INTERRUPTED if isinstance(exc, KeyboardInterrupt) else StopReason.ERROR
                 self._finish(cycles, reason, f"{type(exc).__name__}: {exc}")
                 raise
+
+    @contextmanager
+    def _look_ahead_worker(self) -> Iterator[None]:
+        """The run's look-ahead thread; on the way out a look still being perceived is waited for and dropped (the
+        perception is never used by two threads, and no thread outlives the run)."""
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="look-ahead")
+        try:
+            yield
+        finally:
+            self._drop_look_ahead()
+            self._worker.shutdown(wait=True)
+            self._worker = None
+
+    def _drop_look_ahead(self) -> None:
+        """Forgets the look taken ahead, after its perception ends (its result or error unused)."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:
+            ahead[1].exception()  # waits; an error there was the old pile's, not worth raising
 
     def request_stop(self, reason: str) -> None:
         """Asks the run to stop (``reason``: who asked, e.g. "SIGTERM"); safe from any thread and from a signal
@@ -300,15 +328,21 @@ class Picker:
             return after
 
     def _capture(self, c: _Cycle) -> CycleState:
-        with c.timer(Stage.CAPTURE):
-            c.frame = self.camera.capture()
+        """A frame; the cycle's first look is the one taken at the last place pose where there is one."""
+        ahead, self._ahead = self._ahead, None  # only a pick sets one, and the cycle after it starts here
+        if ahead is not None:
+            (c.frame, c.pending), c.record.looked_ahead = ahead, True
+        else:
+            with c.timer(Stage.CAPTURE):
+                c.frame = self.camera.capture()
         c.record.sim_time_s = float(c.frame.timestamp_s)
         return _S.PERCEIVE
 
     def _perceive(self, c: _Cycle) -> CycleState:
         record = c.record
         with c.timer(Stage.PERCEIVE):
-            c.result = self.perception.run(c.frame)
+            pending, c.pending = c.pending, None
+            c.result = pending.result() if pending is not None else self.perception.run(c.frame)
         tare = getattr(c.result, "depth_tare", None)
         if tare is not None and tare.applied:
             # Plan on the depth the poses were fitted in: with a stereo offset left in, a part's own points lie
@@ -546,6 +580,8 @@ class Picker:
         with c.timer(Stage.PLACE):
             self.robot.move_j(c.grasp.q_place, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
             lost, _ = self.fingers.slip_reason(c.grasp)
+            if not lost and cfg.look_while_placing:
+                self._look_ahead()
             released = self.fingers.release(c.opening) if lost else self.arm.let_go(c.grasp.T_base_place, c.opening)
         if released and lost:
             return _fail(c.attempt, Outcome.DROPPED, f"the part was lost on the way to the place pose: {lost}")
@@ -558,6 +594,17 @@ class Picker:
             f"{self.fingers.width_text()}): the part is stuck in the gripper",
         )  # fmt: skip
 
+    def _look_ahead(self) -> None:
+        """The next cycle's first look, taken now: the arm holds the part at the place pose, which is the observe
+        pose (clear of the camera's view of the bin), and the pile has nothing more taken from it. Its perception
+        runs in the worker while the arm lets go and comes back (the moves are awaited by polling, which leaves
+        the interpreter to the worker; perception's native code runs beside it)."""
+        if self._worker is None:  # a cycle run on its own (``cycle``), not by ``run``
+            return
+        self._drop_look_ahead()
+        frame = self.camera.capture()
+        self._ahead = (frame, self._worker.submit(self.perception.run, frame))
+
     def _attempt_end(self, c: _Cycle) -> CycleState:
         """Records the attempt: a pick ends the cycle; a blocked gripper ends the run; a refused motion moves on to
         the next candidate; anything else (something moved or failed) looks again."""
@@ -568,6 +615,7 @@ class Picker:
             self.memory.remember_pick(attempt)
             return _S.DONE
         self.memory.count_failure(attempt)
+        self._drop_look_ahead()  # a part not let go may hang in the next look's way; the cycle looks again
         if attempt.outcome in (Outcome.GRIPPER_BLOCKED, Outcome.NOT_RELEASED):
             record.end, record.plan_summary = CycleEnd.GRIPPER_BLOCKED, attempt.detail
             return _S.RETREAT

@@ -21,6 +21,7 @@ def _bin(seed: int, n_left: int, picked: int, tried: int, cycles: list[float], s
         "parts_by_kind": {"hex_nut": 6, "pipe": 4}, "left_by_kind": {"hex_nut": n_left},
         "left_why": left_why, "cycle_s": cycles, "perceive_plan_ms": [100.0 * (k + 1) for k in range(len(cycles))],
         "perceive_ms": [50.0], "plan_ms": [20.0], "sim_paced_s": 0.25 * seed, "sim_dropped_targets": 0,
+        "perception_ms": [400.0 + seed], "looked_ahead": len(cycles) - 1,
     }  # fmt: skip
 
 
@@ -38,9 +39,12 @@ def test_summary_counts_parts_picks_cycles_and_causes():
     assert s["cleared_by_kind"] == {"hex_nut": "10/12", "pipe": "8/8"}
     assert s["left_by_cause"] == {"hex_nut: collision_bin": 2}
     assert s["sim_paced_s"] == pytest.approx(0.25) and s["sim_dropped_targets"] == 0
-    assert "physics behind the clock: arm held 0.2 s, 0 targets dropped" in format_results(
+    assert s["perception_median_ms"] == pytest.approx(400.5) and s["n_looked_ahead"] == 2
+    text = format_results(
         {"targets": TARGETS, "seeds": [0, 1], "seeds_done": [0, 1], "variants": {"m": {"description": "", **s}}}
     )
+    assert "physics behind the clock: arm held 0.2 s, 0 targets dropped" in text
+    assert "perception 400 ms median per look (the pipeline's own time), the cycle waiting 50 ms" in text
     empty = summarize([_bin(2, 10, 0, 0, [], "nothing_safe", {})])
     assert math.isnan(empty["pick_success_rate"]) and math.isnan(empty["cycle_median_s"])
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -46,10 +47,11 @@ class FakeBin:
     """Parts (obj id, x); perception sees those left, the planner plans one grasp per part."""
 
     parts: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.2])
+    in_fingers: float | None = None  # the part the gripper holds: out of the camera's view of the bin
 
     def run(self, frame: Frame):
         det = Detection(0, 1, 1.0, np.zeros(4))
-        poses = [ObjectPose(det, make_T(t=(x, 0.0, 0.5)), 1.0, "fake") for x in self.parts]
+        poses = [ObjectPose(det, make_T(t=(x, 0.0, 0.5)), 1.0, "fake") for x in self.parts if x != self.in_fingers]
         return type("R", (), {"poses": poses, "detections": [det] * len(poses), "timings_ms": {"total": 1.0}})()
 
     def refine_more(self, poses, frame):
@@ -182,7 +184,7 @@ class FakeGripper:
             return
         if self.held:
             self.bin.parts.remove(self.robot.q_now[0]) if self.robot.q_now[0] in self.bin.parts else None
-        self.held = False
+        self.held, self.bin.in_fingers = False, None
         self.opening = True
         self.reads_left = self.lag_reads
 
@@ -192,7 +194,7 @@ class FakeGripper:
             self.empty_once = False
             self.width = 0.0
             return False
-        self.held = True
+        self.held, self.bin.in_fingers = True, self.robot.q_now[0]
         self.width = 0.02
         self.settle_left = self.settling_reads
         return True
@@ -207,7 +209,7 @@ class FakeGripper:
 
     def object_detected(self):
         if self.held and self.slip_at is not None and self.robot.q_now[0] == self.slip_at:
-            self.held, self.width = False, 0.0
+            self.held, self.width, self.bin.in_fingers = False, 0.0, None
         if self.held and getattr(self, "settle_left", 0) > 0:
             self.settle_left -= 1
             return False
@@ -228,6 +230,77 @@ def test_clears_the_bin_and_stops_when_empty():
     assert report.stop_reason == "bin_empty" and bin_.parts == []
     assert report.n_picked == 3 and report.success_rate == 1.0
     assert report.sim_cycle_times_s() == [5.0, 5.0, 5.0]  # camera time from one capture to the next
+
+
+class ReleaseWatchingBin(FakeBin):
+    """Perception that, run off the main thread, waits (up to a second) for the gripper to let go of the part before
+    it answers, and records per run its thread and whether the release came while it ran."""
+
+    def __init__(self, parts):
+        super().__init__(parts)
+        self.released = threading.Event()
+        self.runs: list[tuple[str, bool]] = []
+
+    def run(self, frame):
+        main = threading.current_thread() is threading.main_thread()
+        self.runs.append(("main" if main else "worker", main or self.released.wait(1.0)))
+        return super().run(frame)
+
+
+def _watch_releases(picker: Picker, bin_: ReleaseWatchingBin) -> None:
+    release = picker.gripper.open
+
+    def open_(width_m=None, speed_m_s=None):
+        if picker.gripper.held:
+            bin_.released.set()
+        return release(width_m, speed_m_s)
+
+    picker.gripper.open = open_
+
+
+def test_the_next_look_is_taken_at_the_place_pose_and_perceived_while_the_arm_lets_go():
+    bin_ = ReleaseWatchingBin([0.0, 0.1, 0.2])
+    picker, _ = make_picker(bin_, config=PickerConfig(release_drop_m=0.1))
+    _watch_releases(picker, bin_)
+    captures = []
+    capture = picker.camera.capture
+    picker.camera.capture = lambda: captures.append(picker.gripper.held) or capture()
+    report = picker.run()
+    assert report.n_picked == 3 and report.stop_reason == "bin_empty" and bin_.parts == []
+    assert [c.looked_ahead for c in report.cycles] == [False, True, True, True]
+    assert captures == [False, True, True, True]  # one frame per cycle; after the first, taken holding the part
+    # the three looks ahead ran beside the main thread, which let go of the part meanwhile
+    assert bin_.runs == [("main", True)] + [("worker", True)] * 3
+    assert all(t.name != "look-ahead_0" for t in threading.enumerate())  # no thread outlives the run
+
+    bin_ = ReleaseWatchingBin([0.0, 0.1])
+    picker, _ = make_picker(bin_, config=PickerConfig(look_while_placing=False))
+    report = picker.run()
+    assert report.n_picked == 2 and not any(c.looked_ahead for c in report.cycles)
+    assert bin_.runs == [("main", True)] * 3
+    with pytest.raises(ConfigError, match="look_while_placing"):
+        PickerConfig(look_while_placing=1)
+
+
+def test_a_look_ahead_is_dropped_when_the_part_is_not_let_go_and_its_error_raised_where_it_is_used():
+    bin_ = ReleaseWatchingBin([0.0, 0.1])
+    picker, _ = make_picker(bin_, config=PickerConfig(open_timeout_s=0.05))
+    picker.gripper.stuck = True  # the fingers close, and never open again
+    report = picker.run()
+    assert report.stop_reason == "gripper_blocked" and [a.outcome for a in report.attempts] == ["not_released"]
+    assert [r[0] for r in bin_.runs] == ["main", "worker"]  # perceived, not used: the cycle ended the run
+
+    class FailingBin(FakeBin):
+        def run(self, frame):
+            if threading.current_thread() is not threading.main_thread():
+                raise RuntimeError("onnxruntime: out of memory")
+            return super().run(frame)
+
+    picker, _ = make_picker(FailingBin([0.0, 0.1]))
+    with pytest.raises(RuntimeError, match="out of memory"):
+        picker.run()
+    assert picker.last_report.n_picked == 1 and picker.last_report.stop_reason == "error"
+    assert picker.last_report.cycles[-1].interrupted_in == "perceive"
 
 
 def test_the_planner_gets_the_depth_the_poses_were_fitted_in():
@@ -572,7 +645,13 @@ def test_part_still_there_after_its_pick_is_marked_failed():
     def open_without_removing(width_m=None, speed_m_s=None):  # the fingers open, but nothing leaves the bin
         gripper.held, gripper.opening = False, True
 
-    gripper.open = open_without_removing
+    def close_on_nothing(force_n=None, speed_m_s=None):  # a hold is read, but the part stays where it lies
+        closed = close(force_n, speed_m_s)
+        bin_.in_fingers = None
+        return closed
+
+    close = gripper.close
+    gripper.open, gripper.close = open_without_removing, close_on_nothing
     report = picker.run(max_cycles=2)
     assert report.attempts[0].outcome == "part_still_in_bin"
 
@@ -664,6 +743,7 @@ def _close_on_a_sheet(gripper: FakeGripper, width_m: float) -> None:
     def close(force_n=None, speed_m_s=None):
         gripper.opening = False
         gripper.held = width_m > 0
+        gripper.bin.in_fingers = gripper.robot.q_now[0] if gripper.held else None
         gripper.width = width_m
         return False
 
