@@ -102,7 +102,8 @@ class PerceptionLike(Protocol):
     ``refine_more(poses, frame)``: the poses with more of them depth-refined, or None when nothing is left to refine;
     the picker calls it while nothing is safe to pick among the refined ones. ``rescue(poses, frame)``: the poses with
     the parts found on the depth they do not explain, or None when there are none; the picker calls it (once a
-    cycle) when a look would otherwise leave parts in the bin."""
+    cycle) when a look would otherwise leave parts in the bin. ``run`` may be called from the picker's look-ahead
+    thread (``PickerConfig.look_while_placing``), never while another call is running."""
 
     def run(self, frame: Frame) -> PerceptionResultLike: ...
     def refine_more(self, poses: list[Any], frame: Frame) -> list[Any] | None: ...

@@ -41,9 +41,8 @@ ends "interrupted", with the step it was in and its attempt in progress.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
+from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -54,6 +53,7 @@ from perception.depth_tare import apply_tare
 from robot.pick_arm import Arm, approach_legs, motion_cause
 from robot.pick_config import PickerConfig
 from robot.pick_fingers import Fingers
+from robot.pick_look_ahead import LookAhead
 from robot.pick_memory import PartMemory
 from robot.pick_protocols import (
     CameraLike,
@@ -160,8 +160,7 @@ class Picker:
         self.arm = Arm(self.robot, self.fingers, self.config, self.q_observe)
         self.memory = PartMemory(self.config, self.T_base_camera)
         self.n_placed = 0  # parts let go in the tray by this picker: the next one goes to the next place slot
-        self._ahead: tuple[Frame, Future] | None = None  # the next cycle's look, taken at the place pose
-        self._worker: ThreadPoolExecutor | None = None  # perceives the look ahead while the arm lets go
+        self.look_ahead = LookAhead()  # the next cycle's first look, taken at the place pose
         self.last_report: RunReport | None = None  # the last run's, also when it raised
         self._steps: dict[CycleState, Callable[[_Cycle], CycleState]] = {
             _S.CAPTURE: self._capture, _S.PERCEIVE: self._perceive, _S.PLAN: self._plan, _S.REFINE: self._refine,
@@ -179,7 +178,7 @@ class Picker:
         limit = max_cycles or self.config.max_cycles
         cycles: list[CycleRecord] = []
         self.last_report = None
-        with ArmStopper(self.stop_switch, lambda: self.robot.target.stop()) as stopper, self._look_ahead_worker():
+        with ArmStopper(self.stop_switch, lambda: self.robot.target.stop()) as stopper, self.look_ahead.running():
             try:
                 return self._run_cycles(cycles, limit)
             except StopRequestedError as exc:
@@ -192,24 +191,6 @@ class Picker:
                 reason = StopReason.INTERRUPTED if isinstance(exc, KeyboardInterrupt) else StopReason.ERROR
                 self._finish(cycles, reason, f"{type(exc).__name__}: {exc}")
                 raise
-
-    @contextmanager
-    def _look_ahead_worker(self) -> Iterator[None]:
-        """The run's look-ahead thread; on the way out a look still being perceived is waited for and dropped (the
-        perception is never used by two threads, and no thread outlives the run)."""
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="look-ahead")
-        try:
-            yield
-        finally:
-            self._drop_look_ahead()
-            self._worker.shutdown(wait=True)
-            self._worker = None
-
-    def _drop_look_ahead(self) -> None:
-        """Forgets the look taken ahead, after its perception ends (its result or error unused)."""
-        ahead, self._ahead = self._ahead, None
-        if ahead is not None:
-            ahead[1].exception()  # waits; an error there was the old pile's, not worth raising
 
     def request_stop(self, reason: str) -> None:
         """Asks the run to stop (``reason``: who asked, e.g. "SIGTERM"); safe from any thread and from a signal
@@ -329,7 +310,7 @@ class Picker:
 
     def _capture(self, c: _Cycle) -> CycleState:
         """A frame; the cycle's first look is the one taken at the last place pose where there is one."""
-        ahead, self._ahead = self._ahead, None  # only a pick sets one, and the cycle after it starts here
+        ahead = self.look_ahead.take()  # only a pick takes one, and the cycle after it starts here
         if ahead is not None:
             (c.frame, c.pending), c.record.looked_ahead = ahead, True
         else:
@@ -580,8 +561,8 @@ class Picker:
         with c.timer(Stage.PLACE):
             self.robot.move_j(c.grasp.q_place, cfg.transit_speed_rad_s, cfg.transit_accel_rad_s2)
             lost, _ = self.fingers.slip_reason(c.grasp)
-            if not lost and cfg.look_while_placing:
-                self._look_ahead()
+            if not lost and cfg.look_while_placing:  # the observe pose: the camera's view of the bin is clear
+                self.look_ahead.start(self.camera.capture, self.perception.run)
             released = self.fingers.release(c.opening) if lost else self.arm.let_go(c.grasp.T_base_place, c.opening)
         if released and lost:
             return _fail(c.attempt, Outcome.DROPPED, f"the part was lost on the way to the place pose: {lost}")
@@ -594,17 +575,6 @@ class Picker:
             f"{self.fingers.width_text()}): the part is stuck in the gripper",
         )  # fmt: skip
 
-    def _look_ahead(self) -> None:
-        """The next cycle's first look, taken now: the arm holds the part at the place pose, which is the observe
-        pose (clear of the camera's view of the bin), and the pile has nothing more taken from it. Its perception
-        runs in the worker while the arm lets go and comes back (the moves are awaited by polling, which leaves
-        the interpreter to the worker; perception's native code runs beside it)."""
-        if self._worker is None:  # a cycle run on its own (``cycle``), not by ``run``
-            return
-        self._drop_look_ahead()
-        frame = self.camera.capture()
-        self._ahead = (frame, self._worker.submit(self.perception.run, frame))
-
     def _attempt_end(self, c: _Cycle) -> CycleState:
         """Records the attempt: a pick ends the cycle; a blocked gripper ends the run; a refused motion moves on to
         the next candidate; anything else (something moved or failed) looks again."""
@@ -615,7 +585,7 @@ class Picker:
             self.memory.remember_pick(attempt)
             return _S.DONE
         self.memory.count_failure(attempt)
-        self._drop_look_ahead()  # a part not let go may hang in the next look's way; the cycle looks again
+        self.look_ahead.drop()  # a part not let go may hang in the next look's way; the cycle looks again
         if attempt.outcome in (Outcome.GRIPPER_BLOCKED, Outcome.NOT_RELEASED):
             record.end, record.plan_summary = CycleEnd.GRIPPER_BLOCKED, attempt.detail
             return _S.RETREAT
