@@ -360,7 +360,12 @@ def print_summary(report: RunReport, wall_s: float, calibration: dict | None = N
         )
     pp = [c.stage_wall_s["perceive"] + c.stage_wall_s["plan"] for c in report.cycles if c.n_poses]
     if pp:
-        print(f"perception + planning wall per cycle: median {1e3 * np.median(pp):.0f} ms")
+        line = f"perception + planning wall per cycle: median {1e3 * np.median(pp):.0f} ms waited"
+        own = [c.perception_ms["total"] for c in report.cycles if c.n_poses and "total" in c.perception_ms]
+        if own:
+            ahead = sum(c.looked_ahead for c in report.cycles)
+            line += f" (perception {np.median(own):.0f} ms a look; {ahead} look(s) perceived while the arm let go)"
+        print(line)
 
 
 def write_report(

@@ -258,7 +258,7 @@ def _watch_releases(picker: Picker, bin_: ReleaseWatchingBin) -> None:
     picker.gripper.open = open_
 
 
-def test_the_next_look_is_taken_at_the_place_pose_and_perceived_while_the_arm_lets_go():
+def test_the_next_look_is_taken_at_the_place_pose_and_perceived_while_the_arm_lets_go(capsys):
     bin_ = ReleaseWatchingBin([0.0, 0.1, 0.2])
     picker, _ = make_picker(bin_, config=PickerConfig(release_drop_m=0.1))
     _watch_releases(picker, bin_)
@@ -272,6 +272,10 @@ def test_the_next_look_is_taken_at_the_place_pose_and_perceived_while_the_arm_le
     # the three looks ahead ran beside the main thread, which let go of the part meanwhile
     assert bin_.runs == [("main", True)] + [("worker", True)] * 3
     assert all(t.name != "look-ahead_0" for t in threading.enumerate())  # no thread outlives the run
+    from launch.pick import print_summary
+
+    print_summary(report, 1.0)
+    assert "(perception 1 ms a look; 3 look(s) perceived while the arm let go)" in capsys.readouterr().out
 
     bin_ = ReleaseWatchingBin([0.0, 0.1])
     picker, _ = make_picker(bin_, config=PickerConfig(look_while_placing=False))
