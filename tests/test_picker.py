@@ -232,6 +232,25 @@ def test_clears_the_bin_and_stops_when_empty():
     assert report.sim_cycle_times_s() == [5.0, 5.0, 5.0]  # camera time from one capture to the next
 
 
+class RefusingBin(FakeBin):
+    """Sees its parts; for the first ``refusals`` frames the verification refuses the poses of those at the x that
+    ``refuses`` selects (every one by default)."""
+
+    def __init__(self, parts, refusals, refuses=lambda x: True):
+        super().__init__(parts)
+        self.refusals, self.frames, self.refuses = refusals, 0, refuses
+
+    def run(self, frame):
+        result = super().run(frame)
+        self.frames += 1
+        if self.frames <= self.refusals:
+            out = [self.refuses(p.T_camera_object[0, 3]) for p in result.poses]
+            result.refused = [ObjectPose(p.detection, p.T_camera_object, 0.3, "fake", verified=False)
+                              for p, o in zip(result.poses, out, strict=True) if o]  # fmt: skip
+            result.poses = [p for p, o in zip(result.poses, out, strict=True) if not o]
+        return result
+
+
 class ReleaseWatchingBin(FakeBin):
     """Perception that, run off the main thread, waits (up to a second) for the gripper to let go of the part before
     it answers, and records per run its thread and whether the release came while it ran."""
@@ -381,35 +400,20 @@ def test_nothing_safe_among_the_refined_parts_refines_the_skipped_ones_and_plans
 def test_nothing_safe_with_refused_poses_looks_again_before_it_stops():
     """Nothing safe to pick (the part at x < 0 lies at a wall) and a pose refused: a new frame may confirm it."""
 
-    class HalfRefusingBin(FakeBin):
-        """Refuses the poses of its parts at x > 0 for the first ``refusals`` frames."""
-
-        def __init__(self, parts, refusals):
-            super().__init__(parts)
-            self.refusals, self.frames = refusals, 0
-
-        def run(self, frame):
-            result = super().run(frame)
-            self.frames += 1
-            refused = self.frames <= self.refusals
-            result.refused = [p for p in result.poses if refused and p.T_camera_object[0, 3] > 0]
-            result.poses = [p for p in result.poses if not any(p is r for r in result.refused)]
-            return result
-
     class WallPlanner(FakePlanner):
         def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
             grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3])
                       for i, p in enumerate(poses) if p.T_camera_object[0, 3] >= 0]  # fmt: skip
             return FakePlan(grasps, "nothing safe: part 0: collision_bin", n_in_bin=len(poses))
 
-    bin_ = HalfRefusingBin([-0.1, 0.1], refusals=1)
+    bin_ = RefusingBin([-0.1, 0.1], refusals=1, refuses=lambda x: x > 0)
     report = make_picker(bin_, WallPlanner())[0].run()
     assert report.cycles[0].end == "picked" and report.n_picked == 1 and bin_.parts == [-0.1]
     assert bin_.frames == 3 and report.stop_reason == "nothing_safe"  # the second cycle refuses nothing
-    bin_ = HalfRefusingBin([-0.1, 0.1], refusals=100)
+    bin_ = RefusingBin([-0.1, 0.1], refusals=100, refuses=lambda x: x > 0)
     report = make_picker(bin_, WallPlanner())[0].run()
     assert bin_.frames == 3 and report.n_picked == 0 and report.stop_reason == "nothing_safe"
-    bin_ = HalfRefusingBin([-0.1, 0.1], refusals=1)
+    bin_ = RefusingBin([-0.1, 0.1], refusals=1, refuses=lambda x: x > 0)
     assert make_picker(bin_, WallPlanner(), config=PickerConfig(relooks=0))[0].run().stop_reason == "nothing_safe"
     assert bin_.frames == 1
 
@@ -1362,21 +1366,6 @@ def test_detections_whose_poses_were_all_refused_are_named_when_the_cycle_finds_
     )
     # an oracle perception has no verification: detections it gave no pose are named as such
     assert nothing_posed_reason(result([det])) == "the camera sees 1 part(s) but none could be posed"
-
-    class RefusingBin(FakeBin):
-        """Sees its parts, refuses their poses for the first ``refusals`` frames."""
-
-        def __init__(self, parts, refusals):
-            super().__init__(parts)
-            self.refusals, self.frames = refusals, 0
-
-        def run(self, frame):
-            plain = super().run(frame)
-            self.frames += 1
-            if self.frames > self.refusals:
-                return plain
-            return result(plain.detections, [ObjectPose(d, make_T(), 0.3, "fake", verified=False)
-                                             for d in plain.detections])  # fmt: skip
 
     # every frame refused: two more looks, then "parts_unseen" though the depth shows no more than a small part's
     bin_ = RefusingBin([0.0], refusals=100)
