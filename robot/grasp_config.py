@@ -68,7 +68,8 @@ class PlannerConfig:
     let go (its position and approach axis; the tool turns about that axis to keep the grasp's pad direction) and
     where the arm waits while the camera looks. place_grid ``(nx, ny)`` (>= 1) / place_pitch_m ``(px, py)`` (>= 0):
     successive parts are let go at the points of this grid, centred on ``T_base_place`` along its x and y
-    (``place_pose_at``), so that they land beside, not on, the ones before.
+    (``place_pose_at``), so that they land beside, not on, the ones before; the held part's box, not the pads, is
+    centred on its point (``grasp_waypoints.place_pose``).
 
     Clearances: clearance_m: gripper to neighbouring parts and depth points. bin_clearance_m: gripper and wrist links
     to the bin walls. floor_clearance_m: gripper above the bin floor. min_engagement_m: the least length of pad that

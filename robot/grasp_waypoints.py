@@ -84,7 +84,12 @@ class WaypointSolver:
                 T_grasp[:3, :2] *= -1.0
             T_pre = T_grasp @ make_T(t=(0.0, 0.0, -cfg.pre_grasp_distance_m))
             T_lift = T_grasp @ make_T(t=(0.0, 0.0, -float(r["lift"][k])))
-            T_place = place_pose(T_base_place, T_grasp[:3, 0])
+            # the half-turn about z above mirrors the part's box (TCP frame) in x and y
+            part_box = r["part_box"][k]
+            if T_grasp[:3, 0] @ r["T_grasp"][k][:3, 0] < 0:
+                part_box = part_box * np.array([-1.0, -1.0, 1.0])[None, :]
+                part_box = np.stack([part_box.min(axis=0), part_box.max(axis=0)])
+            T_place = place_pose(T_base_place, T_grasp[:3, 0], part_box)
             # the grasp's IK branch is the reference's, wherever the arm is: every pick on one branch (seeded from the
             # arm's configuration, the branch would drift from pick to pick)
             q_grasp = ik_nearest(T_grasp, self.q_reference, T_flange_tcp, self._limits)
@@ -107,11 +112,6 @@ class WaypointSolver:
             if self.collision.wrist_gap_m(np.stack([q_pre, q_grasp, q_lift])).min() < cfg.bin_clearance_m:
                 rejections["collision_bin"] += 1
                 continue
-            # the half-turn about z above mirrors the part's box (TCP frame) in x and y
-            part_box = r["part_box"][k]
-            if T_grasp[:3, 0] @ r["T_grasp"][k][:3, 0] < 0:
-                part_box = part_box * np.array([-1.0, -1.0, 1.0])[None, :]
-                part_box = np.stack([part_box.min(axis=0), part_box.max(axis=0)])
             lifted = self._clear_transits(q_seed, T_grasp, q_grasp, (T_lift, q_lift, q_place), T_place, part_box, r, k)
             if lifted is None:
                 rejections["collision_transit"] += 1
@@ -207,14 +207,18 @@ class WaypointSolver:
         return q
 
 
-def place_pose(T_base_place: np.ndarray, x_grasp: np.ndarray) -> np.ndarray:
+def place_pose(T_base_place: np.ndarray, x_grasp: np.ndarray, part_box: np.ndarray | None = None) -> np.ndarray:
     """The place pose turned about its approach axis so that the pads keep the grasp's direction (the wrist does
-    not spin on the way)."""
+    not spin on the way), and moved across that axis so that the held part's box (``(2, 3)`` in the TCP frame) is
+    centred on it: the place grid's slots are where parts land, and a long part held near one end (an L-bracket
+    pinched at its edge) would otherwise reach its whole length toward the tray's wall."""
     z = T_base_place[:3, 2]
     x = x_grasp - (x_grasp @ z) * z
-    if np.linalg.norm(x) < 1e-6:
-        return T_base_place.copy()
-    x /= np.linalg.norm(x)
     T = T_base_place.copy()
-    T[:3, 0], T[:3, 1] = x, np.cross(z, x)
+    if np.linalg.norm(x) >= 1e-6:
+        x /= np.linalg.norm(x)
+        T[:3, 0], T[:3, 1] = x, np.cross(z, x)
+    if part_box is not None:
+        centre = T[:3, :3] @ np.asarray(part_box, dtype=float).mean(axis=0)
+        T[:3, 3] -= centre - (centre @ z) * z
     return T

@@ -21,6 +21,7 @@ from robot.grasp_geometry import (
     GripperGeometry,
     lowest_elbow_point_m,
     obb_gap_m,
+    part_box_tcp,
     points_box_distance_m,
     required_backoff_m,
     wrist_link_frames,
@@ -282,7 +283,8 @@ def test_waypoints_are_ordered_and_reached_by_their_joint_solutions(planner):
     assert g.T_base_lift[2, 3] >= g.T_base_grasp[2, 3] + math.cos(math.radians(cfg.approach_cone_deg)) * 0.15
     for T in (g.T_base_pregrasp, g.T_base_lift):
         np.testing.assert_allclose(T[:3, :3], g.T_base_grasp[:3, :3])
-    np.testing.assert_allclose(g.T_base_place[:3, 3], cfg.place_pose_at(0)[:3, 3])
+    np.testing.assert_allclose(_held_box_centre(g)[:2], cfg.place_pose_at(0)[:2, 3], atol=1e-12)
+    np.testing.assert_allclose(g.T_base_place[2, 3], cfg.place_pose_at(0)[2, 3])
     np.testing.assert_allclose(g.T_base_place[:3, 2], [0.0, 0.0, -1.0], atol=1e-9)
     for (name, T), (_, q) in zip(g.waypoints, g.joint_waypoints, strict=True):
         np.testing.assert_allclose(forward_kinematics(q, cfg.gripper.T_flange_tcp), T, atol=1e-9, err_msg=name)
@@ -693,8 +695,44 @@ def test_successive_picks_are_let_go_side_by_side_over_the_simulated_tray(planne
     # the grid repeats, and the planned pick lets go at the slot asked for, pointing down
     np.testing.assert_allclose(cfg.place_pose_at(nx * ny + 4), cfg.place_pose_at(4))
     plan = planner.plan_parts([PartEstimate(1, _flat("hex_nut", -0.45, 0.03, yaw_rad=1.0), 0.9)], place_slot=4)
-    np.testing.assert_allclose(plan.best.T_base_place[:3, 3], slots[4], atol=1e-12)
+    np.testing.assert_allclose(_held_box_centre(plan.best)[:2], slots[4, :2], atol=1e-12)
     np.testing.assert_allclose(plan.best.T_base_place[:3, 2], [0.0, 0.0, -1.0], atol=1e-9)
+
+
+def test_a_long_part_held_near_one_end_is_let_go_centred_on_its_slot(planner):
+    """An L-bracket (57 mm long) held near one end: the place pose moves the tool so that the held part's box, not
+    the pads, is centred on the slot, and the part at every slot lies inside the simulated tray's floor."""
+    from sim.cell_config import CellConfig
+
+    cell = CellConfig()
+    bracket = builtin_part("l_bracket")
+    config = PlannerConfig(grasp_params=PARAMS, max_grasps_per_part=20)
+    p = GraspPlanner([bracket], config, cache_dir=planner.cache_dir)
+    T_base_tray = invert(cell.T_world_base) @ cell.T_world_tray
+    half = np.array(cell.tray_inner_size_m[:2]) / 2
+    off_centre = 0.0
+    for slot in range(config.place_grid[0] * config.place_grid[1]):
+        plan = p.plan_parts([PartEstimate(4, _flat("l_bracket", -0.45, 0.03, yaw_rad=0.5), 0.9)], place_slot=slot)
+        assert plan.grasps, plan.summary()
+        for g in plan.grasps:
+            box = _held_box_base(g, "l_bracket")
+            np.testing.assert_allclose(box.mean(axis=0)[:2], config.place_pose_at(slot)[:2, 3], atol=1e-9)
+            assert np.all(np.abs(box[:, :2] - T_base_tray[:2, 3]) <= half)
+            off_centre = max(off_centre, float(np.linalg.norm(g.T_base_place[:2, 3] - box.mean(axis=0)[:2])))
+    assert off_centre > 0.015  # some grasps hold the bracket well off its centre: the move is not a no-op
+
+
+def _held_box_base(g, name: str) -> np.ndarray:
+    """``(8, 3)`` the corners (base frame) of the planner's box around the built-in part ``name`` held by the planned
+    grasp ``g`` (axis-aligned in the TCP frame), at its place pose."""
+    T_base_obj = g.T_base_place @ invert(g.T_base_grasp) @ g.T_base_obj
+    lo, hi = part_box_tcp(g.T_base_place[None], T_base_obj, builtin_part(name).bounds_m)[0]
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return transform_points(g.T_base_place, corners)
+
+
+def _held_box_centre(g, name: str = "hex_nut") -> np.ndarray:
+    return _held_box_base(g, name).mean(axis=0)
 
 
 def test_bad_settings_and_inputs_are_refused_with_the_field_name(planner):
