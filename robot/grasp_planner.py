@@ -79,6 +79,8 @@ log = logging.getLogger(__name__)
 
 _DOWN = np.array([0.0, 0.0, -1.0])
 _SURFACE_SAMPLES = 2000  # per model: own-point test, neighbour obstacles, covered test
+_TOUCHED = -2  # the owner of the points where the gripper met something: no part (not even one they lie on)
+_TOUCH_GRID = 3  # points along each side of a finger's leading face
 _UNDER_FRACTION = 0.02  # a part with more of its top than this covered is "under" another: it is ranked after
 
 
@@ -147,6 +149,7 @@ class GraspPlanner:
         intrinsics: CameraIntrinsics | np.ndarray | None = None,
         q_seed: np.ndarray | None = None,
         place_slot: int = 0,
+        touches: Sequence[tuple[np.ndarray, float | None]] = (),
     ) -> GraspPlan:
         """Plans picks for the perception pipeline's poses (camera frame), with the depth frame when given.
 
@@ -157,6 +160,10 @@ class GraspPlanner:
             intrinsics: the depth frame's intrinsics (``CameraIntrinsics`` or 3x3 K); required with ``depth_m``.
             q_seed: the configuration IK solutions stay near (default ``q_reference``).
             place_slot: where on the place grid the part is let go (``PlannerConfig.place_pose_at``).
+            touches: where the gripper met something on earlier approaches, ``(T_base_tcp, opening_m)`` (the TCP
+                pose it stopped at, 4x4; the pads' opening, None: fully open): an obstacle the frame may not show (a
+                part perception did not pose, depth the camera left out). The fingers' leading faces there are kept
+                clear of like the depth's points, owned by no part (not even one whose surface they lie on).
         """
         start = time.perf_counter()
         T_base_camera = np.asarray(T_base_camera, dtype=float)
@@ -176,7 +183,7 @@ class GraspPlanner:
                 cfg.bin, depth_m, intrinsics, T_base_camera, cfg.depth_stride_px, cfg.bin_surface_tolerance_m
             )
         depth_s = time.perf_counter() - start
-        plan = self._plan(parts, cloud, q_seed, place_slot)
+        plan = self._plan(parts, cloud, q_seed, place_slot, touches)
         plan.timings_s["depth_cloud"] = depth_s
         plan.timings_s["total"] = time.perf_counter() - start
         return plan
@@ -187,16 +194,23 @@ class GraspPlanner:
         cloud_base: np.ndarray | None = None,
         q_seed: np.ndarray | None = None,
         place_slot: int = 0,
+        touches: Sequence[tuple[np.ndarray, float | None]] = (),
     ) -> GraspPlan:
         """Plans picks for parts given in the base frame, with an optional point cloud ``(n, 3)`` in the base frame
-        (the depth camera's points; the bin's own points are dropped here); ``place_slot`` as in ``plan``."""
+        (the depth camera's points; the bin's own points are dropped here); ``place_slot`` and ``touches`` as in
+        ``plan``."""
         cloud = None if cloud_base is None else np.asarray(cloud_base, dtype=float).reshape(-1, 3)
         if self.config.bin is not None and cloud is not None:
             cloud = self.config.bin.pile_points(cloud, self.config.bin_surface_tolerance_m)
-        return self._plan(parts, cloud, q_seed, place_slot)
+        return self._plan(parts, cloud, q_seed, place_slot, touches)
 
     def _plan(
-        self, parts: Sequence[PartEstimate], cloud: np.ndarray | None, q_seed: np.ndarray | None, place_slot: int
+        self,
+        parts: Sequence[PartEstimate],
+        cloud: np.ndarray | None,
+        q_seed: np.ndarray | None,
+        place_slot: int,
+        touches: Sequence[tuple[np.ndarray, float | None]] = (),
     ) -> GraspPlan:
         """``plan_parts`` for a cloud that holds only the pile (no bin points)."""
         cfg = self.config
@@ -209,6 +223,10 @@ class GraspPlanner:
 
         surfaces = [self.surface_base(p) for p in parts]
         obstacles, owner = scene_obstacles(cloud, surfaces, cfg.own_points_tolerance_m)
+        if touches:
+            touched = np.concatenate([self._touched_points(T, opening) for T, opening in touches])
+            obstacles = np.concatenate([obstacles, touched])
+            owner = np.concatenate([owner, np.full(len(touched), _TOUCHED)])
         tops = np.array([s[:, 2].max() if s is not None else np.nan for s in surfaces])
         known = tops[np.isfinite(tops)]
         z_low = float(known.min()) if len(known) else 0.0
@@ -323,10 +341,13 @@ class GraspPlanner:
             and np.linalg.norm(other.T_base_obj[:3, 3] - part.T_base_obj[:3, 3])
             < cfg.duplicate_distance_ratio * data.model.diameter_m
         ]
-        obstacles = scene_obstacles[~np.isin(owner, duplicates)]
+        kept = ~np.isin(owner, duplicates)
+        obstacles = scene_obstacles[kept]
+        # a touch says where the gripper met something, not that it lies on this part
         covered = covered_fraction(
-            data.surface, data.normals, part.T_base_obj, obstacles, -self._down, cfg.cover_tolerance_m
-        )
+            data.surface, data.normals, part.T_base_obj, obstacles[owner[kept] != _TOUCHED], -self._down,
+            cfg.cover_tolerance_m,
+        )  # fmt: skip
         report["covered_fraction"] = covered
         if covered > cfg.max_covered_fraction:
             return part_level("covered", n)
@@ -468,6 +489,21 @@ class GraspPlanner:
         return cfg.bin.pile_area_m2(
             depth_m, intrinsics, T_base_camera, cfg.depth_stride_px, cfg.bin_surface_tolerance_m
         )
+
+    def _touched_points(self, T_base_tcp: np.ndarray, opening_m: float | None) -> np.ndarray:
+        """``(n, 3)`` base frame: a grid on the leading faces (along the approach, the TCP's +z) of the pads and the
+        finger links, opened to ``opening_m`` (None: the stroke), at the TCP pose where the gripper met something."""
+        g = self.config.gripper
+        boxes = g.boxes(g.stroke_m if opening_m is None else opening_m)[FINGER_BOXES]  # (4, 2, 3) TCP frame
+        s = np.linspace(0.0, 1.0, _TOUCH_GRID)
+        u, v = (a.ravel() for a in np.meshgrid(s, s))
+        lo, hi = boxes[:, 0], boxes[:, 1]
+        points = np.stack(
+            [lo[:, None, 0] + u * (hi - lo)[:, None, 0], lo[:, None, 1] + v * (hi - lo)[:, None, 1],
+             np.broadcast_to(hi[:, None, 2], (len(boxes), len(u)))],
+            axis=-1,
+        ).reshape(-1, 3)  # fmt: skip
+        return transform_points(np.asarray(T_base_tcp, dtype=float), points)
 
     def surface_base(self, part: PartEstimate) -> np.ndarray | None:
         """``(n, 3)`` a sample of the part's surface in the base frame (None: no model for its id)."""

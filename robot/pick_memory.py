@@ -1,7 +1,8 @@
 """``PartMemory``: what the pick cycle remembers of earlier cycles, per part location (a model, and a position in the
 robot base frame within ``exclusion_distance_m``: a part that moved is a new chance): the failed attempts (after
 ``max_failures_per_part`` parts there are given up), the nudges (at most ``max_nudges`` per run and
-``max_nudges_per_part`` per location), and the last pick, checked in the next look (``still_there_distance_m``)."""
+``max_nudges_per_part`` per location), the last pick, checked in the next look (``still_there_distance_m``), and
+where the gripper met something on an approach (``touches``, which the next plans keep clear of)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,10 @@ from robot.pick_protocols import PoseLike
 from robot.pick_report import Attempt, Outcome
 
 log = logging.getLogger(__name__)
+
+#: A touch is forgotten once a part is picked this close to where the gripper stopped (m, horizontally): the part
+#: picked may have been what it met. About a part's size; a touch is also forgotten with the run.
+TOUCH_FORGET_M = 0.05
 
 #: Outcomes that count against a part's location: a dropped connection or a blocked gripper says nothing about the
 #: part, and a part dropped on the way to the tray has left that location.
@@ -34,12 +39,20 @@ class PartMemory:
         self._failed_at = _LocationCounts(config.exclusion_distance_m)
         self._nudged_at = _LocationCounts(config.exclusion_distance_m)
         self._last_picked: Attempt | None = None
+        self.touches: list[tuple[np.ndarray, float | None]] = []
 
     def clear(self) -> None:
         """Forgets earlier runs."""
         self._failed_at.clear()
         self._nudged_at.clear()
         self._last_picked = None
+        self.touches.clear()
+
+    # --- touches -----------------------------------------------------------------------------------------------
+    def add_touch(self, T_base_tcp: np.ndarray, opening_m: float | None) -> None:
+        """Where an approach stopped on contact: the TCP pose (4x4, base frame) and the pads' opening (m; None:
+        fully open)."""
+        self.touches.append((np.array(T_base_tcp, dtype=float), opening_m))
 
     # --- failures ----------------------------------------------------------------------------------------------
     def count_failure(self, attempt: Attempt) -> None:
@@ -72,7 +85,11 @@ class PartMemory:
 
     # --- the last pick -----------------------------------------------------------------------------------------
     def remember_pick(self, attempt: Attempt) -> None:
+        """The last pick (checked in the next look); the touches near its part are forgotten."""
         self._last_picked = attempt
+        if attempt.T_base_obj is not None:
+            picked = np.asarray(attempt.T_base_obj)[:2, 3]
+            self.touches = [t for t in self.touches if np.linalg.norm(t[0][:2, 3] - picked) >= TOUCH_FORGET_M]
 
     def look_after_last_pick(self, poses: Sequence[PoseLike]) -> None:
         """The look after lifting: a part of the picked model still where the picked one was means it is not gone

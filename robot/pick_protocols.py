@@ -165,6 +165,7 @@ class PlannerLike(Protocol):
         intrinsics: Any = None,
         q_seed: np.ndarray | None = None,
         place_slot: int = 0,
+        touches: Sequence[tuple[np.ndarray, float | None]] = (),
     ) -> PlanLike: ...
 
     def pile_area_m2(self, depth_m: np.ndarray, intrinsics: Any, T_base_camera: np.ndarray) -> float: ...

@@ -366,8 +366,9 @@ class Picker:
         frame = c.frame
         with c.timer(Stage.PLAN):
             c.plan = self.planner.plan(
-                c.poses, self.T_base_camera, frame.depth_m, frame.intrinsics, self.robot.q(), self.n_placed
-            )
+                c.poses, self.T_base_camera, frame.depth_m, frame.intrinsics, self.robot.q(), self.n_placed,
+                touches=self.memory.touches,
+            )  # fmt: skip
         return _S.REFINE if c.plan.nothing_safe else _S.DECIDE
 
     def _refine(self, c: _Cycle) -> CycleState:
@@ -505,7 +506,9 @@ class Picker:
                     break
             else:
                 return _S.GRASP
-            # a finger met something the plan did not expect: back out along the approach, fingers still open
+            # a finger met something the plan did not expect: remember where (the next plans keep clear of it), and
+            # back out along the approach, fingers still open
+            self.memory.add_touch(down.T_base_tcp, c.opening)
             self.robot.move_l(grasp.T_base_lift, cfg.approach_speed_m_s, cfg.approach_accel_m_s2)
         short = float(np.linalg.norm(down.T_base_tcp[:3, 3] - grasp.T_base_grasp[:3, 3]))
         guard = cfg.approach_max_force_n

@@ -17,6 +17,7 @@ from robot.grasp_candidates import antipodal_grasps, deduplicate, expand_by_symm
 from robot.grasp_config import PlannerConfig
 from robot.grasp_geometry import (
     ELBOW_LINKS,
+    FINGER_BOXES,
     WRIST_LINKS,
     GripperGeometry,
     lowest_elbow_point_m,
@@ -733,6 +734,34 @@ def _held_box_base(g, name: str) -> np.ndarray:
 
 def _held_box_centre(g, name: str = "hex_nut") -> np.ndarray:
     return _held_box_base(g, name).mean(axis=0)
+
+
+def test_where_the_gripper_met_something_the_next_plan_keeps_its_fingers_clear_of(planner):
+    """A touch (the TCP pose an approach stopped at on contact, the pads' opening) is an obstacle owned by no part:
+    the replanned grasps keep the fingers, along their line down, ``clearance_m`` from the leading faces of the
+    fingers where they stopped, even though those lie beside the part's own surface; the part does not count as
+    covered by it."""
+    cfg = planner.config
+    part = PartEstimate(5, _lying_pipe(-0.45, 0.03, (1.0, 0.3)), 0.9)  # 50 mm long: grasps all along it
+    before = planner.plan_parts([part])
+    g = before.best
+    T_stop = g.T_base_grasp @ make_T(t=(0.0, 0.0, -0.006))  # 6 mm short of the grasp
+    after = planner.plan_parts([part], touches=[(T_stop, g.opening_width_m)])
+    assert after.grasps, after.summary()
+    assert after.parts[0].covered_fraction == before.parts[0].covered_fraction
+    fingers = cfg.gripper.boxes(g.opening_width_m)[FINGER_BOXES]
+    lo, hi = fingers[:, 0], fingers[:, 1]
+    faces = np.array(
+        [[x, y, h[2]] for lo_, h in zip(lo, hi, strict=True) for x in (lo_[0], h[0]) for y in (lo_[1], h[1])]
+    )
+    touched = transform_points(T_stop, faces)
+    for k in after.grasps:
+        for T in (k.T_base_pregrasp, k.T_base_grasp):
+            local = transform_points(invert(T), touched)[None]
+            boxes = cfg.gripper.boxes(k.opening_width_m)[FINGER_BOXES][None]
+            assert points_box_distance_m(local, boxes)[0] >= cfg.clearance_m - 1e-9
+    # the grasp before is no longer planned as it was
+    assert not any(np.allclose(k.T_base_grasp, g.T_base_grasp) for k in after.grasps)
 
 
 def test_bad_settings_and_inputs_are_refused_with_the_field_name(planner):

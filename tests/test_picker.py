@@ -16,7 +16,8 @@ from perception.results import Detection, ObjectPose
 from robot.cell_setup import load_cell_setup
 from robot.pick_arm import approach_legs
 from robot.pick_config import PickerConfig
-from robot.pick_report import CycleEnd, Outcome, StopReason, nothing_posed_reason
+from robot.pick_memory import TOUCH_FORGET_M, PartMemory
+from robot.pick_report import Attempt, CycleEnd, Outcome, Stage, StopReason, nothing_posed_reason
 from robot.pick_states import TRANSITIONS, CycleState
 from robot.picker import Picker
 from robot.ur_errors import (
@@ -101,7 +102,7 @@ class FakePlanner:
     def __init__(self, nothing_safe: bool = False) -> None:
         self.nothing_safe = nothing_safe
 
-    def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+    def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
         grasps = (
             []
             if self.nothing_safe
@@ -342,7 +343,7 @@ def test_the_planner_gets_the_depth_the_poses_were_fitted_in():
             super().__init__()
             self.depths: list = []
 
-        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
             self.depths.append(depth_m)
             return super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
 
@@ -379,7 +380,7 @@ def test_nothing_safe_among_the_refined_parts_refines_the_skipped_ones_and_plans
                     if i == first else p for i, p in enumerate(poses)]  # fmt: skip
 
     class RefinedOnly(FakePlanner):
-        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
             refined = [p if p.details["icp"]["status"] == "refined" else None for p in poses]
             grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3]) for i, p in enumerate(refined) if p]
             return FakePlan(grasps, n_in_bin=len(poses))
@@ -401,7 +402,7 @@ def test_nothing_safe_with_refused_poses_looks_again_before_it_stops():
     """Nothing safe to pick (the part at x < 0 lies at a wall) and a pose refused: a new frame may confirm it."""
 
     class WallPlanner(FakePlanner):
-        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
             grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3])
                       for i, p in enumerate(poses) if p.T_camera_object[0, 3] >= 0]  # fmt: skip
             return FakePlan(grasps, "nothing safe: part 0: collision_bin", n_in_bin=len(poses))
@@ -447,7 +448,7 @@ def test_parts_the_detector_misses_are_rescued_once_a_cycle_when_the_look_would_
     assert [c.n_rescued for c in report.cycles] == [0, 2, 1, 0]
 
     class Unsafe(FakePlanner):  # nothing safe among the posed parts: the rescued one is planned with them
-        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
             grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3]) for i, p in enumerate(poses)
                       if p.T_camera_object[0, 3] != 0.0]  # fmt: skip
             return FakePlan(grasps, "part at 0.0: collision_bin", n_in_bin=len(poses))
@@ -460,7 +461,7 @@ def test_parts_the_detector_misses_are_rescued_once_a_cycle_when_the_look_would_
 
 def test_parts_seen_only_outside_the_bin_mean_the_bin_is_empty():
     class OutsidePlanner(FakePlanner):
-        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
             parts = [type("P", (), {"status": "outside_bin"})() for _ in poses]
             return FakePlan([], "nothing safe: part 0: outside_bin", n_in_bin=0, parts=parts)
 
@@ -523,6 +524,39 @@ def test_a_finger_meeting_a_part_on_the_guarded_approach_stops_backs_out_and_the
     assert [a.outcome for a in picker.run().attempts] == ["picked"]
     with pytest.raises(ConfigError, match="approach_max_force_n must be > 0"):
         PickerConfig(approach_max_force_n=0.0)
+
+
+def test_where_a_finger_met_something_later_plans_keep_clear_of_until_a_part_there_is_picked():
+    """A contact on the approach is remembered as a touch (the TCP pose the arm stopped at, the pads' opening) and
+    handed to the plans after it; a pick of a part within ``TOUCH_FORGET_M`` of it forgets it (that part may have been
+    what the fingers met), a pick further away does not, and a new run starts with none."""
+    picker, _ = make_picker(FakeBin([0.0, 0.2]), contact_once_x=0.0)
+    handed: list[list] = []
+    plan = picker.planner.plan
+
+    def spy(*args, touches=(), **kwargs):
+        handed.append([(np.array(T), opening) for T, opening in touches])
+        return plan(*args, touches=touches, **kwargs)
+
+    picker.planner.plan = spy
+    report = picker.run()
+    assert [a.outcome for a in report.attempts] == ["contact", "picked", "picked"]
+    assert [len(t) for t in handed] == [0, 1, 0]  # the part at x 0 picked in the second cycle: the touch forgotten
+    ((T_touch, opening),) = handed[1]
+    np.testing.assert_allclose(T_touch[:3, 3], [0.0, 0.0, 0.112])  # 12 mm short of the grasp, where the arm stopped
+    assert opening == pytest.approx(picker.fingers.grasp_opening(FakeGrasp(0, 1, np.eye(4), 0.0)))
+
+    memory = PartMemory(PickerConfig(), np.eye(4))
+    memory.add_touch(make_T(t=(0.0, 0.0, 0.1)), None)
+    far = Attempt(0, 1, Outcome.PICKED, Stage.VERIFY, T_base_obj=make_T(t=(TOUCH_FORGET_M, 0.0, 0.0)).tolist())
+    memory.remember_pick(far)
+    assert len(memory.touches) == 1
+    near = Attempt(0, 1, Outcome.PICKED, Stage.VERIFY, T_base_obj=make_T(t=(0.03, 0.03, 0.0)).tolist())
+    memory.remember_pick(near)
+    assert memory.touches == []
+    memory.add_touch(make_T(t=(0.0, 0.0, 0.1)), None)
+    memory.clear()
+    assert memory.touches == []
 
 
 def test_the_last_stretch_of_the_approach_runs_at_the_final_speed():
@@ -611,7 +645,7 @@ def test_each_part_let_go_moves_the_next_pick_to_the_next_place_slot():
             super().__init__()
             self.slots: list[int] = []
 
-        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
             self.slots.append(place_slot)
             return super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
 
@@ -703,7 +737,7 @@ def test_a_part_held_at_another_of_its_widths_is_placed_not_dropped():
     dropped back as slipped."""
 
     class WideGrasps(FakePlanner):
-        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
             plan = super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
             for g in plan.grasps:
                 g.grasp_width_m = 0.03
@@ -736,7 +770,7 @@ def test_fingers_closed_below_the_parts_narrowest_hold_are_a_slip():
 class SheetGrasps(FakePlanner):
     """Pinches of a 2 mm sheet (an L-bracket standing on its edges)."""
 
-    def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+    def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
         plan = super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
         for g in plan.grasps:
             g.grasp_width_m = g.min_hold_width_m = 0.002
@@ -860,7 +894,7 @@ def test_a_failing_part_found_again_by_refine_more_is_given_up():
                                {"icp": {"status": "refined"}}) for p in poses]  # fmt: skip
 
     class RefinedOnly(FakePlanner):
-        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+        def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
             grasps = [FakeGrasp(i, 1, p.T_camera_object, p.T_camera_object[0, 3])
                       for i, p in enumerate(poses) if p.details["icp"]["status"] == "refined"]  # fmt: skip
             return FakePlan(grasps, n_in_bin=len(poses))
@@ -956,7 +990,7 @@ def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
 class WallPlanner(FakePlanner):
     """Nothing is safe while a part lies at x < 0 (against the wall); then one grasp per part."""
 
-    def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0):
+    def plan(self, poses, T_base_camera, depth_m=None, intrinsics=None, q_seed=None, place_slot=0, touches=()):
         self.nothing_safe = any(p.T_camera_object[0, 3] < 0 for p in poses)
         return super().plan(poses, T_base_camera, depth_m, intrinsics, q_seed)
 
