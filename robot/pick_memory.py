@@ -19,7 +19,7 @@ from robot.pick_report import Attempt, Outcome
 log = logging.getLogger(__name__)
 
 #: A touch is forgotten once a part is picked this close to where the gripper stopped (m, horizontally): the part
-#: picked may have been what it met. About a part's size; a touch is also forgotten with the run.
+#: picked may have been what it met. About a part's size; ``clear`` forgets every touch.
 TOUCH_FORGET_M = 0.05
 
 #: Outcomes that count against a part's location: a dropped connection or a blocked gripper says nothing about the

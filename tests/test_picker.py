@@ -529,7 +529,7 @@ def test_a_finger_meeting_a_part_on_the_guarded_approach_stops_backs_out_and_the
 def test_where_a_finger_met_something_later_plans_keep_clear_of_until_a_part_there_is_picked():
     """A contact on the approach is remembered as a touch (the TCP pose the arm stopped at, the pads' opening) and
     handed to the plans after it; a pick of a part within ``TOUCH_FORGET_M`` of it forgets it (that part may have been
-    what the fingers met), a pick further away does not, and a new run starts with none."""
+    what the fingers met), a pick further away does not, and ``PartMemory.clear`` forgets every one."""
     picker, _ = make_picker(FakeBin([0.0, 0.2]), contact_once_x=0.0)
     handed: list[list] = []
     plan = picker.planner.plan
