@@ -497,12 +497,9 @@ class GraspPlanner:
         boxes = g.boxes(g.stroke_m if opening_m is None else opening_m)[FINGER_BOXES]  # (4, 2, 3) TCP frame
         s = np.linspace(0.0, 1.0, _TOUCH_GRID)
         u, v = (a.ravel() for a in np.meshgrid(s, s))
-        lo, hi = boxes[:, 0], boxes[:, 1]
-        points = np.stack(
-            [lo[:, None, 0] + u * (hi - lo)[:, None, 0], lo[:, None, 1] + v * (hi - lo)[:, None, 1],
-             np.broadcast_to(hi[:, None, 2], (len(boxes), len(u)))],
-            axis=-1,
-        ).reshape(-1, 3)  # fmt: skip
+        shares = np.stack([u, v, np.ones_like(u)], axis=-1)  # across each face in x and y, at the box's far z
+        lo, hi = boxes[:, None, 0], boxes[:, None, 1]
+        points = (lo + shares * (hi - lo)).reshape(-1, 3)
         return transform_points(np.asarray(T_base_tcp, dtype=float), points)
 
     def surface_base(self, part: PartEstimate) -> np.ndarray | None:

@@ -20,6 +20,7 @@ from robot.grasp_geometry import (
     FINGER_BOXES,
     WRIST_LINKS,
     GripperGeometry,
+    box_corners,
     lowest_elbow_point_m,
     obb_gap_m,
     part_box_tcp,
@@ -727,9 +728,8 @@ def _held_box_base(g, name: str) -> np.ndarray:
     """``(8, 3)`` the corners (base frame) of the planner's box around the built-in part ``name`` held by the planned
     grasp ``g`` (axis-aligned in the TCP frame), at its place pose."""
     T_base_obj = g.T_base_place @ invert(g.T_base_grasp) @ g.T_base_obj
-    lo, hi = part_box_tcp(g.T_base_place[None], T_base_obj, builtin_part(name).bounds_m)[0]
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    return transform_points(g.T_base_place, corners)
+    box = part_box_tcp(g.T_base_place[None], T_base_obj, builtin_part(name).bounds_m)
+    return transform_points(g.T_base_place, box_corners(box))
 
 
 def _held_box_centre(g, name: str = "hex_nut") -> np.ndarray:
