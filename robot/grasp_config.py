@@ -108,8 +108,10 @@ class PlannerConfig:
     lift_height_m: float = 0.15
     rim_clearance_m: float = 0.01
     T_base_place: np.ndarray = field(default_factory=_default_place_pose)
-    place_grid: tuple[int, int] = (3, 2)  # the simulated tray's 0.24 x 0.16 m floor: three along x, two along y
-    place_pitch_m: tuple[float, float] = (0.06, 0.05)
+    # the simulated tray's 0.24 x 0.16 m floor: four along x, three along y, so that a bin of 10 parts lands without
+    # stacking (a part let go on one before can come to rest above the tray's rim: an L-bracket on an upright bolt)
+    place_grid: tuple[int, int] = (4, 3)
+    place_pitch_m: tuple[float, float] = (0.05, 0.04)
     transit_clearance_m: float | None = 0.005
     min_elbow_height_m: float | None = 0.06
     transit_step_rad: float = 0.02

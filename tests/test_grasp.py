@@ -690,10 +690,13 @@ def test_successive_picks_are_let_go_side_by_side_over_the_simulated_tray(planne
     assert gaps.min() >= min(cfg.place_pitch_m) - 1e-9
     np.testing.assert_allclose(slots[:, 2], cfg.T_base_place[2, 3])
     np.testing.assert_allclose(slots.mean(axis=0), cfg.T_base_place[:3, 3], atol=1e-12)
-    # a held part (up to 45 mm from the pads' centre) let go at any slot lands inside the tray's floor
+    # the held part's box is centred on its slot: the longest built-in part (an L-bracket, 57 mm) at any slot, either
+    # way round, lies inside the tray's floor with 10 mm to spare for its bounce; a 10-part bin needs no slot twice
     T_base_tray = invert(cell.T_world_base) @ cell.T_world_tray
     half = np.array(cell.tray_inner_size_m[:2]) / 2
-    assert np.all(np.abs(slots[:, :2] - T_base_tray[:2, 3]) + 0.045 <= half)
+    reach = builtin_part("l_bracket").mesh.extents.max() / 2 + 0.010
+    assert np.all(np.abs(slots[:, :2] - T_base_tray[:2, 3]) + reach <= half)
+    assert nx * ny >= 10
     # the grid repeats, and the planned pick lets go at the slot asked for, pointing down
     np.testing.assert_allclose(cfg.place_pose_at(nx * ny + 4), cfg.place_pose_at(4))
     plan = planner.plan_parts([PartEstimate(1, _flat("hex_nut", -0.45, 0.03, yaw_rad=1.0), 0.9)], place_slot=4)

@@ -974,8 +974,8 @@ def test_the_bin_and_place_pose_come_from_the_cell_file(tmp_path):
         ("[0, 0, 1, 0.02]", "[0, 0, 2, 0.02]", r"bad\.toml: \[bin\]: BinGeometry\.T_base_bin must be a 4x4 rigid"),
         ("[0, -1, 0, -0.42]", "[0, -1, 0, -0.42, 1]", r"bad\.toml.*place\.T_base_place"),
         ("wall_thickness_m = 0.01", "wall_thickness_m = -0.01", r"bad\.toml.*bin\.wall_thickness_m"),
-        ("grid = [3, 2]", "grid = [3, 0]", r"bad\.toml: place\.grid\[1\]: must be >= 1, got 0"),
-        ("pitch_m = [0.06, 0.05]", "pitch_m = [0.06]", r"bad\.toml.*place\.pitch_m"),
+        ("grid = [4, 3]", "grid = [4, 0]", r"bad\.toml: place\.grid\[1\]: must be >= 1, got 0"),
+        ("pitch_m = [0.05, 0.04]", "pitch_m = [0.05]", r"bad\.toml.*place\.pitch_m"),
         ("floor_clearance_m = 0.002", "floor_clearance = 0.002", r"bad\.toml: \[planner\]: .*floor_clearance"),
     ]:
         bad = tmp_path / "bad.toml"
