@@ -108,8 +108,7 @@ class PlannerConfig:
     lift_height_m: float = 0.15
     rim_clearance_m: float = 0.01
     T_base_place: np.ndarray = field(default_factory=_default_place_pose)
-    # the simulated tray's 0.24 x 0.16 m floor: four along x, three along y, so that a bin of 10 parts lands without
-    # stacking (a part let go on one before can come to rest above the tray's rim: an L-bracket on an upright bolt)
+    # the simulated tray's 0.24 x 0.16 m floor: four along x, three along y, a slot for each part of a 10-part bin
     place_grid: tuple[int, int] = (4, 3)
     place_pitch_m: tuple[float, float] = (0.05, 0.04)
     transit_clearance_m: float | None = 0.005
